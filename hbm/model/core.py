@@ -362,11 +362,22 @@ class Model:
     def _elastic(self, p: Mapping[str, np.ndarray], loading: Loading) -> Callable[[np.ndarray], np.ndarray]:
         elastic = [e for e in self.effects if e.stage == "elastic"]
 
+        shape_p = np.broadcast_shapes(*(v.shape for v in p.values()))
+
         def f(eps: np.ndarray) -> np.ndarray:
             state = State(eps, loading)
-            total = np.zeros(np.broadcast_shapes(eps.shape, *(v.shape for v in p.values())))
+            shape = np.broadcast_shapes(eps.shape, shape_p)
+            total = None
             for e in elastic:
-                total = total + e.stress(state, p)
+                s = e.stress(state, p)
+                if total is None and (s is eps or any(s is v for v in state._cache.values())):
+                    s = s.copy()  # never accumulate into the cached kinematics
+                # first contribution is fresh memory owned by us: accumulate in place after it
+                total = s if total is None else np.add(total, s, out=total if total.shape == shape else None)
+            if total is None:
+                return np.zeros(shape)
+            if total.shape != shape:
+                total = np.broadcast_to(total, shape).copy()
             return total
 
         return f
@@ -390,8 +401,9 @@ class Model:
         loading = self._loading(strain, time, test)
         p = self._params(theta)
         elastic = self._elastic(p, loading)
-        eps = np.broadcast_to(loading.strain, np.shape(theta)[:-1] + (loading.n_points,))
-        state = State(eps, loading)
+        # the strain stays 1-D (n_points,) until an effect needs it per sample: broadcasting
+        # against the (..., 1) parameters then costs one pass instead of materialising copies
+        state = State(loading.strain, loading)
         for e in self.effects:
             if e.stage == "kinematics":
                 state = state.with_strain(e.strain(state, p, elastic))
@@ -421,14 +433,14 @@ class Model:
         theta = np.asarray(theta, dtype=float)
         if self.has_analytic_jacobian:
             p = self._params(theta)
-            state = State(np.broadcast_to(loading.strain, theta.shape[:-1] + (loading.n_points,)), loading)
+            state = State(loading.strain, loading)
             jac = np.zeros(theta.shape[:-1] + (loading.n_points, self.n_params))
             for e in self.effects:
                 d = e.stress_jacobian(state, p)
                 if d is None:  # pragma: no cover - guarded by has_analytic_jacobian
                     break
                 for k, v in d.items():
-                    jac[..., self.index(k)] += v
+                    jac[..., self.index(k)] += v  # broadcasts (n_points,) or (..., n_points)
             else:
                 return jac
         h = fd_step * (self.bounds[:, 1] - self.bounds[:, 0])

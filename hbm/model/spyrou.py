@@ -85,7 +85,11 @@ class PassiveFibers(Effect):
     description = "linear passive myofibers beyond the optimal strain EOPT"
 
     def stress(self, state, p):
-        return state.lam * p["VOLF"] * p["P1"] * np.maximum(state.eps - p["EOPT"], 0.0)
+        f = state.eps - p["EOPT"]
+        np.maximum(f, 0.0, out=f)
+        f *= p["VOLF"] * p["P1"]
+        f *= state.lam
+        return f
 
     def stress_jacobian(self, state, p):
         lam, c, p1 = state.lam, p["VOLF"], p["P1"]
@@ -111,8 +115,20 @@ class HelicalCollagen(Effect):
         return lam, lh, x, e
 
     def stress(self, state, p):
-        lam, _, _, e = self._parts(state, p)
-        return lam * (1.0 - p["VOLF"]) * p["T1"] * (e - 1.0)
+        # hot path (called for every particle of every MCMC step): in-place, expm1,
+        # λH² = cos²θ·(λ² − 1/λ) + 1/λ reuses the cached neo-Hookean factor
+        c2 = np.cos(np.deg2rad(p["THETA"])) ** 2
+        x = c2 * state.neo_hookean
+        x += 1.0 / state.lam
+        np.sqrt(x, out=x)
+        x -= 1.0
+        np.maximum(x, 0.0, out=x)
+        x *= p["T2"]
+        np.minimum(x, _EXP_CLIP, out=x)
+        np.expm1(x, out=x)
+        x *= (1.0 - p["VOLF"]) * p["T1"]
+        x *= state.lam
+        return x
 
     def stress_jacobian(self, state, p):
         lam, lh, x, e = self._parts(state, p)
