@@ -1,0 +1,100 @@
+"""``hbm data``: specimen data utilities (``hbm data check PATH...``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..errors import DataError, HbmError
+
+CHECK_DESCRIPTION = """\
+Validate specimen CSV files and print a summary table.
+
+PATH may be a CSV file or a folder (all *.csv in it, not recursive).  Every file is checked;
+each bad file is reported on one line (file, line, column, what was expected) and the exit
+status is 2 if any file failed, 0 otherwise.
+
+CSV format: optional '# key: value' metadata lines, then a header with strain,stress
+(engineering strain, Cauchy stress in MPa) and optional time (s) and test (integer) columns.
+"""
+
+
+def register(subparsers) -> None:
+    """Add ``data`` (with its ``check`` sub-subcommand) to the ``hbm`` parser."""
+    parser = subparsers.add_parser("data", help="specimen data utilities (check CSV files)",
+                                   description="Specimen data utilities.",
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="data_command", metavar="ACTION")
+    check = sub.add_parser("check", help="validate specimen CSV files and print a summary",
+                           description=CHECK_DESCRIPTION,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    check.add_argument("paths", nargs="+", metavar="PATH", help="CSV file or folder of CSV files")
+    check.set_defaults(func=run_check)
+    parser.set_defaults(func=lambda args: _usage(parser))
+
+
+def _usage(parser: argparse.ArgumentParser) -> int:
+    parser.print_help(sys.stderr)
+    return 2
+
+
+def _files(paths: list[str], errors: list[str]) -> list[Path]:
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(p.glob("*.csv"))
+            if not found:
+                errors.append(f"{p}: no *.csv files, expected at least one specimen file")
+            files.extend(found)
+        elif p.exists():
+            files.append(p)
+        else:
+            errors.append(f"{p}: no such file or folder")
+    return files
+
+
+def _row(ds) -> list[str]:
+    from ..data import provenance
+
+    strain, stress = ds["strain"].values, ds["stress"].values
+    tests = str(len(set(ds["test"].values.tolist()))) if "test" in ds else "1"
+    source = str(ds.attrs.get("citation") or ds.attrs.get("source") or "")
+    if len(source) > 48:
+        source = source[:45] + "..."
+    return [str(ds.attrs["id"]), str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
+            f"{stress.max():.4g}", tests, "yes" if "time" in ds else "-", provenance(ds), source]
+
+
+def run_check(args: argparse.Namespace) -> int:
+    """Check every file, print the table of good ones and one line per bad one."""
+    from ..data import load_specimen
+
+    errors: list[str] = []
+    rows: list[list[str]] = []
+    ids: dict[str, str] = {}
+    for f in _files(args.paths, errors):
+        try:
+            ds = load_specimen(f)
+        except HbmError as exc:
+            errors.append(str(exc))
+            continue
+        sid = ds.attrs["id"]
+        if sid in ids:
+            errors.append(str(DataError(f"{f}: duplicate specimen id {sid!r} (also in {ids[sid]}), "
+                                        "expected unique ids")))
+            continue
+        ids[sid] = str(f)
+        rows.append(_row(ds))
+    if rows:
+        head = ["id", "points", "strain", "max stress [MPa]", "tests", "time", "provenance", "source"]
+        widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
+        line = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
+        print(line(head))
+        print("  ".join("-" * w for w in widths))
+        for r in rows:
+            print(line(r))
+        print(f"{len(rows)} specimen(s) OK" + (f", {len(errors)} failed" if errors else ""))
+    for e in errors:
+        print(f"hbm: error: {e}", file=sys.stderr)
+    return 2 if errors else 0
