@@ -1,0 +1,461 @@
+"""Vectorised log-likelihoods of a stress-strain curve under several noise models.
+
+A :class:`Likelihood` maps a population ``theta`` of shape ``(n, d)`` -- the free model
+parameters (model order) followed by the noise parameters -- to ``n`` log-likelihood values in
+one call of the model.  Points outside the box, or whose evaluation is not finite, get
+``-inf`` (never NaN, never an exception), so samplers and optimisers can use it blindly.
+
+Noise models (``r = data − model``)
+-----------------------------------
+``"iid"``
+    r_i ~ N(0, sigma²) independent (thesis eq. 1.23).  Noise parameter ``sigma`` (MPa).
+``"weighted"``
+    r_i ~ N(0, (scale·σ_e,i)²) with the thesis's weights σ_e,i = max(max|σ_exp|/10, |σ_exp,i|)
+    (eqs. 1.19–1.20).  Noise parameter ``scale`` (dimensionless); its MAP is the weighted
+    least-squares optimum of eq. 1.19.
+``"proportional"``
+    r_i ~ N(0, sigma² + (sigma_rel·|model_i|)²).  Noise parameters ``sigma``, ``sigma_rel``.
+``"ar1"``
+    r follows a stationary AR(1) process along the point order, restarted at the start of each
+    loading history: r_1 ~ N(0, sigma²), r_t = rho·r_{t−1} + u_t, u_t ~ N(0, sigma²(1−rho²)).
+    ``sigma`` is the marginal sd, ``rho`` in [0, 0.99].  The exact likelihood is evaluated
+    through the innovations u_t (vectorised over points and particles).
+
+Gradients and Fisher information
+--------------------------------
+:meth:`Likelihood.gradient_fim` returns the exact gradient of the log-likelihood and the
+expected Fisher information of the Gaussian noise model, built from the model Jacobian
+(``model.stress_jacobian``, analytic for the base model).  For a Gaussian with mean m(θ) and
+diagonal variance v(θ): F = Jmᵀ V⁻¹ Jm + ½ Σ_i ∇v_i ∇v_iᵀ / v_i².  For AR(1) the mean part uses
+the whitened Jacobian K_t = J_t − rho·J_{t−1} and the (sigma, rho) block is
+F_σσ = 2n/σ², F_σρ = −2ρ(n−h)/(σ(1−ρ²)), F_ρρ = (n−h)(1+ρ²)/(1−ρ²)² (h = number of histories).
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from .errors import DataError, HbmError
+from .model.core import Loading, Model
+
+NOISE_MODELS = ("iid", "weighted", "proportional", "ar1")
+_LOG2PI = float(np.log(2.0 * np.pi))
+
+
+def _dataset_arrays(data) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None, str]:
+    """strain, stress, time, test and a label from an xarray Dataset (or a mapping)."""
+    label = "dataset"
+    try:
+        attrs = getattr(data, "attrs", {}) or {}
+        label = str(attrs.get("id", label))
+        names = set(getattr(data, "data_vars", data))
+    except Exception:  # pragma: no cover - defensive
+        raise HbmError("data must be an xarray.Dataset with variables 'strain' and 'stress'") from None
+    for v in ("strain", "stress"):
+        if v not in names:
+            raise DataError(f"{label}: missing variable {v!r} (need 'strain' and 'stress' along dim 'point')")
+    strain = np.asarray(data["strain"], dtype=float).ravel()
+    stress = np.asarray(data["stress"], dtype=float).ravel()
+    if strain.shape != stress.shape or strain.size == 0:
+        raise DataError(f"{label}: 'strain' and 'stress' must be non-empty and of equal length, "
+                        f"got {strain.size} and {stress.size}")
+    if not (np.isfinite(strain).all() and np.isfinite(stress).all()):
+        raise DataError(f"{label}: 'strain' and 'stress' must be finite numbers")
+    time = np.asarray(data["time"], dtype=float).ravel() if "time" in names else None
+    test = np.asarray(data["test"]).ravel() if "test" in names else None
+    return strain, stress, time, test, label
+
+
+class Likelihood:
+    """Log-likelihood of one specimen curve; built by :func:`make_likelihood`.
+
+    Attributes
+    ----------
+    names : tuple of str
+        Free parameters: free model parameters in model order, then the noise parameters.
+    bounds : ndarray (d, 2)
+        Box of the free parameters (the uniform prior's support).
+    model : Model
+    data : xarray.Dataset
+    noise : str
+    fixed : dict
+        Fixed model parameters and their values.
+    loading : Loading
+        Strain/time/test passed to the model (history effects see the whole path).
+    observed : ndarray (n_points,)
+        Measured stress (MPa).
+    weights : ndarray (n_points,)
+        σ_e,i = max(max|σ_exp|/10, |σ_exp,i|) of thesis eq. 1.20 (used by "weighted" and by
+        :meth:`wls`).
+    """
+
+    def __init__(self, model: Model, data, *, noise: str = "iid",
+                 fix: Mapping[str, float] | None = None,
+                 bounds: Mapping[str, tuple[float, float]] | None = None,
+                 sigma_bounds: tuple[float, float] | None = None) -> None:
+        if noise not in NOISE_MODELS:
+            raise HbmError(f"noise model must be one of {', '.join(NOISE_MODELS)}, got {noise!r}")
+        strain, stress, time, test, label = _dataset_arrays(data)
+        try:
+            self.loading = Loading(strain, time, test)
+        except ValueError as exc:
+            raise DataError(f"{label}: {exc}") from None
+        self.model = model
+        self.data = data
+        self.noise = noise
+        self.label = label
+        self.observed = stress
+        self.n_points = stress.size
+        smax = float(np.max(np.abs(stress)))
+        self.weights = np.maximum(smax / 10.0, np.abs(stress))
+        if not np.all(self.weights > 0):
+            raise DataError(f"{label}: stress is identically zero; the weights of eq. 1.20 are undefined")
+        self._inv_weights = 1.0 / self.weights
+        self._log_weights_sum = float(np.log(self.weights).sum())
+
+        names = model.parameter_names
+        box = model.bounds.copy()
+        fix = dict(fix or {})
+        bounds = dict(bounds or {})
+        for kind, d in (("fix", fix), ("bounds", bounds)):
+            unknown = [k for k in d if k not in names]
+            if unknown:
+                raise HbmError(f"{kind}: unknown parameter(s) {', '.join(unknown)}; "
+                               f"the model has {', '.join(names)}")
+        for k, (lo, hi) in bounds.items():
+            lo, hi = float(lo), float(hi)
+            i = model.index(k)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                raise HbmError(f"bounds: {k} needs finite LO < HI, got {lo}:{hi}")
+            if lo < box[i, 0] or hi > box[i, 1]:
+                raise HbmError(f"bounds: {k}={lo}:{hi} is outside the prior box "
+                               f"[{box[i, 0]:g}, {box[i, 1]:g}]")
+            box[i] = lo, hi
+        for k, v in fix.items():
+            v = float(v)
+            i = model.index(k)
+            if not (np.isfinite(v) and box[i, 0] <= v <= box[i, 1]):
+                raise HbmError(f"fix: {k}={v} is outside its box [{box[i, 0]:g}, {box[i, 1]:g}]")
+            fix[k] = v
+        self.fixed = fix
+        self.free_index = np.array([i for i, n in enumerate(names) if n not in fix], dtype=int)
+        self.model_names = tuple(names[i] for i in self.free_index)
+        self.n_model = len(self.model_names)
+        self._fixed_row = np.array([fix.get(n, np.nan) for n in names], dtype=float)
+        self._model_box = box  # all model parameters (fixed ones keep their box)
+
+        # noise parameters and their boxes
+        hi_sigma = max(0.05, 0.5 * smax)
+        if noise == "iid":
+            nb = {"sigma": (1e-4, hi_sigma)}
+        elif noise == "weighted":
+            nb = {"scale": (1e-4, 10.0)}
+        elif noise == "proportional":
+            nb = {"sigma": (1e-4, hi_sigma), "sigma_rel": (0.0, 0.5)}
+        else:
+            nb = {"sigma": (1e-4, hi_sigma), "rho": (0.0, 0.99)}
+        first = next(iter(nb))
+        if sigma_bounds is not None:
+            lo, hi = map(float, sigma_bounds)
+            if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+                raise HbmError(f"sigma_bounds: need 0 < LO < HI, got {lo}:{hi}")
+            nb[first] = (lo, hi)
+        self.noise_names = tuple(nb)
+        self.names = self.model_names + self.noise_names
+        self.bounds = np.vstack([box[self.free_index].reshape(-1, 2), np.array(list(nb.values()), float)])
+        self.d = len(self.names)
+        starts = self.loading.history_starts
+        self._cont = (~starts).astype(float)  # a_t: 1 where the AR(1) continues from t−1
+        self._n_hist = int(starts.sum())
+
+    # -- parameter handling ----------------------------------------------------------------
+    def __repr__(self) -> str:
+        return (f"<Likelihood {self.label}: {self.model.name}, noise={self.noise}, "
+                f"{self.n_points} points, free={', '.join(self.names)}>")
+
+    def index(self, name: str) -> int:
+        """Column of free parameter ``name`` in theta."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise HbmError(f"{name!r} is not a free parameter; free parameters are {', '.join(self.names)}") from None
+
+    def with_bounds(self, **bounds: tuple[float, float]) -> "Likelihood":
+        """A copy with some model-parameter boxes narrowed (noise boxes unchanged)."""
+        cur = {n: tuple(self._model_box[i]) for i, n in enumerate(self.model.parameter_names)
+               if n not in self.fixed}
+        cur.update(bounds)
+        new = Likelihood(self.model, self.data, noise=self.noise, fix=self.fixed, bounds=cur)
+        new.bounds[new.n_model:] = self.bounds[self.n_model:]
+        return new
+
+    def _as2d(self, theta) -> tuple[np.ndarray, bool]:
+        theta = np.asarray(theta, dtype=float)
+        single = theta.ndim == 1
+        theta = np.atleast_2d(theta)
+        if theta.ndim != 2 or theta.shape[1] != self.d:
+            raise HbmError(f"theta must have shape (n, {self.d}) for parameters {', '.join(self.names)}, "
+                           f"got {np.shape(theta)}")
+        return theta, single
+
+    def model_theta(self, theta) -> np.ndarray:
+        """Full model parameter rows (n, model.n_params): free columns plus fixed values."""
+        theta, _ = self._as2d(theta)
+        out = np.empty((theta.shape[0], self.model.n_params))
+        out[:] = self._fixed_row
+        out[:, self.free_index] = theta[:, : self.n_model]
+        return out
+
+    def predict(self, theta) -> np.ndarray:
+        """Model stress (n, n_points) at each parameter row."""
+        with np.errstate(all="ignore"):
+            return self.model.stress(self.loading, self.model_theta(theta))
+
+    def in_box(self, theta) -> np.ndarray:
+        """Boolean (n,): row finite and inside the box (NaN compares False)."""
+        theta, _ = self._as2d(theta)
+        return ((theta >= self.bounds[:, 0]) & (theta <= self.bounds[:, 1])).all(axis=1)
+
+    def noise_sd(self, theta, model_stress: np.ndarray | None = None) -> np.ndarray:
+        """Marginal noise sd per point, (n, n_points)."""
+        theta, _ = self._as2d(theta)
+        q = theta[:, self.n_model:]
+        n = theta.shape[0]
+        if self.noise in ("iid", "ar1"):
+            return np.broadcast_to(q[:, :1], (n, self.n_points)).copy()
+        if self.noise == "weighted":
+            return q[:, :1] * self.weights
+        m = self.predict(theta) if model_stress is None else model_stress
+        return np.sqrt(q[:, :1] ** 2 + (q[:, 1:2] * m) ** 2)
+
+    # -- log-likelihood ----------------------------------------------------------------------
+    def __call__(self, theta) -> np.ndarray:
+        """Log-likelihood of each row of ``theta`` (n, d) -> (n,); -inf out of box / non-finite."""
+        theta, single = self._as2d(theta)
+        out = np.full(theta.shape[0], -np.inf)
+        ok = self.in_box(theta)
+        if ok.all():
+            sub = theta
+        elif ok.any():
+            sub = theta[ok]
+        else:
+            return out[0] if single else out
+        with np.errstate(all="ignore"):
+            m = self.model.stress(self.loading, self.model_theta(sub))
+            val = self._loglik(sub, m)
+        val = np.where(np.isfinite(val), val, -np.inf)  # NaN/inf from the model -> -inf
+        if sub is theta:
+            out = val
+        else:
+            out[ok] = val
+        return out[0] if single else out
+
+    def _loglik(self, theta: np.ndarray, m: np.ndarray) -> np.ndarray:
+        npt = self.n_points
+        q = theta[:, self.n_model:]
+        if self.noise == "iid":
+            r = np.subtract(self.observed, m, out=m)  # in place: m is a temporary of ours
+            s = q[:, 0]
+            ssr = np.einsum("ij,ij->i", r, r)
+            return -0.5 * npt * _LOG2PI - npt * np.log(s) - 0.5 * ssr / (s * s)
+        if self.noise == "weighted":
+            s = q[:, 0]
+            z = np.subtract(self.observed, m, out=m)
+            z *= self._inv_weights
+            ssr = np.einsum("ij,ij->i", z, z)
+            return (-0.5 * npt * _LOG2PI - npt * np.log(s) - self._log_weights_sum
+                    - 0.5 * ssr / (s * s))
+        r = self.observed - m
+        if self.noise == "proportional":
+            v = q[:, :1] ** 2 + (q[:, 1:2] * m) ** 2
+            return -0.5 * (npt * _LOG2PI + np.log(v).sum(axis=1) + (r * r / v).sum(axis=1))
+        # ar1: innovations u_t = r_t − rho·a_t·r_{t−1}, var_t = sigma²(1 − rho²·a_t); the sums
+        # over t split into history starts (a=0) and continued points (a=1), so only (n,) work
+        # remains after one pass over u
+        s, rho = q[:, 0], q[:, 1]
+        u = r.copy()
+        u[:, 1:] -= (rho[:, None] * self._cont[1:]) * r[:, :-1]
+        u2 = u * u
+        start_ss = u2 @ (1.0 - self._cont)
+        cont_ss = u2.sum(axis=1) - start_ss
+        w = 1.0 - rho * rho
+        nc = npt - self._n_hist
+        return -0.5 * (npt * _LOG2PI + 2.0 * npt * np.log(s) + nc * np.log(w)
+                       + (start_ss + cont_ss / w) / (s * s))
+
+    def _ar1_innovations(self, r, s, rho):
+        a = self._cont
+        rprev = np.zeros_like(r)
+        rprev[:, 1:] = r[:, :-1]
+        u = r - rho * a * rprev
+        v = s * s * (1.0 - rho * rho * a)
+        return u, v
+
+    def log_density(self, theta) -> np.ndarray:
+        """Alias of ``__call__`` (the uniform prior adds only a constant on the box)."""
+        return self(theta)
+
+    # -- weighted least squares (thesis eq. 1.19) --------------------------------------------
+    def wls(self, theta_model) -> np.ndarray:
+        """Er = Σ ((model_i − σ_exp,i)/σ_e,i)² (eq. 1.19) for rows of free *model* parameters.
+
+        ``theta_model`` is (n, n_model) or (n, d) (noise columns ignored).  +inf out of box.
+        """
+        t = np.atleast_2d(np.asarray(theta_model, dtype=float))
+        if t.shape[1] not in (self.n_model, self.d):
+            raise HbmError(f"wls: theta must have {self.n_model} (or {self.d}) columns, got {t.shape[1]}")
+        t = t[:, : self.n_model]
+        box = self.bounds[: self.n_model]
+        ok = np.isfinite(t).all(1) & (t >= box[:, 0]).all(1) & (t <= box[:, 1]).all(1)
+        out = np.full(t.shape[0], np.inf)
+        if ok.any():
+            full = np.empty((int(ok.sum()), self.d))
+            full[:, : self.n_model] = t[ok]
+            full[:, self.n_model:] = self.bounds[self.n_model:].mean(axis=1)
+            with np.errstate(all="ignore"):
+                z = (self.predict(full) - self.observed) / self.weights
+                e = np.einsum("ij,ij->i", z, z)
+            out[ok] = np.where(np.isfinite(e), e, np.inf)
+        return out
+
+    # -- gradient and Fisher information -------------------------------------------------------
+    def gradient_fim(self, theta) -> tuple[np.ndarray, np.ndarray]:
+        """Gradient (n, d) of the log-likelihood and Fisher information (n, d, d).
+
+        Exact gradient; expected (Gaussian) Fisher information.  Rows that are out of the box or
+        not finite get NaN so that callers (e.g. the manifold kernel) can fall back.
+        """
+        theta, _ = self._as2d(theta)
+        n, d, k = theta.shape[0], self.d, self.n_model
+        grad = np.full((n, d), np.nan)
+        fim = np.full((n, d, d), np.nan)
+        ok = self.in_box(theta)
+        if not ok.any():
+            return grad, fim
+        t = theta[ok]
+        full = self.model_theta(t)
+        with np.errstate(all="ignore"):
+            m = self.model.stress(self.loading, full)
+            jac = self.model.stress_jacobian(self.loading, full)[..., self.free_index]  # (n, P, k)
+            g, f = self._grad_fim(t, m, jac)
+        bad = ~(np.isfinite(g).all(1) & np.isfinite(f).all((1, 2)))
+        g[bad] = np.nan
+        f[bad] = np.nan
+        grad[ok], fim[ok] = g, f
+        return grad, fim
+
+    def _grad_fim(self, t, m, jac):
+        n, d, k, P = t.shape[0], self.d, self.n_model, self.n_points
+        r = self.observed - m
+        q = t[:, k:]
+        g = np.zeros((n, d))
+        f = np.zeros((n, d, d))
+        if self.noise == "ar1":
+            s, rho = q[:, :1], q[:, 1:2]
+            a = self._cont
+            u, v = self._ar1_innovations(r, s, rho)
+            jprev = np.zeros_like(jac)
+            jprev[:, 1:] = jac[:, :-1]
+            kk = jac - (rho * a)[..., None] * jprev  # whitened Jacobian K_t
+            w = u / v
+            g[:, :k] = np.einsum("np,npk->nk", w, kk)
+            rprev = np.zeros_like(r)
+            rprev[:, 1:] = r[:, :-1]
+            z = u * u / v
+            g[:, k] = ((z - 1.0).sum(axis=1)) / s[:, 0]
+            g[:, k + 1] = (w * a * rprev).sum(axis=1) + ((z - 1.0) / v * (-rho * a * s * s)).sum(axis=1)
+            a = kk / np.sqrt(v)[..., None]
+            f[:, :k, :k] = np.matmul(np.swapaxes(a, 1, 2), a)
+            nc = P - self._n_hist  # number of continued (t ≥ 2) points
+            s0, r0 = s[:, 0], rho[:, 0]
+            f[:, k, k] = 2.0 * P / (s0 * s0)
+            f[:, k, k + 1] = f[:, k + 1, k] = -2.0 * r0 * nc / (s0 * (1.0 - r0 * r0))
+            f[:, k + 1, k + 1] = nc * (1.0 + r0 * r0) / (1.0 - r0 * r0) ** 2
+            return g, f
+        # diagonal Gaussian: mean m (depends on the k model parameters only) and variance v
+        # (depends on the noise parameters, and for "proportional" on the model parameters too)
+        if self.noise == "iid":
+            v = np.broadcast_to(q[:, :1] ** 2, (n, P))
+        elif self.noise == "weighted":
+            v = q[:, :1] ** 2 * self.weights ** 2
+        else:
+            s, sr = q[:, :1], q[:, 1:2]
+            v = s * s + (sr * m) ** 2
+        iv = 1.0 / v
+        # mean part: Jᵀ V⁻¹ r and Jᵀ V⁻¹ J as batched matmuls (einsum with three operands is slow)
+        g[:, :k] = np.matmul((r * iv)[:, None, :], jac)[:, 0, :]
+        a = jac * np.sqrt(iv)[..., None]
+        f[:, :k, :k] = np.matmul(np.swapaxes(a, 1, 2), a)
+        # variance part: ½ Σ (r²/v² − 1/v) ∇v and ½ Σ ∇v ∇vᵀ / v²
+        c = 0.5 * (r * r * iv * iv - iv)
+        if self.noise == "iid":
+            sg = q[:, 0]
+            g[:, k] = (c * 2.0 * sg[:, None]).sum(axis=1)
+            f[:, k, k] = 2.0 * P / (sg * sg)
+        elif self.noise == "weighted":
+            sg = q[:, 0]
+            g[:, k] = (c * 2.0 * sg[:, None] * self.weights ** 2).sum(axis=1)
+            f[:, k, k] = 2.0 * P / (sg * sg)
+        else:
+            jv = np.empty((n, P, d))
+            jv[..., :k] = (2.0 * sr * sr * m)[..., None] * jac
+            jv[..., k] = 2.0 * s
+            jv[..., k + 1] = 2.0 * sr * m * m
+            g += np.matmul(c[:, None, :], jv)[:, 0, :]
+            b = jv * (iv / np.sqrt(2.0))[..., None]
+            f += np.matmul(np.swapaxes(b, 1, 2), b)
+        return g, f
+
+    # -- unit-box transforms (optimisers) ----------------------------------------------------
+    def to_unit(self, theta) -> np.ndarray:
+        lo, hi = self.bounds[:, 0], self.bounds[:, 1]
+        return (np.asarray(theta, dtype=float) - lo) / (hi - lo)
+
+    def from_unit(self, x) -> np.ndarray:
+        lo, hi = self.bounds[:, 0], self.bounds[:, 1]
+        return lo + np.asarray(x, dtype=float) * (hi - lo)
+
+    def as_dict(self, row) -> dict[str, float]:
+        """Free parameters of one row plus the fixed ones, as {name: value} (model order, then noise)."""
+        row = np.asarray(row, dtype=float).ravel()
+        full = self.model_theta(row[None])[0]
+        out = {n: float(full[i]) for i, n in enumerate(self.model.parameter_names)}
+        out.update({n: float(row[self.n_model + j]) for j, n in enumerate(self.noise_names)})
+        return out
+
+
+def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str, float] | None = None,
+                    bounds: Mapping[str, tuple[float, float]] | None = None,
+                    sigma_bounds: tuple[float, float] | None = None) -> Likelihood:
+    """Build the vectorised log-likelihood of one specimen.
+
+    Parameters
+    ----------
+    model : Model
+        Constitutive model (``model.stress`` receives the specimen's :class:`Loading`).
+    data : xarray.Dataset
+        Variables ``strain``, ``stress`` (MPa) along dim ``point``; optional ``time``, ``test``.
+    noise : {"iid", "weighted", "proportional", "ar1"}
+        Noise model (see the module docstring).
+    fix : dict, optional
+        ``{name: value}`` model parameters held fixed (removed from the free set).
+    bounds : dict, optional
+        ``{name: (lo, hi)}`` narrowed boxes (must lie inside the model's prior box).
+    sigma_bounds : (lo, hi), optional
+        Box of the first noise parameter (``sigma``, or ``scale`` for "weighted").  Default for
+        ``sigma``: [1e-4, max(0.05, 0.5·max|stress|)] MPa; for ``scale``: [1e-4, 10].
+
+    Returns
+    -------
+    Likelihood
+
+    Raises
+    ------
+    HbmError
+        Unknown noise model or parameter names, values outside the box.
+    DataError
+        Missing/non-finite data.
+    """
+    return Likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds)
