@@ -1,0 +1,877 @@
+"""Transitional MCMC (Ching & Chen 2007) with log-evidence, a manifold (mMALA) kernel and resumable runs.
+
+The sampler is split blackjax-style into a pure core and a driver:
+
+* :func:`init` draws the stage-0 population from the uniform prior on a box and evaluates it;
+* :func:`step` performs one tempering stage (choose the next β by a bracketed root find on the
+  coefficient of variation of the incremental weights, accumulate the log-evidence, resample,
+  move the population with vectorised Metropolis–Hastings) and returns ``(state, info)``;
+* :func:`tmcmc` loops over stages with a tqdm progress bar and an atomic checkpoint after
+  every stage, and returns a :class:`TMCMCResult`.
+
+Every random number comes from a numpy ``Generator`` whose ``bit_generator.state`` is part of the
+:class:`TMCMCState`, so a run resumed from a checkpoint is bitwise identical to an uninterrupted one.
+
+The log-likelihood is always called with a whole ``(m, d)`` population and must return ``(m,)``;
+NaN is treated as −inf.  Proposals that leave the prior box are rejected without evaluation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, NamedTuple, Optional
+
+import numpy as np
+from scipy.optimize import brentq
+from scipy.special import logsumexp
+
+from ..errors import HbmError
+from ..utils import atomic_path
+
+LogLikelihood = Callable[[np.ndarray], np.ndarray]
+GradientFIM = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray]"]
+
+_CHECKPOINT_VERSION = 1
+
+#: Default population size: on the 9-parameter muscle benchmark (DESIGN.md §6) N = 2000 with the
+#: default adaptive steps reaches |log Ẑ − gold| ≈ 0.1 and posterior means within ~0.2 gold sd in
+#: ~4–5 s of CPU on a loaded machine (N = 1500: 2.7 s, means within ~0.3 sd); see
+#: workflows/benchmarks/README.md.
+DEFAULT_N_SAMPLES = 2000
+
+
+# ----------------------------------------------------------------------------------------
+# configuration, state, result
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TMCMCConfig:
+    """Settings of one TMCMC run (everything that changes the random stream or the answer).
+
+    Attributes
+    ----------
+    n_samples : int
+        Population size N.
+    kernel : {"rw", "manifold"}
+        Random walk with the weighted population covariance, or simplified mMALA with the
+        tempered Fisher metric (``gradient_fim`` required).
+    cov_target : float
+        Target coefficient of variation of the incremental weights (1 ⇔ ESS = N/2).
+    proposal_scale : float
+        Initial scale of the random-walk proposal relative to the population covariance
+        (adapted toward ``target_acceptance`` when ``adapt_scale``).
+    n_steps : int or None
+        Metropolis steps per stage; ``None`` = adaptive: keep stepping until every coordinate's
+        correlation with the stage-start population is ≤ ``mixing_target`` (between
+        ``min_steps`` and ``max_steps``).
+    max_stages : int
+        Stage cap; the last allowed stage jumps to β = 1 (flagged in the stage info).
+    min_dbeta : float
+        Smallest β increment (keeps the loop moving when the CoV target cannot be met).
+    target_acceptance : float
+        Acceptance rate the random-walk scale is adapted to (0.3 measured best on the muscle
+        benchmark; 0.2 was worse).
+    target_acceptance_manifold : float
+        Acceptance rate the manifold step size ε is adapted to (≈ 0.57 is MALA's optimum).
+    resampling : {"systematic", "multinomial"}
+        Resampling scheme between stages.
+    ridge : float
+        Manifold kernel regulariser: G = β·F + ridge·Σ⁻¹ with Σ the weighted population covariance
+        (keeps G invertible along non-identifiable directions).
+    transform : {"logit", "none"}
+        Coordinates of the random walk.  "logit" (default) walks in u = logit((θ − lo)/(hi − lo))
+        with the logistic prior density of u in the MH ratio: proposals never leave the box and
+        multiplicative ridges (T1 ∝ 1/(1 − VOLF), A·exp(T2·x)) become nearly straight, which is
+        what made the muscle benchmark accurate at ~100× less cost.  The manifold kernel always
+        works in box coordinates.
+    n_islands : int
+        K contiguous blocks of particles resampled separately (sharing β and proposal shape);
+        the spread of their evidences gives ``log_evidence_se`` including the error of incomplete
+        mixing.  The final stage pools them (each weighted by its evidence).  K = 1 (or N < 80)
+        falls back to the per-stage delta-method SE.
+    """
+
+    n_samples: int
+    kernel: str = "rw"
+    cov_target: float = 1.0
+    proposal_scale: float = 0.2
+    n_steps: Optional[int] = None
+    min_steps: int = 2
+    max_steps: int = 100
+    mixing_target: float = 0.1
+    max_stages: int = 100
+    min_dbeta: float = 1e-9
+    target_acceptance: float = 0.3
+    target_acceptance_manifold: float = 0.57
+    adapt_scale: bool = True
+    resampling: str = "systematic"
+    ridge: float = 0.1
+    transform: str = "logit"
+    n_islands: int = 4
+
+    def validate(self) -> None:
+        if int(self.n_samples) < 4:
+            raise HbmError(f"tmcmc: n_samples must be >= 4, got {self.n_samples}")
+        if self.kernel not in ("rw", "manifold"):
+            raise HbmError(f"tmcmc: kernel must be 'rw' or 'manifold', got {self.kernel!r}")
+        if not (self.cov_target > 0 and math.isfinite(self.cov_target)):
+            raise HbmError(f"tmcmc: cov_target must be a positive number, got {self.cov_target}")
+        if not self.proposal_scale > 0:
+            raise HbmError(f"tmcmc: proposal_scale must be > 0, got {self.proposal_scale}")
+        if self.n_steps is not None and int(self.n_steps) < 1:
+            raise HbmError(f"tmcmc: n_steps must be >= 1 or None (adaptive), got {self.n_steps}")
+        if int(self.max_stages) < 1:
+            raise HbmError(f"tmcmc: max_stages must be >= 1, got {self.max_stages}")
+        if self.transform not in ("none", "logit"):
+            raise HbmError(f"tmcmc: transform must be 'none' or 'logit', got {self.transform!r}")
+        if self.resampling not in ("systematic", "multinomial"):
+            raise HbmError(f"tmcmc: resampling must be 'systematic' or 'multinomial', got {self.resampling!r}")
+        if not 0 < self.target_acceptance < 1:
+            raise HbmError(f"tmcmc: target_acceptance must be in (0, 1), got {self.target_acceptance}")
+        if int(self.min_steps) < 1 or int(self.max_steps) < int(self.min_steps):
+            raise HbmError("tmcmc: need 1 <= min_steps <= max_steps")
+
+
+class TMCMCState(NamedTuple):
+    """Everything needed to continue a run (pure data; see :func:`step`).
+
+    Attributes
+    ----------
+    samples : ndarray (n, d)
+        Current population (equally weighted at the current ``beta``).
+    log_likelihood : ndarray (n,)
+        Log-likelihood of each particle (−inf allowed at β = 0 only).
+    island_log_evidence : ndarray (K,)
+        Accumulated log-evidence of each island (contiguous blocks of particles that are
+        resampled separately); their spread gives the within-run standard error.
+    beta : float
+        Current tempering exponent.
+    log_evidence : float
+        Pooled log-evidence, log mean_k Ẑ_k (one island: Σ_j log mean w_j).
+    log_evidence_var : float
+        Accumulated per-stage delta-method variance Σ_j CoV_j²/N (used when K < 4).
+    stage : int
+        Number of completed stages.
+    scale : float
+        Current random-walk scale (relative to the population covariance).
+    epsilon : float
+        Current manifold step size.
+    n_evaluations : int
+        Log-likelihood evaluations so far (particles, not calls).
+    rng_state : dict
+        ``Generator.bit_generator.state`` (PCG64).
+    """
+
+    samples: np.ndarray
+    log_likelihood: np.ndarray
+    island_log_evidence: np.ndarray
+    beta: float
+    log_evidence: float
+    log_evidence_var: float
+    stage: int
+    scale: float
+    epsilon: float
+    n_evaluations: int
+    rng_state: dict
+
+
+@dataclass
+class TMCMCResult:
+    """Outcome of :func:`tmcmc`.
+
+    Attributes
+    ----------
+    samples : ndarray (n, d)
+        Equally weighted posterior population.
+    log_likelihood : ndarray (n,)
+    log_evidence, log_evidence_se : float
+        log p(data) under the uniform prior on the box, and its within-run standard error.
+    stages : list of dict
+        Per stage: stage, beta, dbeta, cov, ess, acceptance_rate, log_evidence_increment,
+        log_evidence_increment_var, evaluations, n_steps, scale, epsilon, mixing, capped.
+    n_evaluations : int
+        Total log-likelihood evaluations (particles).
+    wall_time : float
+        Seconds spent in this call (excluding previous sessions of a resumed run).
+    likelihood_time : float
+        Seconds spent inside ``log_likelihood`` (and ``gradient_fim``) during this call.
+    config : TMCMCConfig
+    """
+
+    samples: np.ndarray
+    log_likelihood: np.ndarray
+    log_evidence: float
+    log_evidence_se: float
+    stages: list
+    n_evaluations: int
+    wall_time: float
+    likelihood_time: float
+    config: TMCMCConfig
+    resumed_from_stage: int = 0
+
+    @property
+    def n_stages(self) -> int:
+        return len(self.stages)
+
+    @property
+    def beta(self) -> np.ndarray:
+        return np.array([s["beta"] for s in self.stages])
+
+
+# ----------------------------------------------------------------------------------------
+# small numerical helpers
+# ----------------------------------------------------------------------------------------
+def _rng_from_state(rng_state: dict) -> np.random.Generator:
+    bg = np.random.PCG64()
+    bg.state = rng_state
+    return np.random.Generator(bg)
+
+
+def _eval(log_likelihood: LogLikelihood, x: np.ndarray) -> np.ndarray:
+    """Call the user's log-likelihood on (m, d) and sanitise: NaN/+inf → −inf, shape checked."""
+    if x.shape[0] == 0:
+        return np.empty(0)
+    out = np.asarray(log_likelihood(x), dtype=float)
+    if out.shape != (x.shape[0],):
+        raise HbmError(f"tmcmc: log_likelihood returned shape {out.shape}, expected ({x.shape[0]},)")
+    return np.where(np.isnan(out) | (out == np.inf), -np.inf, out)
+
+
+def _in_box(x: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    return np.all((x >= bounds[:, 0]) & (x <= bounds[:, 1]), axis=1)
+
+
+def _cov_of_weights(dbeta: float, ll: np.ndarray, ll_max: float) -> float:
+    """Coefficient of variation of w = exp(dβ·(L − max L)) (zero weight where L = −inf)."""
+    w = np.exp(dbeta * (ll - ll_max))
+    m = w.mean()
+    return float(w.std() / m)
+
+
+def _next_beta(ll: np.ndarray, beta: float, cov_target: float, min_dbeta: float,
+               force_final: bool) -> tuple[float, bool]:
+    """β increment with CoV(w) = cov_target by brentq on [min_dbeta, 1 − β]; jump to 1 if allowed."""
+    remaining = 1.0 - beta
+    if force_final:
+        return remaining, True
+    finite = np.isfinite(ll)
+    ll_max = float(ll[finite].max())
+    f = lambda db: _cov_of_weights(db, ll, ll_max) - cov_target  # noqa: E731
+    if f(remaining) <= 0.0:
+        return remaining, False
+    lo = min(min_dbeta, remaining)
+    if f(lo) >= 0.0:
+        return lo, False
+    db = brentq(f, lo, remaining, xtol=1e-14 + 1e-10 * lo, rtol=1e-10, maxiter=200)
+    return float(db), False
+
+
+def _resample(w: np.ndarray, n: int, rng: np.random.Generator, scheme: str) -> np.ndarray:
+    """Indices of n draws proportional to w (systematic: one uniform, lowest variance)."""
+    c = np.cumsum(w)
+    c /= c[-1]
+    if scheme == "systematic":
+        u = (rng.random() + np.arange(n)) / n
+    else:
+        u = rng.random(n)
+    return np.minimum(np.searchsorted(c, u, side="right"), len(w) - 1)
+
+
+def _islands(n: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Contiguous blocks: start index, size and island id of every particle."""
+    starts = (np.arange(k) * n) // k
+    sizes = np.diff(np.append(starts, n))
+    return starts, sizes, np.repeat(np.arange(k), sizes)
+
+
+def _log_mean_exp(a: np.ndarray) -> float:
+    return float(logsumexp(a) - math.log(len(a)))
+
+
+def _resample_islands(logw, m_k, starts, sizes, isl, rng, scheme) -> np.ndarray:
+    """Resample each island from its own weights (vectorised over islands)."""
+    w = np.exp(logw - m_k[isl])
+    tot = np.add.reduceat(w, starts)
+    cum = np.cumsum(w / tot[isl])
+    offset = np.concatenate([[0.0], cum[starts[1:] - 1]])
+    cw = cum - offset[isl] + isl  # island k occupies (k, k + 1]
+    n = len(logw)
+    if scheme == "systematic":
+        rank = np.arange(n) - starts[isl]
+        u = isl + (rng.random(len(starts))[isl] + rank) / sizes[isl]
+    else:
+        u = isl + rng.random(n)
+    idx = np.searchsorted(cw, u, side="right")
+    return np.clip(idx, starts[isl], starts[isl] + sizes[isl] - 1)
+
+
+def _weighted_cov(x: np.ndarray, w: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Weighted covariance with a tiny box-relative floor so it is always positive definite."""
+    w = w / w.sum()
+    mu = w @ x
+    xc = x - mu
+    cov = (xc * w[:, None]).T @ xc
+    width = bounds[:, 1] - bounds[:, 0]
+    cov = 0.5 * (cov + cov.T) + np.diag((1e-10 * width) ** 2)
+    return cov
+
+
+def _safe_cholesky(cov: np.ndarray) -> np.ndarray:
+    jitter = 0.0
+    scale = float(np.mean(np.diag(cov)))
+    for _ in range(12):
+        try:
+            return np.linalg.cholesky(cov + jitter * np.eye(len(cov)))
+        except np.linalg.LinAlgError:
+            jitter = max(jitter * 10.0, 1e-12 * scale)
+    return np.diag(np.sqrt(np.maximum(np.diag(cov), 1e-300)))
+
+
+def _batched_cholesky(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cholesky factors of a stack (n, d, d) and a mask of the matrices where it succeeded.
+
+    numpy raises for the whole batch if one matrix fails, so the failing ones are located by
+    their smallest eigenvalue and replaced by the identity (caller falls back for them).
+    """
+    n, d, _ = g.shape
+    ok = np.all(np.isfinite(g), axis=(1, 2))
+    g = np.where(ok[:, None, None], g, np.eye(d))
+    try:
+        return np.linalg.cholesky(g), ok
+    except np.linalg.LinAlgError:
+        pass
+    sym = 0.5 * (g + np.swapaxes(g, 1, 2))
+    lam_min = np.linalg.eigvalsh(sym)[:, 0]
+    lam_max = np.abs(np.linalg.eigvalsh(sym)[:, -1])
+    good = lam_min > 1e-12 * np.maximum(lam_max, 1e-300)
+    ok &= good
+    g = np.where(ok[:, None, None], sym, np.eye(d))
+    try:
+        return np.linalg.cholesky(g), ok
+    except np.linalg.LinAlgError:  # pragma: no cover - borderline matrices: test one by one
+        chol = np.empty_like(g)
+        for i in range(n):  # rare fallback path only, not the hot loop
+            try:
+                chol[i] = np.linalg.cholesky(g[i])
+            except np.linalg.LinAlgError:
+                ok[i] = False
+                chol[i] = np.eye(d)
+        return chol, ok
+
+
+def _to_logit(x: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """Box → R^d: u = log(f / (1 − f)), f = (x − lo)/(hi − lo) (kept finite at the faces)."""
+    f = np.clip((x - bounds[:, 0]) / (bounds[:, 1] - bounds[:, 0]), 1e-15, 1.0 - 1e-15)
+    return np.log(f) - np.log1p(-f)
+
+
+def _from_logit(u: np.ndarray, bounds: np.ndarray, with_log_prior: bool = False):
+    """Inverse of :func:`_to_logit`; optionally also the log density of u under the uniform prior.
+
+    x uniform on the box ⇔ each u_i standard logistic: log p(u) = Σ log f(1 − f).
+    """
+    e = np.exp(-np.abs(u))  # stable logistic
+    f = np.where(u >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+    x = bounds[:, 0] + f * (bounds[:, 1] - bounds[:, 0])
+    if not with_log_prior:
+        return x
+    return x, np.sum(-np.abs(u) - 2.0 * np.log1p(e), axis=1)
+
+
+def _mixing(start: np.ndarray, x: np.ndarray) -> float:
+    """Largest |Pearson correlation| over coordinates between stage-start and current positions."""
+    a = start - start.mean(axis=0)
+    b = x - x.mean(axis=0)
+    num = np.einsum("ij,ij->j", a, b)
+    den = np.sqrt(np.einsum("ij,ij->j", a, a) * np.einsum("ij,ij->j", b, b))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    return float(np.max(np.abs(r)))
+
+
+# ----------------------------------------------------------------------------------------
+# Metropolis–Hastings kernels (vectorised over the population)
+# ----------------------------------------------------------------------------------------
+def _rw_step(x, ll, lp, beta, chol, scale, bounds, evaluate, rng):
+    """One random-walk MH step for the whole population.
+
+    ``evaluate(u)`` returns (log-likelihood, log-prior density of the sampling coordinates) for a
+    batch; ``lp`` is the log-prior of the current points (0 in box coordinates, the logistic
+    density under the logit transform).  Returns (x, ll, lp, accepted mask, n_evaluations).
+    """
+    n, d = x.shape
+    prop = x + (scale * rng.standard_normal((n, d))) @ chol.T
+    log_u = np.log(rng.random(n))
+    inside = _in_box(prop, bounds) if bounds is not None else np.ones(n, dtype=bool)
+    if inside.all():
+        ll_prop, lp_prop = evaluate(prop)
+    else:
+        ll_prop, lp_prop = np.full(n, -np.inf), np.zeros(n)
+        ll_prop[inside], lp_prop[inside] = evaluate(prop[inside])
+    with np.errstate(invalid="ignore"):
+        log_ratio = beta * (ll_prop - ll) + (lp_prop - lp)
+    accept = inside & np.isfinite(ll_prop) & ((log_ratio >= log_u) | ~np.isfinite(ll))
+    x = np.where(accept[:, None], prop, x)
+    ll = np.where(accept, ll_prop, ll)
+    lp = np.where(accept, lp_prop, lp)
+    return x, ll, lp, accept, int(inside.sum())
+
+
+def _manifold_parts(grad, fim, beta, ridge_prec, eps):
+    """Mean shift, Cholesky of G and validity for mMALA with G = β·F + ridge (per particle)."""
+    g = beta * fim + ridge_prec[None, :, :]
+    chol, ok = _batched_cholesky(g)
+    ok &= np.all(np.isfinite(grad), axis=1)
+    # G⁻¹ ∇(βL) via two triangular solves (batched through np.linalg.solve on the factor)
+    bgrad = np.where(ok[:, None], beta * grad, 0.0)
+    y = np.linalg.solve(chol, bgrad[:, :, None])
+    drift = np.linalg.solve(np.swapaxes(chol, 1, 2), y)[:, :, 0]
+    logdet_g = 2.0 * np.sum(np.log(np.abs(np.diagonal(chol, axis1=1, axis2=2))), axis=1)
+    return 0.5 * eps * drift, chol, logdet_g, ok
+
+
+def _manifold_logq(dest, src, shift, chol, logdet_g, eps):
+    """log N(dest; src + shift, ε·G⁻¹) up to the shared −d/2·log 2π, with G = L Lᵀ."""
+    r = dest - src - shift
+    z = np.einsum("nji,nj->ni", chol, r)  # Lᵀ r
+    d = dest.shape[1]
+    return -0.5 * np.sum(z * z, axis=1) / eps + 0.5 * logdet_g - 0.5 * d * math.log(eps)
+
+
+def _rw_logq(dest, src, chol_rw, scale, logdet_rw):
+    """log N(dest; src, scale²Σ) up to −d/2·log 2π (needed when forward/reverse kinds differ)."""
+    r = (dest - src) / scale
+    z = np.linalg.solve(chol_rw, r.T).T
+    d = dest.shape[1]
+    return -0.5 * np.sum(z * z, axis=1) - 0.5 * logdet_rw - d * math.log(scale)
+
+
+def _manifold_step(x, ll, grad, fim, beta, eps, ridge_prec, chol_rw, scale, bounds,
+                   log_likelihood, gradient_fim, rng):
+    """One simplified-mMALA MH step with the correct reverse density (metric at θ').
+
+    Particles whose metric fails at θ use the random walk; the reverse density of each proposal
+    uses whichever proposal the rule would pick at θ', so the MH ratio stays exact.
+    """
+    n, d = x.shape
+    shift, chol, logdet, ok = _manifold_parts(grad, fim, beta, ridge_prec, eps)
+    z = rng.standard_normal((n, d))
+    # manifold draw: θ + shift + sqrt(ε)·L⁻ᵀ z  (covariance ε·G⁻¹)
+    step_m = shift + math.sqrt(eps) * np.linalg.solve(np.swapaxes(chol, 1, 2), z[:, :, None])[:, :, 0]
+    step_rw = scale * (z @ chol_rw.T)
+    prop = x + np.where(ok[:, None], step_m, step_rw)
+    log_u = np.log(rng.random(n))
+    inside = _in_box(prop, bounds)
+    ll_p = np.full(n, -np.inf)
+    grad_p = np.zeros((n, d))
+    fim_p = np.zeros((n, d, d))
+    if inside.any():
+        ll_p[inside] = _eval(log_likelihood, prop[inside])
+        gi, fi = gradient_fim(prop[inside])
+        grad_p[inside] = np.asarray(gi, dtype=float)
+        fim_p[inside] = np.asarray(fi, dtype=float)
+    finite = inside & np.isfinite(ll_p)
+    logdet_rw = 2.0 * np.sum(np.log(np.diag(chol_rw)))
+    # forward densities
+    lq_fwd = np.where(ok, _manifold_logq(prop, x, shift, chol, logdet, eps),
+                      _rw_logq(prop, x, chol_rw, scale, logdet_rw))
+    # reverse densities with the metric at θ'
+    fim_safe = np.where(finite[:, None, None], fim_p, 0.0)
+    grad_safe = np.where(finite[:, None], grad_p, np.nan)  # invalid where not finite → RW rule
+    shift_p, chol_p, logdet_p, ok_p = _manifold_parts(grad_safe, fim_safe, beta, ridge_prec, eps)
+    lq_rev = np.where(ok_p, _manifold_logq(x, prop, shift_p, chol_p, logdet_p, eps),
+                      _rw_logq(x, prop, chol_rw, scale, logdet_rw))
+    with np.errstate(invalid="ignore"):
+        log_ratio = beta * (ll_p - ll) + lq_rev - lq_fwd
+    accept = finite & ((log_ratio >= log_u) | ~np.isfinite(ll))
+    x = np.where(accept[:, None], prop, x)
+    ll = np.where(accept, ll_p, ll)
+    grad = np.where(accept[:, None], grad_p, grad)
+    fim = np.where(accept[:, None, None], fim_p, fim)
+    return x, ll, grad, fim, accept, int(inside.sum()), float(np.mean(ok))
+
+
+# ----------------------------------------------------------------------------------------
+# pure core
+# ----------------------------------------------------------------------------------------
+def init(log_likelihood: LogLikelihood, bounds, config: TMCMCConfig, seed) -> TMCMCState:
+    """Stage-0 state: N draws from the uniform prior on ``bounds`` and their log-likelihoods.
+
+    Parameters
+    ----------
+    log_likelihood : callable
+        (n, d) → (n,) log-likelihood.
+    bounds : array_like (d, 2)
+        Prior box.
+    config : TMCMCConfig
+    seed : int, SeedSequence or None
+        Seeds a PCG64 generator (its state travels in the returned state).
+
+    Returns
+    -------
+    TMCMCState
+    """
+    bounds = _check_bounds(bounds)
+    config.validate()
+    if isinstance(seed, np.random.Generator):
+        raise HbmError("tmcmc: pass an int seed (the generator state is stored in checkpoints)")
+    rng = np.random.Generator(np.random.PCG64(seed))
+    n, d = int(config.n_samples), len(bounds)
+    x = bounds[:, 0] + rng.random((n, d)) * (bounds[:, 1] - bounds[:, 0])
+    ll = _eval(log_likelihood, x)
+    if not np.isfinite(ll).any():
+        raise HbmError("tmcmc: the log-likelihood is -inf/NaN for every prior draw; "
+                       "check the bounds and the likelihood")
+    eps0 = 1.0
+    k = max(1, min(int(config.n_islands), n // 20))
+    return TMCMCState(x, ll, np.zeros(k), 0.0, 0.0, 0.0, 0, float(config.proposal_scale), eps0, n,
+                      rng.bit_generator.state)
+
+
+def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMCConfig,
+         gradient_fim: Optional[GradientFIM] = None) -> tuple[TMCMCState, dict]:
+    """One TMCMC stage: next β, evidence increment, resampling, MH moves.
+
+    Parameters
+    ----------
+    state : TMCMCState
+        State after the previous stage (or :func:`init`); not modified.
+    log_likelihood : callable
+        (n, d) → (n,).
+    bounds : array_like (d, 2)
+    config : TMCMCConfig
+    gradient_fim : callable, optional
+        θ (n, d) → (∇ log L (n, d), Fisher information (n, d, d)); required for the manifold kernel.
+
+    Returns
+    -------
+    state : TMCMCState
+    info : dict
+        Per-stage diagnostics (see :class:`TMCMCResult`).
+    """
+    bounds = _check_bounds(bounds)
+    if state.beta >= 1.0:
+        raise HbmError("tmcmc: the run is already at beta = 1")
+    rng = _rng_from_state(state.rng_state)
+    x, ll = state.samples, state.log_likelihood
+    n, d = x.shape
+
+    # 1. next β from the CoV of the incremental weights (root find, min step, stage cap)
+    force = state.stage + 1 >= int(config.max_stages)
+    dbeta, capped = _next_beta(ll, state.beta, config.cov_target, config.min_dbeta, force)
+    beta = 1.0 if state.beta + dbeta >= 1.0 - 1e-12 else state.beta + dbeta
+    dbeta = beta - state.beta
+    with np.errstate(invalid="ignore"):
+        logw = np.where(np.isfinite(ll), dbeta * ll, -np.inf)
+    w = np.exp(logw - logw.max())
+    r = w / w.mean()  # normalised weights, mean 1
+    cov = float(r.std())
+    ess = float(n / (1.0 + cov * cov))
+    var_inc = cov * cov / n  # delta method for log mean w with iid particles
+    # islands: per-island evidence increments (their spread is the honest within-run SE)
+    k_isl = len(state.island_log_evidence)
+    starts, sizes, isl = _islands(n, k_isl)
+    m_k = np.maximum.reduceat(logw, starts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s_k = np.add.reduceat(np.exp(logw - np.where(np.isfinite(m_k), m_k, 0.0)[isl]), starts)
+        inc_k = np.where(np.isfinite(m_k), m_k + np.log(s_k), -np.inf) - np.log(sizes)
+    island_prev = state.island_log_evidence
+    island_new = island_prev + inc_k
+    log_z_new = _log_mean_exp(island_new)
+    log_mean_w = log_z_new - state.log_evidence
+
+    # 2. resample and prepare the proposal (weighted covariance at the new β)
+    use_logit = config.transform == "logit" and config.kernel == "rw"
+    if use_logit:
+        # random walk in unconstrained logit coordinates: the uniform prior becomes a product of
+        # logistic densities, multiplicative ridges (T1 ~ 1/(1−c), A·e^{T2·x}) become nearly straight
+        x = _to_logit(x, bounds)
+        box = np.array([[-np.inf, np.inf]] * d)
+        wn = w / w.sum()
+        xc = x - wn @ x
+        sigma = (xc * wn[:, None]).T @ xc
+        # floor: a degenerate weight vector (one survivor) must not freeze the walk
+        sigma = 0.5 * (sigma + sigma.T) + np.diag(1e-9 * x.var(axis=0) + 1e-12)
+        box = None
+
+        def evaluate(u):
+            theta, lp_u = _from_logit(u, bounds, True)
+            return _eval(log_likelihood, theta), lp_u
+    else:
+        box = bounds
+        sigma = _weighted_cov(x, w, bounds)
+
+        def evaluate(u):
+            return _eval(log_likelihood, u), np.zeros(len(u))
+    chol_rw = _safe_cholesky(sigma)
+    if k_isl == 1:
+        idx = _resample(w, n, rng, config.resampling)
+    elif beta >= 1.0 or not np.isfinite(m_k).all():
+        # final stage (or a dead island): pool the islands, each weighted by its evidence so far;
+        # after this the islands are no longer independent, so it happens once at the end only
+        with np.errstate(invalid="ignore"):
+            lw = np.where(np.isfinite(logw), island_prev[isl] - np.log(sizes)[isl] + logw, -np.inf)
+        idx = _resample(np.exp(lw - lw.max()), n, rng, config.resampling)
+    else:
+        idx = _resample_islands(logw, m_k, starts, sizes, isl, rng, config.resampling)
+    x, ll = x[idx], ll[idx]
+    lp = _from_logit(x, bounds, True)[1] if use_logit else np.zeros(n)
+    start = x.copy()
+
+    # 3. Metropolis–Hastings moves
+    scale, eps = float(state.scale), float(state.epsilon)
+    n_eval = 0
+    acc_total, n_done, mix = 0.0, 0, 1.0
+    fixed = config.n_steps is not None
+    max_steps = int(config.n_steps) if fixed else int(config.max_steps)
+    min_steps = int(config.n_steps) if fixed else int(config.min_steps)
+    metric_ok = float("nan")
+    if config.kernel == "manifold":
+        if gradient_fim is None:
+            raise HbmError("tmcmc: kernel='manifold' needs gradient_fim")
+        g0, f0 = gradient_fim(x)
+        grad, fim = np.asarray(g0, dtype=float).copy(), np.asarray(f0, dtype=float).copy()
+        ridge_prec = config.ridge * np.linalg.inv(sigma)
+        ridge_prec = 0.5 * (ridge_prec + ridge_prec.T)
+        oks = []
+    for k in range(max_steps):
+        if config.kernel == "rw":
+            x, ll, lp, acc, ne = _rw_step(x, ll, lp, beta, chol_rw, scale, box, evaluate, rng)
+        else:
+            x, ll, grad, fim, acc, ne, okf = _manifold_step(
+                x, ll, grad, fim, beta, eps, ridge_prec, chol_rw, scale, bounds,
+                log_likelihood, gradient_fim, rng)
+            oks.append(okf)
+        n_eval += ne
+        a = float(acc.mean())
+        acc_total += a
+        n_done += 1
+        if config.adapt_scale:
+            # multiplicative adaptation of the population-level step toward the target acceptance
+            if config.kernel == "rw":
+                factor = math.exp(0.5 * (a - config.target_acceptance) / max(config.target_acceptance, 0.1))
+                scale = float(np.clip(scale * factor, 1e-4, 10.0))
+            else:
+                ta = config.target_acceptance_manifold
+                eps = float(np.clip(eps * math.exp((a - ta) / max(ta, 0.1)), 1e-8, 1e3))
+        if not fixed and k + 1 >= min_steps:
+            mix = _mixing(start, x)
+            if mix <= config.mixing_target:
+                break
+    if fixed or n_done < min_steps:
+        mix = _mixing(start, x)
+    if config.kernel == "manifold":
+        metric_ok = float(np.mean(oks)) if oks else float("nan")
+    if use_logit:
+        x = _from_logit(x, bounds)
+
+    new = TMCMCState(x, ll, island_new, beta, log_z_new,
+                     state.log_evidence_var + var_inc, state.stage + 1, scale, eps,
+                     state.n_evaluations + n_eval, rng.bit_generator.state)
+    info = {
+        "stage": state.stage + 1, "beta": beta, "dbeta": dbeta, "cov": cov, "ess": ess,
+        "acceptance_rate": acc_total / max(n_done, 1), "log_evidence_increment": log_mean_w,
+        "log_evidence_increment_var": var_inc, "evaluations": n_eval, "n_steps": n_done,
+        "scale": scale, "epsilon": eps if config.kernel == "manifold" else float("nan"),
+        "mixing": mix, "metric_ok": metric_ok, "capped": bool(capped),
+    }
+    return new, info
+
+
+def _check_bounds(bounds) -> np.ndarray:
+    b = np.asarray(bounds, dtype=float)
+    if b.ndim != 2 or b.shape[1] != 2 or b.shape[0] < 1:
+        raise HbmError(f"tmcmc: bounds must have shape (d, 2), got {b.shape}")
+    if not np.all(np.isfinite(b)) or np.any(b[:, 1] <= b[:, 0]):
+        raise HbmError("tmcmc: bounds must be finite with lower < upper in every row")
+    return b
+
+
+def _evidence_se(state: TMCMCState) -> float:
+    """Within-run SE of the pooled log-evidence.
+
+    With K ≥ 4 islands (independently resampled blocks sharing β and proposal shape):
+    Var(log mean Ẑ_k) ≈ var_k(Ẑ_k / mean Ẑ)/K, which includes the error due to incomplete
+    mixing, floored by the per-stage delta method Σ CoV_j²/N (the iid part, valid for
+    well-mixed populations); with fewer islands the delta method alone.
+    """
+    z = np.asarray(state.island_log_evidence, dtype=float)
+    var_delta = max(float(state.log_evidence_var), 0.0)
+    if len(z) >= 4 and np.isfinite(z).any():
+        r = np.exp(z - z.max())
+        r = r / r.mean()
+        # with few islands the spread estimate is itself noisy (K − 1 dof); the iid delta-method
+        # variance is a floor the true variance cannot go below, so an unlucky small spread
+        # does not produce an overconfident SE
+        return float(math.sqrt(max(np.var(r, ddof=1) / len(z), var_delta)))
+    return float(math.sqrt(var_delta))
+
+
+# ----------------------------------------------------------------------------------------
+# checkpoints
+# ----------------------------------------------------------------------------------------
+def _fingerprint(config: TMCMCConfig, bounds: np.ndarray, seed) -> str:
+    payload = {"config": dataclasses.asdict(config), "bounds": bounds.tolist(), "seed": repr(seed),
+               "version": _CHECKPOINT_VERSION}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def _save_checkpoint(path: Path, state: TMCMCState, stages: list, fingerprint: str,
+                     settings: dict) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:  # file handle: np.savez would append ".npz" to a name
+            np.savez(fh, samples=state.samples, log_likelihood=state.log_likelihood,
+                     island_log_evidence=state.island_log_evidence,
+                     scalars=np.array([state.beta, state.log_evidence, state.log_evidence_var,
+                                       state.scale, state.epsilon]),
+                     counters=np.array([state.stage, state.n_evaluations], dtype=np.int64),
+                     meta=np.array(json.dumps({"rng_state": state.rng_state, "stages": stages,
+                                               "fingerprint": fingerprint, "settings": settings})))
+
+
+def _load_checkpoint(path: Path, fingerprint: str) -> tuple[TMCMCState, list]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            sc, ct = z["scalars"], z["counters"]
+            state = TMCMCState(z["samples"].copy(), z["log_likelihood"].copy(), z["island_log_evidence"].copy(),
+                               float(sc[0]), float(sc[1]), float(sc[2]), int(ct[0]), float(sc[3]),
+                               float(sc[4]), int(ct[1]), meta["rng_state"])
+    except Exception as exc:  # corrupt / foreign file
+        raise HbmError(f"tmcmc: cannot read checkpoint {path}: {exc}") from None
+    if meta.get("fingerprint") != fingerprint:
+        raise HbmError(f"tmcmc: checkpoint {path} was made with different settings "
+                       f"({meta.get('settings')}); delete it or use another path")
+    return state, meta["stages"]
+
+
+# ----------------------------------------------------------------------------------------
+# driver
+# ----------------------------------------------------------------------------------------
+def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: int = DEFAULT_N_SAMPLES, *, seed,
+          kernel: str = "rw", gradient_fim: Optional[GradientFIM] = None, cov_target: float = 1.0,
+          proposal_scale: float = 0.2, n_steps: Optional[int] = None, max_stages: int = 100,
+          checkpoint: Optional[str | os.PathLike] = None, progress: bool = True,
+          **options: Any) -> TMCMCResult:
+    """Transitional MCMC from the uniform prior on ``bounds`` to the posterior, with log-evidence.
+
+    Parameters
+    ----------
+    log_likelihood : callable
+        θ (n, d) → log-likelihood (n,); NaN is treated as −inf.  Called with whole populations.
+    bounds : array_like (d, 2)
+        Uniform prior box.
+    n_samples : int
+        Population size N.
+    seed : int
+        Seed of the PCG64 generator (required: runs are reproducible and resumable).
+    kernel : {"rw", "manifold"}
+        Random walk (population covariance, adapted scale) or simplified mMALA.
+    gradient_fim : callable, optional
+        θ (n, d) → (gradient (n, d), Fisher information (n, d, d)) of the log-likelihood;
+        required for ``kernel="manifold"``.
+    cov_target : float
+        Target CoV of the incremental weights per stage (1 ⇔ ESS ≈ N/2).
+    proposal_scale : float
+        Initial random-walk scale relative to the weighted population covariance.
+    n_steps : int or None
+        MH steps per stage; None = adaptive by the mixing diagnostic (see :class:`TMCMCConfig`).
+    max_stages : int
+        Stage cap (the last stage jumps to β = 1 and is flagged ``capped``).
+    checkpoint : path, optional
+        ``.npz`` file written atomically after every stage; if it exists, the run resumes from it
+        (same settings required, else :class:`HbmError`).
+    progress : bool
+        tqdm progress bar on stderr.
+    **options
+        Further :class:`TMCMCConfig` fields (transform, n_islands, min_steps, max_steps,
+        mixing_target, target_acceptance, target_acceptance_manifold, adapt_scale, resampling,
+        min_dbeta, ridge).
+
+    Returns
+    -------
+    TMCMCResult
+    """
+    t0 = time.perf_counter()
+    unknown = set(options) - {f.name for f in dataclasses.fields(TMCMCConfig)}
+    if unknown:
+        raise HbmError(f"tmcmc: unknown options {sorted(unknown)}")
+    config = TMCMCConfig(n_samples=int(n_samples), kernel=kernel, cov_target=float(cov_target),
+                         proposal_scale=float(proposal_scale),
+                         n_steps=None if n_steps is None else int(n_steps),
+                         max_stages=int(max_stages), **options)
+    config.validate()
+    b = _check_bounds(bounds)
+    if kernel == "manifold" and gradient_fim is None:
+        raise HbmError("tmcmc: kernel='manifold' needs gradient_fim")
+    if seed is None or isinstance(seed, np.random.Generator):
+        raise HbmError("tmcmc: seed must be an int (reproducible, resumable runs)")
+
+    timer = [0.0]
+
+    def ll_timed(x):
+        t = time.perf_counter()
+        try:
+            return log_likelihood(x)
+        finally:
+            timer[0] += time.perf_counter() - t
+
+    gf_timed = None
+    if gradient_fim is not None:
+        def gf_timed(x):
+            t = time.perf_counter()
+            try:
+                return gradient_fim(x)
+            finally:
+                timer[0] += time.perf_counter() - t
+
+    fp = _fingerprint(config, b, seed)
+    settings = {"n_samples": config.n_samples, "kernel": kernel, "seed": repr(seed), "d": len(b)}
+    path = Path(checkpoint) if checkpoint is not None else None
+    stages: list = []
+    resumed = 0
+    if path is not None and path.exists():
+        state, stages = _load_checkpoint(path, fp)
+        resumed = state.stage
+        if state.samples.shape != (config.n_samples, len(b)):
+            raise HbmError(f"tmcmc: checkpoint {path} holds a population of shape "
+                           f"{state.samples.shape}, expected {(config.n_samples, len(b))}")
+    else:
+        state = init(ll_timed, b, config, seed)
+        if path is not None:
+            _save_checkpoint(path, state, stages, fp, settings)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=1000, file=sys.stderr, desc="tmcmc", unit="‰β", leave=False,
+                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {postfix}")
+        bar.update(int(1000 * state.beta))
+    try:
+        while state.beta < 1.0:
+            state, info = step(state, ll_timed, b, config, gf_timed)
+            stages.append(info)
+            if path is not None:
+                _save_checkpoint(path, state, stages, fp, settings)
+            if bar is not None:
+                bar.update(int(1000 * state.beta) - bar.n)
+                bar.set_postfix_str(f"stage {state.stage} β={state.beta:.3g} "
+                                    f"logZ={state.log_evidence:.2f} acc={info['acceptance_rate']:.2f} "
+                                    f"steps={info['n_steps']}")
+    finally:
+        if bar is not None:
+            bar.close()
+    return TMCMCResult(
+        samples=state.samples, log_likelihood=state.log_likelihood,
+        log_evidence=float(state.log_evidence),
+        log_evidence_se=_evidence_se(state),
+        stages=stages, n_evaluations=int(state.n_evaluations),
+        wall_time=time.perf_counter() - t0, likelihood_time=timer[0], config=config,
+        resumed_from_stage=resumed)
