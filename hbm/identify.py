@@ -1,0 +1,540 @@
+"""Identifiable parameter combinations and the VOLF–T1 manifold (thesis Appendix B, Fig. 3.61).
+
+From uniaxial data only G = c·GF + (1−c)·GM, A_f = c·P1 and A_m = (1−c)·T1 are learnable
+(with EOPT, T2, THETA; c = VOLF).  This module finds such combinations *from the samples*
+rather than assuming them:
+
+* :func:`identifiable_directions` — generalised PCA of the posterior in a log feature space
+  against the prior.  Feature space: log θ_k for every parameter with a non-negative box,
+  θ_k itself for parameters whose box reaches below zero, and additionally log(1 − θ_k) for
+  volume fractions (``fractions``, default ("VOLF",)).  (1 − c) is not a power of c, so a
+  plain log-PCA could only approximate (1 − c)·T1 by c^a·T1 over a narrow range; with
+  log(1 − c) as a feature the product (1 − c)·T1 is an exact linear direction
+  log(1 − c) + log T1, and the eigen-analysis can find it *without being told*.  Directions
+  with posterior/prior variance ratio below ``threshold²`` are reported as products of
+  powers with exponents rounded to ``step`` for readability (the rounded combination's own
+  variance ratio is re-checked and reported).  Named candidates ((1−VOLF)·T1, VOLF·P1,
+  VOLF·GF + (1−VOLF)·GM) are checked explicitly with their posterior intervals and the
+  shrink of their coefficient of variation relative to the parameters they are made of.
+* :func:`volf_t1_manifold` — cubic spline of T1 against VOLF (in the coordinates
+  (−log(1 − VOLF), log T1), because T1 ∝ 1/(1 − VOLF) on the structural manifold rises
+  steeply as VOLF → 1; see :class:`VolfT1Manifold`) through CMA-ES sweep optima or through
+  binned medians of posterior samples;
+  reports the implied (1 − VOLF)·T1 along the curve (constant ⇔ the structural manifold).
+* :func:`compare_manifolds` — levels of (1 − VOLF)·T1 per specimen with intervals, and which
+  specimens differ beyond their uncertainty (non-overlapping intervals).
+
+Only numpy/scipy; no sampler, no plotting, no file formats (``to_arrays`` hands plain arrays
+to hbm.io).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+from scipy.interpolate import CubicSpline, make_smoothing_spline
+from scipy.linalg import eigh
+
+from .errors import HbmError
+
+__all__ = [
+    "IdentifiabilityReport",
+    "identifiable_directions",
+    "candidate_combinations",
+    "VolfT1Manifold",
+    "volf_t1_manifold",
+    "ManifoldComparison",
+    "compare_manifolds",
+]
+
+_TINY = 1e-300
+
+
+# --------------------------------------------------------------------------------------
+# (a) identifiable directions
+# --------------------------------------------------------------------------------------
+def _default_candidates() -> dict[str, tuple[tuple[str, ...], Callable[[Mapping[str, np.ndarray]], np.ndarray]]]:
+    return {
+        "(1-VOLF)*T1": (("VOLF", "T1"), lambda c: (1.0 - c["VOLF"]) * c["T1"]),
+        "VOLF*P1": (("VOLF", "P1"), lambda c: c["VOLF"] * c["P1"]),
+        "VOLF*GF+(1-VOLF)*GM": (("VOLF", "GF", "GM"), lambda c: c["VOLF"] * c["GF"] + (1.0 - c["VOLF"]) * c["GM"]),
+    }
+
+
+def _cv(x: np.ndarray) -> float:
+    m = np.mean(x)
+    return float(np.std(x) / abs(m)) if m != 0 else float("inf")
+
+
+def candidate_combinations(
+    samples, names: Sequence[str], *, candidates=None, interval=(0.05, 0.95), shrink_threshold: float = 0.5
+) -> dict[str, dict]:
+    """Posterior summaries of named parameter combinations.
+
+    Parameters
+    ----------
+    samples : array_like (n, d)
+    names : sequence of str
+    candidates : mapping name -> (required names, function(columns dict) -> array), optional
+        Default: (1-VOLF)*T1, VOLF*P1, VOLF*GF+(1-VOLF)*GM (those whose parameters exist).
+    interval : (float, float)
+        Quantiles of the reported interval.
+    shrink_threshold : float
+        A combination is flagged ``identified`` when its coefficient of variation is below
+        ``shrink_threshold`` times the smallest CV of the parameters it is made of.
+
+    Returns
+    -------
+    dict name -> {"median","lo","hi","mean","cv","naive_cv" (dict), "shrink", "identified"}
+    """
+    x = np.asarray(samples, float)
+    names = list(names)
+    cols = {n: x[:, i] for i, n in enumerate(names)}
+    cands = _default_candidates() if candidates is None else dict(candidates)
+    out = {}
+    for key, (req, fn) in cands.items():
+        if not all(r in cols for r in req):
+            continue
+        v = np.asarray(fn(cols), float)
+        lo, med, hi = np.quantile(v, [interval[0], 0.5, interval[1]])
+        naive = {r: _cv(cols[r]) for r in req}
+        cv = _cv(v)
+        shrink = cv / min(naive.values()) if min(naive.values()) > 0 else float("inf")
+        out[key] = {
+            "median": float(med), "lo": float(lo), "hi": float(hi), "mean": float(v.mean()), "cv": cv,
+            "naive_cv": naive, "shrink": float(shrink), "identified": bool(shrink < shrink_threshold),
+        }
+    return out
+
+
+@dataclass
+class IdentifiabilityReport:
+    """Result of :func:`identifiable_directions`.
+
+    Attributes
+    ----------
+    directions : list of dict
+        Identified directions, best first: ``label`` (e.g. "(1-VOLF)·T1"), ``exponents``
+        (feature label -> rounded exponent), ``raw`` (unrounded, normalised to max |coef| 1),
+        ``sd_ratio`` (posterior/prior sd along the raw direction), ``sd_ratio_rounded`` (same
+        for the rounded exponents), ``median``, ``lo``, ``hi``, ``cv`` of the rounded
+        combination on the θ scale (product of powers; linear features enter as exp).
+    spectrum : ndarray
+        All posterior/prior sd ratios (ascending).
+    features : list of str
+        Feature labels: "P" for log P, "(1-P)" for log(1−P), "lin:P" for a linear feature.
+    candidates : dict
+        :func:`candidate_combinations` output.
+    threshold : float
+    """
+
+    directions: list
+    spectrum: np.ndarray
+    features: list
+    candidates: dict
+    threshold: float
+    eigenvectors: np.ndarray = field(repr=False, default=None)
+
+    def table(self) -> str:
+        """Markdown table of the identified directions and the candidate checks."""
+        lines = ["| combination | sd ratio post/prior | median | interval |", "|---|---|---|---|"]
+        for d in self.directions:
+            lines.append(f"| {d['label']} | {d['sd_ratio_rounded']:.3g} | {d['median']:.4g} | [{d['lo']:.4g}, {d['hi']:.4g}] |")
+        lines += ["", "| candidate | median | interval | CV | CV shrink vs parameters | identified |", "|---|---|---|---|---|---|"]
+        for k, c in self.candidates.items():
+            lines.append(f"| {k} | {c['median']:.4g} | [{c['lo']:.4g}, {c['hi']:.4g}] | {c['cv']:.3g} | {c['shrink']:.3g} | {'yes' if c['identified'] else 'no'} |")
+        return "\n".join(lines)
+
+
+def _feature_matrix(x, names, lo, hi, log, fractions):
+    feats, labels = [], []
+    for i, n in enumerate(names):
+        v = x[:, i]
+        if log and lo[i] >= 0:
+            # a lower bound of 0 (T1, EOPT) would give log 0: floor at 1e-9 of the box width
+            floor = max(lo[i], 1e-9 * (hi[i] - lo[i]))
+            feats.append(np.log(np.maximum(v, floor)))
+            labels.append(n)
+        else:
+            feats.append(v)
+            labels.append(f"lin:{n}")
+        if n in fractions and log and lo[i] >= 0 and hi[i] <= 1:
+            feats.append(np.log(np.maximum(1.0 - v, 1e-9)))
+            labels.append(f"(1-{n})")
+    return np.column_stack(feats), labels
+
+
+def _format_term(label: str, e: float) -> str:
+    name = label[4:] if label.startswith("lin:") else label
+    if label.startswith("lin:"):
+        return f"exp({e:g}·{name})" if e != 1 else f"exp({name})"
+    if e == 1:
+        return name
+    return f"{name}^{e:g}"
+
+
+def identifiable_directions(
+    samples,
+    names: Sequence[str],
+    *,
+    bounds=None,
+    log: bool = True,
+    threshold: float = 0.1,
+    fractions: Sequence[str] = ("VOLF",),
+    step: float = 0.5,
+    min_coef: float = 0.2,
+    n_prior: int = 20000,
+    seed=0,
+    interval: tuple[float, float] = (0.05, 0.95),
+    candidates=None,
+) -> IdentifiabilityReport:
+    """Combinations of parameters that the data identify, found from the posterior samples.
+
+    Parameters
+    ----------
+    samples : array_like (n, d)
+        Posterior samples (equal weights).
+    names : sequence of str
+    bounds : array_like (d, 2), optional
+        Prior box (uniform).  Default: the range spanned by the samples (then "prior" means
+        that range, and ratios are less meaningful).
+    log : bool
+        Use log features for parameters with a non-negative box (products of powers).
+    threshold : float
+        A direction is identified when its posterior sd is below ``threshold`` times its prior
+        sd (generalised eigenvalue λ = var_post/var_prior < threshold²).
+    fractions : sequence of str
+        Parameters in [0, 1] that also get a log(1 − θ) feature.
+    step : float
+        Exponents are normalised to max |coef| = 1 and rounded to multiples of ``step``.
+    min_coef : float
+        Normalised coefficients below this are dropped from the label.
+    n_prior : int
+        Uniform draws from the box used for the prior covariance of the features.
+    seed : int or Generator
+    interval : (float, float)
+    candidates : see :func:`candidate_combinations`.
+
+    Returns
+    -------
+    IdentifiabilityReport
+    """
+    x = np.asarray(samples, float)
+    names = list(names)
+    if x.ndim != 2 or x.shape[1] != len(names) or x.shape[0] < len(names) + 2:
+        raise HbmError(f"identifiable_directions: samples must be (n > d+1, {len(names)}), got {x.shape}")
+    if bounds is None:
+        b = np.column_stack([x.min(0), x.max(0)])
+    else:
+        b = np.asarray(bounds, float)
+        if b.shape != (len(names), 2) or np.any(b[:, 1] <= b[:, 0]):
+            raise HbmError(f"identifiable_directions: bounds must be ({len(names)}, 2) with lower < upper")
+    lo, hi = b[:, 0], b[:, 1]
+    rng = np.random.default_rng(seed)
+    prior = rng.uniform(lo, hi, (int(n_prior), len(names)))
+    Fp, labels = _feature_matrix(x, names, lo, hi, log, set(fractions))
+    Fq, _ = _feature_matrix(prior, names, lo, hi, log, set(fractions))
+    Cpost = np.cov(Fp, rowvar=False)
+    Cprior = np.cov(Fq, rowvar=False)
+    # Parameters that do not vary in the samples (fixed) would make Cpost singular but that is
+    # fine for eigh; a degenerate prior (zero-width box) is excluded by the bounds check.
+    lam, V = eigh(Cpost + 1e-14 * np.diag(np.diag(Cprior)), Cprior)
+    sd_ratio = np.sqrt(np.maximum(lam, 0.0))
+    directions = []
+    seen: set = set()
+    for k in np.argsort(sd_ratio):
+        if sd_ratio[k] >= threshold:
+            break
+        v = V[:, k] / np.max(np.abs(V[:, k]))
+        if v[np.argmax(np.abs(v))] < 0:
+            v = -v
+        r = np.round(v / step) * step
+        r[np.abs(v) < min_coef] = 0.0
+
+        def ratio(u):
+            return float(np.sqrt((u @ Cpost @ u) / (u @ Cprior @ u))) if np.any(u) else float("inf")
+
+        # Several individually well-determined parameters span a subspace of small ratios in
+        # which eigenvectors mix arbitrarily (e.g. T2·THETA^-0.5).  Greedy pruning: drop the
+        # term whose removal keeps the direction identified (ratio < threshold) with the
+        # smallest ratio, until no term can go; the sparsest identified combination remains.
+        while np.count_nonzero(r) > 1:
+            best, best_ratio = None, np.inf
+            for j in np.flatnonzero(r):
+                u = r.copy()
+                u[j] = 0.0
+                q = ratio(u)
+                if q < best_ratio:
+                    best, best_ratio = j, q
+            if best_ratio >= threshold:
+                break
+            r[best] = 0.0
+        r = r / np.max(np.abs(r)) if np.any(r) else r
+        r = np.round(r / step) * step
+        if r[np.argmax(np.abs(r))] < 0:
+            r = -r
+        key = tuple(r)
+        if key in seen or not np.any(r):
+            continue
+        seen.add(key)
+        ratio_r = ratio(r)
+        expo = {labels[j]: float(r[j]) for j in range(len(labels)) if r[j] != 0}
+        label = "·".join(_format_term(lb, e) for lb, e in expo.items())
+        val = np.exp(Fp @ r)
+        qlo, med, qhi = np.quantile(val, [interval[0], 0.5, interval[1]])
+        directions.append({
+            "label": label, "exponents": expo, "raw": {labels[j]: float(v[j]) for j in range(len(labels))},
+            "sd_ratio": float(sd_ratio[k]), "sd_ratio_rounded": ratio_r,
+            "median": float(med), "lo": float(qlo), "hi": float(qhi), "cv": _cv(val),
+        })
+    cands = candidate_combinations(x, names, candidates=candidates, interval=interval)
+    return IdentifiabilityReport(directions=directions, spectrum=np.sort(sd_ratio), features=labels,
+                                 candidates=cands, threshold=float(threshold), eigenvectors=V)
+
+
+# --------------------------------------------------------------------------------------
+# (b) the VOLF–T1 manifold
+# --------------------------------------------------------------------------------------
+@dataclass
+class VolfT1Manifold:
+    """A fitted VOLF–T1 curve: T1(VOLF) = exp(S(−log(1 − VOLF))), S a natural cubic spline.
+
+    The abscissa −log(1 − VOLF) and the ordinate log T1 make a constant (1 − VOLF)·T1 a
+    straight line, which a natural cubic spline reproduces exactly; in plain (VOLF, T1) or
+    (VOLF, log T1) coordinates the 1/(1 − VOLF) rise near VOLF → 1 put a 6 % interpolation
+    error into (1 − VOLF)·T1 between equally spaced sweep optima (measured), which would be
+    mistaken for a departure from the structural manifold.  Any other monotone or
+    non-monotone relation is still representable.
+
+    Attributes
+    ----------
+    knots_volf, knots_log_t1 : ndarray
+        Nodes of the spline (CMA-ES optima, or bin centres of samples with smoothed values).
+    level : ndarray [median, lo, hi]
+        (1 − VOLF)·T1 of the input points/samples: median and interval.
+    level_interval : (float, float)
+        Quantiles used for ``level``.
+    source : str
+        "points" (interpolating spline through optima) or "samples" (smoothing spline
+        through binned medians).
+    n_input : int
+    """
+
+    knots_volf: np.ndarray
+    knots_log_t1: np.ndarray
+    level: np.ndarray
+    level_interval: tuple
+    source: str
+    n_input: int
+
+    def __post_init__(self):
+        self.knots_volf = np.asarray(self.knots_volf, float)
+        self.knots_log_t1 = np.asarray(self.knots_log_t1, float)
+        self._spline = CubicSpline(-np.log1p(-self.knots_volf), self.knots_log_t1, bc_type="natural",
+                                   extrapolate=False)
+
+    @property
+    def volf_range(self) -> tuple[float, float]:
+        return float(self.knots_volf[0]), float(self.knots_volf[-1])
+
+    def __call__(self, volf) -> np.ndarray:
+        """T1 on the curve at ``volf`` (NaN outside the fitted VOLF range)."""
+        v = np.asarray(volf, float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.exp(self._spline(-np.log1p(-v)))
+
+    def product(self, volf) -> np.ndarray:
+        """(1 − VOLF)·T1(VOLF) along the curve."""
+        volf = np.asarray(volf, float)
+        return (1.0 - volf) * self(volf)
+
+    def grid(self, n: int = 50) -> np.ndarray:
+        return np.linspace(*self.volf_range, n)
+
+    @property
+    def flatness(self) -> float:
+        """(max − min)/median of (1 − VOLF)·T1 along the curve: ≈ 0 on the structural manifold."""
+        p = self.product(self.grid(200))
+        return float((p.max() - p.min()) / np.median(p))
+
+    def to_arrays(self, n_grid: int = 50) -> dict[str, np.ndarray]:
+        """Plain arrays (for netCDF): knots, level, and the curve on a grid."""
+        g = self.grid(n_grid)
+        return {
+            "knots_volf": self.knots_volf.copy(), "knots_log_t1": self.knots_log_t1.copy(),
+            "level": np.asarray(self.level, float).copy(), "level_interval": np.asarray(self.level_interval, float),
+            "grid_volf": g, "grid_t1": self(g), "grid_product": self.product(g),
+            "n_input": np.asarray(self.n_input), "source": np.asarray(self.source),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> "VolfT1Manifold":
+        """Inverse of :meth:`to_arrays`."""
+        try:
+            return cls(knots_volf=np.asarray(arrays["knots_volf"]), knots_log_t1=np.asarray(arrays["knots_log_t1"]),
+                       level=np.asarray(arrays["level"]), level_interval=tuple(np.asarray(arrays["level_interval"]).tolist()),
+                       source=str(np.asarray(arrays["source"])), n_input=int(np.asarray(arrays["n_input"])))
+        except KeyError as exc:
+            raise HbmError(f"VolfT1Manifold.from_arrays: missing field {exc.args[0]!r}") from None
+
+
+def volf_t1_manifold(
+    volf,
+    t1,
+    *,
+    source: str = "auto",
+    n_bins: int = 15,
+    smooth: bool | None = None,
+    interval: tuple[float, float] = (0.05, 0.95),
+    min_points: int = 4,
+) -> VolfT1Manifold:
+    """Fit the VOLF–T1 curve (thesis Appendix B, automated).
+
+    Parameters
+    ----------
+    volf, t1 : array_like (n,)
+        CMA-ES sweep optima (one per VOLF sub-range) and/or posterior samples.
+    source : {"auto", "points", "samples"}
+        "points": sort by VOLF, average duplicates, natural cubic spline through them
+        (interpolating, as in the thesis; ``smooth=True`` uses a GCV smoothing spline
+        instead).  "samples": split VOLF into ``n_bins`` equal-count bins, take the median
+        VOLF and median log T1 of each bin (medians commute with the monotone VOLF ↦ T1 of a
+        manifold, so the knots lie on it) and interpolate them (``smooth=True``: GCV smoothing
+        spline weighted by bin counts, whose values at the bin medians become the knots; it
+        bends the steep end near VOLF → 1, so it is not the default).
+        "auto": "samples" if n > 10·n_bins.
+    n_bins : int
+    smooth : bool, optional
+        GCV smoothing instead of interpolation (default False).
+    interval : (float, float)
+        Quantiles of the (1 − VOLF)·T1 level interval.
+    min_points : int
+        Fewer distinct VOLF values than this is an error.
+
+    Returns
+    -------
+    VolfT1Manifold
+    """
+    v = np.asarray(volf, float).ravel()
+    t = np.asarray(t1, float).ravel()
+    if v.shape != t.shape:
+        raise HbmError(f"volf_t1_manifold: volf and t1 must have the same length, got {v.size} and {t.size}")
+    ok = np.isfinite(v) & np.isfinite(t) & (t > 0) & (v < 1)
+    v, t = v[ok], t[ok]
+    if source == "auto":
+        source = "samples" if v.size > 10 * n_bins else "points"
+    if source not in ("points", "samples"):
+        raise HbmError(f"volf_t1_manifold: source must be 'auto', 'points' or 'samples', got {source!r}")
+    prod = (1.0 - v) * t
+    if prod.size == 0:
+        raise HbmError("volf_t1_manifold: no finite points with T1 > 0 and VOLF < 1")
+    level = np.quantile(prod, [0.5, interval[0], interval[1]])
+    lt = np.log(t)
+    if source == "points":
+        order = np.argsort(v)
+        xs, inv = np.unique(np.round(v[order], 12), return_inverse=True)
+        ys = np.bincount(inv, weights=lt[order]) / np.bincount(inv)
+        if xs.size < min_points:
+            raise HbmError(f"volf_t1_manifold: need at least {min_points} distinct VOLF values, got {xs.size}")
+        if smooth and xs.size >= 5:
+            ys = make_smoothing_spline(xs, ys)(xs)
+        knots_x, knots_y = xs, ys
+    else:
+        if v.size < max(min_points, 5) * 2:
+            raise HbmError(f"volf_t1_manifold: too few samples ({v.size}) for {n_bins} bins")
+        nb = int(min(n_bins, v.size // 10))
+        edges = np.quantile(v, np.linspace(0, 1, nb + 1))
+        idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, nb - 1)
+        xs, ys, ws = [], [], []
+        for b in range(nb):  # loop over bins (few), vectorised within
+            m = idx == b
+            if m.sum() >= 3:
+                xs.append(np.median(v[m]))
+                ys.append(np.median(lt[m]))
+                ws.append(m.sum())
+        xs, ys, ws = np.array(xs), np.array(ys), np.array(ws, float)
+        keep = np.concatenate([[True], np.diff(xs) > 1e-12])
+        xs, ys, ws = xs[keep], ys[keep], ws[keep]
+        if xs.size < min_points:
+            raise HbmError(f"volf_t1_manifold: samples span fewer than {min_points} distinct VOLF bins")
+        if smooth and xs.size >= 5:
+            ys = make_smoothing_spline(xs, ys, w=ws / ws.mean())(xs)
+        knots_x, knots_y = xs, ys
+    return VolfT1Manifold(knots_volf=knots_x, knots_log_t1=knots_y, level=level, level_interval=tuple(interval),
+                          source=source, n_input=int(v.size))
+
+
+# --------------------------------------------------------------------------------------
+# (c) comparison across specimens
+# --------------------------------------------------------------------------------------
+@dataclass
+class ManifoldComparison:
+    """Differences between specimens' VOLF–T1 manifolds.
+
+    Attributes
+    ----------
+    specimens : list of str
+    level : ndarray (n, 3)
+        (1 − VOLF)·T1 median, lo, hi per specimen.
+    flatness : ndarray (n,)
+    overlap : ndarray (n, n) bool
+        Whether the level intervals of two specimens overlap.
+    differ : list of (str, str)
+        Pairs whose intervals do not overlap (they differ beyond their uncertainty).
+    grid_volf : ndarray (g,)
+        Common VOLF grid (intersection of the fitted ranges; empty if they do not intersect).
+    grid_t1 : ndarray (n, g)
+    spread : float
+        max/min ratio of the specimen medians of (1 − VOLF)·T1.
+    """
+
+    specimens: list
+    level: np.ndarray
+    flatness: np.ndarray
+    overlap: np.ndarray
+    differ: list
+    grid_volf: np.ndarray
+    grid_t1: np.ndarray
+    spread: float
+
+    def table(self) -> str:
+        """Markdown table of the levels per specimen."""
+        lines = ["| specimen | (1-VOLF)·T1 median | interval | flatness along curve |", "|---|---|---|---|"]
+        for s, (m, a, b), f in zip(self.specimens, self.level, self.flatness):
+            lines.append(f"| {s} | {m:.4g} | [{a:.4g}, {b:.4g}] | {f:.3g} |")
+        if self.differ:
+            lines.append("")
+            lines.append("Differ beyond their uncertainty: " + ", ".join(f"{a}–{b}" for a, b in self.differ))
+        return "\n".join(lines)
+
+
+def compare_manifolds(manifolds: Mapping[str, VolfT1Manifold], *, n_grid: int = 50) -> ManifoldComparison:
+    """Compare the VOLF–T1 manifolds of several specimens.
+
+    Parameters
+    ----------
+    manifolds : mapping specimen -> VolfT1Manifold
+    n_grid : int
+        Points of the common VOLF grid.
+
+    Returns
+    -------
+    ManifoldComparison
+    """
+    if not manifolds:
+        raise HbmError("compare_manifolds: no manifolds given")
+    specs = list(manifolds)
+    lev = np.array([np.asarray(manifolds[s].level, float) for s in specs])
+    flat = np.array([manifolds[s].flatness for s in specs])
+    lo, hi = lev[:, 1], lev[:, 2]
+    overlap = (lo[:, None] <= hi[None, :]) & (lo[None, :] <= hi[:, None])
+    differ = [(specs[i], specs[j]) for i in range(len(specs)) for j in range(i + 1, len(specs)) if not overlap[i, j]]
+    a = max(manifolds[s].volf_range[0] for s in specs)
+    b = min(manifolds[s].volf_range[1] for s in specs)
+    g = np.linspace(a, b, n_grid) if b > a else np.empty(0)
+    curves = np.array([manifolds[s](g) for s in specs]) if g.size else np.empty((len(specs), 0))
+    spread = float(lev[:, 0].max() / lev[:, 0].min()) if lev[:, 0].min() > 0 else float("inf")
+    return ManifoldComparison(specimens=specs, level=lev, flatness=flat, overlap=overlap, differ=differ,
+                              grid_volf=g, grid_t1=curves, spread=spread)

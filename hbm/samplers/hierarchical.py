@@ -1,0 +1,1038 @@
+"""Hierarchical Bayesian layer over per-specimen TMCMC posteriors (two-stage, sample reuse).
+
+Model
+-----
+Each specimen ``i`` has parameters θ_i (the stage-1 columns).  A chosen subset of them (the
+*pooled* parameters, by default all) follows a population distribution:
+
+* each pooled parameter is mapped to a transformed coordinate ``z = g_k(θ_k)``:
+
+  ``"identity"``  z = θ.
+  ``"log"``       z = log θ (needs a box with lower bound > 0).  For positive scales
+                  (moduli P1, GF, GM) whose plausible values span decades: a normal in log
+                  space is a log-normal population, and "sd" reads as a relative spread.
+  ``"logit"``     z = log(u / (1 − u)),  u = (θ − lo)/(hi − lo) ("logit on the box").  For
+                  bounded fractions such as VOLF and for parameters that pile up at a box
+                  edge: the transformed space is the whole real line, so the population is
+                  automatically confined to the box and *no truncation is needed*.
+
+* ``z_k ~ Normal(mu_k, sd_k²)`` truncated to the transformed box ``[g(lo), g(hi)]``
+  (no-op for logit), independently over k, or jointly normal with a full covariance over
+  a chosen subset (``full_cov``; those parameters must use ``"logit"`` so that the box
+  truncation of a correlated normal, which has no closed form, never arises).
+
+* The density is a density **in θ**: p(θ|ψ) = Π_k N_trunc(g_k(θ_k); mu_k, sd_k) · |g_k'(θ_k)|.
+
+Hyperpriors (ψ = (mu, sd[, correlations]))
+-------------------------------------------
+* ``mu_k`` uniform on the transformed box ``[g(lo), g(hi)]``; for logit (infinite box) on
+  ``[-logit_range, logit_range]`` (default 8, i.e. u ∈ [3.4e-4, 0.99966]).  ``mu_bounds``
+  overrides it per parameter (in transformed units).
+* ``sd_k`` on ``[sd_range[0]·w_k, sd_range[1]·w_k]`` with ``w_k`` the width of the mu range;
+  ``sd_prior="loguniform"`` (default: scale-free, uninformative about the order of magnitude
+  of the spread between specimens) or ``"halfnormal"`` (scale ``w_k/2``, truncated to the
+  same interval; favours small spreads).
+* correlations (``full_cov``): the correlation matrix is built from its canonical partial
+  correlations (CPCs, the Cholesky-factor parametrisation of Lewandowski et al.), each
+  uniform on ``[-0.99, 0.99]``.  For two parameters this is a uniform correlation; for more
+  it is a simple, proper, documented prior (not LKJ).
+
+Hyper-posterior by sample reuse
+-------------------------------
+Stage-1 samples θ_ij ~ p(θ|d_i) were drawn under the uniform prior on ``bounds``, so
+
+    p(d_i|ψ) = Z_i · E_{θ~p(θ|d_i)}[ p(θ|ψ) / p_prior(θ) ]
+             ≈ Z_i · mean_j r_ij(ψ),      r_ij(ψ) = p(θ_ij|ψ) / p_prior(θ_ij).
+
+``log r`` is a quadratic form in z, so for the whole ψ population at once it is the matrix
+product ``coef(ψ) (n_ψ, n_f) @ F(θ)ᵀ (n_f, N)`` with features F = [z, z², z_k z_l (pairs in
+the full-covariance block)] plus per-ψ constants (normal and truncation normalisers via
+``scipy.special.log_ndtr``) and per-sample constants (Jacobian, prior).  Samples are processed
+in chunks with an online log-sum-exp, so memory is bounded and time is linear in N.  The
+per-specimen importance ESS (Σr)²/Σr² comes out of the same pass.
+
+TMCMC over ψ targets Σ_i log mean_j r_ij(ψ); the hyper-evidence is its log-evidence plus
+Σ_i log Z_i, so it is log p(all data | hyperprior family) and families (transforms, full
+covariance, sd prior) can be compared by it.
+
+Updated individuals ("shrinkage")
+---------------------------------
+p(θ_i | all data) = ∫ p(θ_i | d_i, ψ) p(ψ | all data) dψ.  p(θ_i|d_i, ψ) is represented by
+the stage-1 samples with self-normalised weights r_ij(ψ)/Σ_j r_ij(ψ), so the updated
+posterior is the stage-1 sample set with weights averaged *per draw after normalisation*
+over the hyper-posterior draws, then resampled (systematic resampling).  (Averaging the
+unnormalised ratios instead would weight each draw by p(d_i|ψ) again — double-counting d_i.)
+
+When the importance ESS collapses (a population much narrower than a specimen's stage-1
+posterior), :func:`refine_individual` runs a fresh TMCMC of that posterior given the
+specimen's log-likelihood callable.
+
+This module is sampler-layer code: it knows nothing about muscles.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+from scipy.special import log_ndtr, logsumexp, ndtri
+
+from ..errors import HbmError
+
+__all__ = [
+    "HierarchicalResult",
+    "HierarchicalModel",
+    "hierarchical",
+    "refine_individual",
+    "systematic_resample",
+    "TRANSFORMS",
+]
+
+TRANSFORMS = ("identity", "log", "logit")
+_LOG2PI = np.log(2.0 * np.pi)
+_CPC_MAX = 0.99
+# Stage-1 samples sitting exactly on a box edge would map to ±inf under log/logit.
+_EDGE = 1e-12
+
+
+# --------------------------------------------------------------------------------------
+# BLAS threads
+# --------------------------------------------------------------------------------------
+_BLAS_API: list | None = None
+
+
+def _blas_api() -> list:
+    """(set, get) pairs of OpenBLAS thread controls of the loaded BLAS libraries (Linux)."""
+    global _BLAS_API
+    if _BLAS_API is None:
+        import ctypes
+
+        found = []
+        try:
+            with open("/proc/self/maps") as fh:
+                libs = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower() and "/" in ln})
+        except OSError:
+            libs = []
+        for path in libs:
+            try:
+                lib = ctypes.CDLL(path)
+            except OSError:
+                continue
+            for prefix, suffix in (("openblas", ""), ("scipy_openblas", "64_"), ("openblas", "64_")):
+                setter = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
+                getter = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
+                if setter is not None and getter is not None:
+                    found.append((setter, getter))
+                    break
+        _BLAS_API = found
+    return _BLAS_API
+
+
+class _single_thread_blas:
+    """Run the hot loop with one BLAS thread.
+
+    The GEMMs here are thin (K = 2d+2 columns); OpenBLAS threads give no speed-up for them
+    and, on a loaded machine or inside several dask workers, spin-waiting threads made one
+    likelihood call 3× slower (measured).  Restores the previous setting; no-op if the BLAS
+    is not OpenBLAS.
+    """
+
+    def __enter__(self):
+        self._old = []
+        for setter, getter in _blas_api():
+            try:
+                self._old.append((setter, int(getter())))
+                setter(1)
+            except Exception:  # pragma: no cover - exotic BLAS builds
+                pass
+        return self
+
+    def __exit__(self, *exc):
+        for setter, n in self._old:
+            setter(n)
+        return False
+
+
+# --------------------------------------------------------------------------------------
+# small numerical helpers
+# --------------------------------------------------------------------------------------
+def _log_norm_mass(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """log(Φ(b) − Φ(a)) for a < b, accurate in both tails."""
+    a, b = np.broadcast_arrays(np.asarray(a, float), np.asarray(b, float))
+    # In the upper tail use the mirror image so that both Φ values are small (no cancellation).
+    flip = a > 0
+    lo = np.where(flip, -b, a)
+    hi = np.where(flip, -a, b)
+    lhi = log_ndtr(hi)
+    llo = log_ndtr(lo)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = lhi + np.log1p(-np.exp(np.minimum(llo - lhi, 0.0)))
+    return out
+
+
+def systematic_resample(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of ``n`` systematic-resampling draws from normalised-or-not ``weights``."""
+    w = np.asarray(weights, float)
+    c = np.cumsum(w)
+    c /= c[-1]
+    u = (rng.random() + np.arange(n)) / n
+    return np.minimum(np.searchsorted(c, u, side="right"), len(w) - 1)
+
+
+def _ess(w: np.ndarray) -> float:
+    s = w.sum()
+    return float(s * s / np.sum(w * w)) if s > 0 else 0.0
+
+
+def _cpc_to_corr_chol(cpc: np.ndarray, m: int) -> np.ndarray:
+    """Cholesky factors (n, m, m) of correlation matrices from canonical partial correlations.
+
+    ``cpc`` is (n, m(m−1)/2), ordered row by row of the strict lower triangle (i > j).
+    Row i of L: L_ij = z_ij·sqrt(1 − Σ_{k<j} L_ik²) for j < i, L_ii = sqrt(1 − Σ_{k<i} L_ik²).
+    Unit-norm rows ⇒ L Lᵀ has a unit diagonal and is positive definite for |z| < 1.
+    """
+    n = cpc.shape[0]
+    L = np.zeros((n, m, m))
+    L[:, 0, 0] = 1.0
+    pos = 0
+    for i in range(1, m):  # loops over the (small) block dimension only, not over particles
+        rem = np.ones(n)
+        for j in range(i):
+            z = cpc[:, pos]
+            pos += 1
+            L[:, i, j] = z * np.sqrt(rem)
+            rem = rem - L[:, i, j] ** 2
+        L[:, i, i] = np.sqrt(np.maximum(rem, 0.0))
+    return L
+
+
+# --------------------------------------------------------------------------------------
+# the population model
+# --------------------------------------------------------------------------------------
+class HierarchicalModel:
+    """Population model, hyperprior and the vectorised importance-sampling likelihood.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Names of *all* stage-1 columns.
+    bounds : array_like, shape (d, 2)
+        Uniform prior box used at stage 1 (all columns).
+    pooled : sequence of str, optional
+        Columns given a population distribution (default all).  The others keep their
+        stage-1 uniform prior (their ratio is 1) and are only carried along.
+    transforms : mapping name -> {"identity","log","logit"}, optional
+        Default "identity", except "logit" for parameters in ``full_cov``.
+    full_cov : sequence of str, optional
+        Pooled parameters that share a full covariance matrix (≥ 2 names, logit transform).
+    sd_prior : {"loguniform", "halfnormal"}
+    sd_range : (float, float)
+        sd_k ∈ [sd_range[0]·w_k, sd_range[1]·w_k], w_k the width of mu_k's range.
+    mu_bounds : mapping name -> (lo, hi), optional
+        Range of the uniform prior on mu_k, in transformed units.
+    logit_range : float
+        Default mu range ``[-logit_range, logit_range]`` for logit parameters.
+    fix : mapping hyper-name -> value, optional
+        Hold hyperparameters fixed (e.g. ``{"sd_x": 1.0}``); ``sd_*`` values are sds.
+    """
+
+    def __init__(
+        self,
+        names: Sequence[str],
+        bounds,
+        *,
+        pooled: Sequence[str] | None = None,
+        transforms: Mapping[str, str] | None = None,
+        full_cov: Sequence[str] | None = None,
+        sd_prior: str = "loguniform",
+        sd_range: tuple[float, float] = (1e-3, 1.0),
+        mu_bounds: Mapping[str, tuple[float, float]] | None = None,
+        logit_range: float = 8.0,
+        fix: Mapping[str, float] | None = None,
+    ) -> None:
+        self.all_names = [str(n) for n in names]
+        bounds = np.asarray(bounds, dtype=float)
+        if bounds.shape != (len(self.all_names), 2):
+            raise HbmError(
+                f"hierarchical: bounds must have shape ({len(self.all_names)}, 2) matching names, "
+                f"got {bounds.shape}"
+            )
+        if not np.all(np.isfinite(bounds)) or np.any(bounds[:, 1] <= bounds[:, 0]):
+            raise HbmError("hierarchical: bounds must be finite with lower < upper for every parameter")
+        self.all_bounds = bounds
+        pooled = list(self.all_names) if pooled is None else [str(p) for p in pooled]
+        unknown = [p for p in pooled if p not in self.all_names]
+        if unknown or not pooled:
+            raise HbmError(f"hierarchical: pooled parameters {unknown or pooled} are not among names {self.all_names}")
+        self.names = pooled
+        self.cols = np.array([self.all_names.index(p) for p in pooled])
+        self.d = len(pooled)
+        self.lo = bounds[self.cols, 0]
+        self.hi = bounds[self.cols, 1]
+
+        full_cov = [] if full_cov is None else [str(p) for p in full_cov]
+        bad = [p for p in full_cov if p not in pooled]
+        if bad:
+            raise HbmError(f"hierarchical: full_cov names {bad} are not pooled parameters")
+        if len(full_cov) == 1:
+            raise HbmError("hierarchical: full_cov needs at least two parameter names")
+        self.full_cov = full_cov
+        self.S = np.array([pooled.index(p) for p in full_cov], dtype=int)
+        self.m = len(self.S)
+
+        transforms = dict(transforms or {})
+        unknown = [k for k in transforms if k not in self.all_names]
+        if unknown:
+            raise HbmError(f"hierarchical: transforms given for unknown parameters {unknown}")
+        kinds = []
+        for p in pooled:
+            kind = transforms.get(p, "logit" if p in full_cov else "identity")
+            if kind not in TRANSFORMS:
+                raise HbmError(f"hierarchical: transform for {p!r} must be one of {TRANSFORMS}, got {kind!r}")
+            if p in full_cov and kind != "logit":
+                raise HbmError(
+                    f"hierarchical: full_cov parameter {p!r} needs transform 'logit' (a correlated normal "
+                    f"truncated to a box has no closed-form normaliser), got {kind!r}"
+                )
+            if kind == "log" and self.lo[pooled.index(p)] <= 0:
+                raise HbmError(
+                    f"hierarchical: transform 'log' for {p!r} needs a positive lower bound, box starts at "
+                    f"{self.lo[pooled.index(p)]:g} (use 'logit' or narrow the box)"
+                )
+            kinds.append(kind)
+        self.kinds = kinds
+        self.transforms = dict(zip(pooled, kinds))
+
+        # transformed box (truncation) and the hyperprior range of mu
+        zlo, zhi = np.empty(self.d), np.empty(self.d)
+        for k, kind in enumerate(kinds):
+            if kind == "identity":
+                zlo[k], zhi[k] = self.lo[k], self.hi[k]
+            elif kind == "log":
+                zlo[k], zhi[k] = np.log(self.lo[k]), np.log(self.hi[k])
+            else:
+                zlo[k], zhi[k] = -np.inf, np.inf
+        self.zlo, self.zhi = zlo, zhi
+        mu_lo = np.where(np.isfinite(zlo), zlo, -logit_range)
+        mu_hi = np.where(np.isfinite(zhi), zhi, logit_range)
+        for p, (a, b) in dict(mu_bounds or {}).items():
+            if p not in pooled or not b > a:
+                raise HbmError(f"hierarchical: mu_bounds[{p!r}] must name a pooled parameter with lo < hi")
+            mu_lo[pooled.index(p)], mu_hi[pooled.index(p)] = a, b
+        self.mu_lo, self.mu_hi = mu_lo, mu_hi
+        width = mu_hi - mu_lo
+        if not (0 < sd_range[0] < sd_range[1]):
+            raise HbmError(f"hierarchical: sd_range must satisfy 0 < lo < hi, got {sd_range}")
+        self.sd_lo, self.sd_hi = sd_range[0] * width, sd_range[1] * width
+        if sd_prior not in ("loguniform", "halfnormal"):
+            raise HbmError(f"hierarchical: sd_prior must be 'loguniform' or 'halfnormal', got {sd_prior!r}")
+        self.sd_prior = sd_prior
+
+        # Numerical centring: features are standardised on the mu range so that the expanded
+        # quadratic form (z²/sd² − 2 z mu/sd² + mu²/sd²) does not lose digits to cancellation.
+        self.c = 0.5 * (mu_lo + mu_hi)
+        self.s = 0.5 * width
+
+        # hyperparameter layout: mu (d), sd (d), cpc (q)
+        self.pairs = [(self.S[i], self.S[j]) for i in range(self.m) for j in range(i)]
+        self.q = len(self.pairs)
+        self.hyper_names = (
+            [f"mu_{p}" for p in pooled]
+            + [f"sd_{p}" for p in pooled]
+            + [f"corr_{pooled[i]}_{pooled[j]}" for i, j in self.pairs]
+        )
+        fix = dict(fix or {})
+        bad = [k for k in fix if k not in self.hyper_names]
+        if bad:
+            raise HbmError(f"hierarchical: fix names {bad} are not hyperparameters {self.hyper_names}")
+        self.fix = fix
+        self.free = [i for i, n in enumerate(self.hyper_names) if n not in fix]
+        if not self.free:
+            raise HbmError("hierarchical: every hyperparameter is fixed; nothing to sample")
+
+        # Box of the sampled coordinates: mu as is, sd as log sd (log-uniform prior ⇔ uniform
+        # box) or as sd (half-normal prior is then added to the target), CPC in [-0.99, 0.99].
+        if sd_prior == "loguniform":
+            sbox = np.column_stack([np.log(self.sd_lo), np.log(self.sd_hi)])
+        else:
+            sbox = np.column_stack([self.sd_lo, self.sd_hi])
+        box = np.vstack([np.column_stack([mu_lo, mu_hi]), sbox, np.tile([-_CPC_MAX, _CPC_MAX], (self.q, 1))])
+        self.full_box = box
+        self.box = box[self.free]
+        self.free_names = [self.hyper_names[i] for i in self.free]
+        # default full vector with fixed values in sampler coordinates
+        self._fixed_raw = np.zeros(len(self.hyper_names))
+        for k, v in fix.items():
+            i = self.hyper_names.index(k)
+            v = float(v)
+            if self.d <= i < 2 * self.d:
+                if not v > 0:
+                    raise HbmError(f"hierarchical: fixed {k} must be > 0, got {v}")
+                v = np.log(v) if sd_prior == "loguniform" else v
+            self._fixed_raw[i] = v
+
+    # ---- coordinates --------------------------------------------------------------------
+    def expand(self, x: np.ndarray) -> np.ndarray:
+        """Sampler coordinates of the free hyperparameters (n, n_free) -> full raw (n, 2d+q)."""
+        x = np.atleast_2d(np.asarray(x, float))
+        out = np.tile(self._fixed_raw, (x.shape[0], 1))
+        out[:, self.free] = x
+        return out
+
+    def natural(self, raw: np.ndarray) -> np.ndarray:
+        """Raw coordinates (n, 2d+q) -> (mu, sd, corr) named by ``hyper_names``."""
+        raw = np.atleast_2d(raw)
+        out = raw.copy()
+        if self.sd_prior == "loguniform":
+            out[:, self.d : 2 * self.d] = np.exp(raw[:, self.d : 2 * self.d])
+        if self.q:
+            R = self._corr(raw)
+            out[:, 2 * self.d :] = np.stack([R[:, a, b] for a, b in self._block_pairs()], axis=1)
+        return out
+
+    def _block_pairs(self):
+        return [(i, j) for i in range(self.m) for j in range(i)]
+
+    def _corr(self, raw: np.ndarray) -> np.ndarray:
+        L = _cpc_to_corr_chol(raw[:, 2 * self.d :], self.m)
+        return L @ np.swapaxes(L, 1, 2)
+
+    def log_hyperprior_correction(self, raw: np.ndarray) -> np.ndarray:
+        """log hyperprior minus log of the uniform density on the sampler box (0 if loguniform)."""
+        if self.sd_prior == "loguniform":
+            return np.zeros(raw.shape[0])
+        sd = raw[:, self.d : 2 * self.d]
+        scale = (self.mu_hi - self.mu_lo) / 2.0
+        # half-normal truncated to [sd_lo, sd_hi], relative to the uniform on the same interval
+        lognorm = _log_norm_mass(self.sd_lo / scale, self.sd_hi / scale)
+        logpdf = -0.5 * (sd / scale) ** 2 - np.log(scale) - 0.5 * _LOG2PI - lognorm
+        logu = -np.log(self.sd_hi - self.sd_lo)
+        free_sd = np.array([f"sd_{p}" not in self.fix for p in self.names])
+        return np.sum((logpdf - logu)[:, free_sd], axis=1)
+
+    # ---- transforms ---------------------------------------------------------------------
+    def to_z(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pooled columns of stage-1 samples -> (z (N, d), Σ_k log|g_k'(θ_k)| (N,))."""
+        th = np.asarray(theta, float)[:, self.cols]
+        z = np.empty_like(th)
+        logjac = np.zeros(th.shape[0])
+        for k, kind in enumerate(self.kinds):  # loop over parameters, vectorised over samples
+            x = th[:, k]
+            if kind == "identity":
+                z[:, k] = x
+            elif kind == "log":
+                x = np.maximum(x, self.lo[k])
+                z[:, k] = np.log(x)
+                logjac -= np.log(x)
+            else:
+                w = self.hi[k] - self.lo[k]
+                u = np.clip((x - self.lo[k]) / w, _EDGE, 1.0 - _EDGE)
+                z[:, k] = np.log(u) - np.log1p(-u)
+                logjac -= np.log(u) + np.log1p(-u) + np.log(w)
+        return z, logjac
+
+    def from_z(self, z: np.ndarray) -> np.ndarray:
+        """Inverse transform (n, d) -> θ of the pooled columns."""
+        th = np.empty_like(z)
+        for k, kind in enumerate(self.kinds):
+            if kind == "identity":
+                th[:, k] = z[:, k]
+            elif kind == "log":
+                th[:, k] = np.exp(z[:, k])
+            else:
+                th[:, k] = self.lo[k] + (self.hi[k] - self.lo[k]) / (1.0 + np.exp(-z[:, k]))
+        return np.clip(th, self.lo, self.hi)
+
+    def features(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Quadratic features F (N, n_f) and per-sample constants (N,) of log r = coef·F + const."""
+        theta = np.asarray(theta, float)
+        if theta.ndim != 2 or theta.shape[1] != len(self.all_names):
+            raise HbmError(
+                f"hierarchical: stage-1 samples must have shape (N, {len(self.all_names)}), got {theta.shape}"
+            )
+        z, logjac = self.to_z(theta)
+        zt = (z - self.c) / self.s
+        cross = [zt[:, a] * zt[:, b] for a, b in self.pairs]
+        F = np.column_stack([zt, zt * zt] + cross) if cross else np.column_stack([zt, zt * zt])
+        # log p_prior = −Σ log(hi − lo) over pooled columns; density of z is that of z̃ / Π s.
+        const = logjac + np.sum(np.log(self.hi - self.lo)) - np.sum(np.log(self.s))
+        return F, const
+
+    def coefficients(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coefficients (n_ψ, n_f) and constants (n_ψ,) of the quadratic form, for all ψ at once."""
+        raw = np.atleast_2d(raw)
+        n, d = raw.shape[0], self.d
+        mu = (raw[:, :d] - self.c) / self.s
+        sd = raw[:, d : 2 * d]
+        sd = np.exp(sd) if self.sd_prior == "loguniform" else sd
+        sdt = sd / self.s
+        prec = np.zeros((n, d))
+        lin = np.empty((n, d))
+        diag = np.ones(d, bool)
+        diag[self.S] = False
+        prec[:, diag] = 1.0 / sdt[:, diag] ** 2
+        lin[:, diag] = mu[:, diag] * prec[:, diag]
+        # −½ μᵀPμ − ½ log det Σ − d/2 log 2π − log(truncation mass)
+        const = -0.5 * np.sum(mu[:, diag] ** 2 * prec[:, diag], axis=1) - np.sum(np.log(sdt[:, diag]), axis=1)
+        a = (self.zlo[diag] - self.c[diag]) / self.s[diag]
+        b = (self.zhi[diag] - self.c[diag]) / self.s[diag]
+        const -= np.sum(_log_norm_mass((a - mu[:, diag]) / sdt[:, diag], (b - mu[:, diag]) / sdt[:, diag]), axis=1)
+        const -= 0.5 * d * _LOG2PI
+        cross = np.zeros((n, self.q))
+        if self.m:
+            Lc = _cpc_to_corr_chol(raw[:, 2 * d :], self.m)
+            ss = sdt[:, self.S]
+            Lcov = ss[:, :, None] * Lc  # Cholesky factor of D R D
+            eye = np.broadcast_to(np.eye(self.m), Lcov.shape)
+            Linv = np.linalg.solve(Lcov, eye)
+            P = np.swapaxes(Linv, 1, 2) @ Linv  # Σ⁻¹ = L⁻ᵀ L⁻¹
+            muS = mu[:, self.S]
+            lin[:, self.S] = np.einsum("nab,nb->na", P, muS)
+            prec[:, self.S] = np.diagonal(P, axis1=1, axis2=2)
+            const += -0.5 * np.einsum("na,na->n", muS, lin[:, self.S])
+            const -= np.sum(np.log(np.diagonal(Lcov, axis1=1, axis2=2)), axis=1)
+            idx = {(int(self.S[i]), int(self.S[j])): (i, j) for i in range(self.m) for j in range(self.m)}
+            for t, (ka, kb) in enumerate(self.pairs):
+                i, j = idx[(int(ka), int(kb))]
+                cross[:, t] = -P[:, i, j]  # off-diagonal appears twice in zᵀPz
+        coef = np.concatenate([lin, -0.5 * prec, cross], axis=1)
+        return coef, const
+
+    def log_ratio_stats(
+        self, F: np.ndarray, const: np.ndarray, coef: np.ndarray, cconst: np.ndarray, chunk_bytes: float = 4e6
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """log Σ_j exp(coef_r·F_j + cconst_r + const_j) and its ESS, for every row r of ``coef``.
+
+        Chunks over the samples j with an online log-sum-exp (running max per row), so memory
+        is bounded by ``chunk_bytes`` and time is linear in the number of samples.  Both
+        additive constants and the running max are folded into the matrix product through two
+        augmented columns, so each chunk costs one GEMM, one max, one exp and two reductions.
+        """
+        n = coef.shape[0]
+        N = F.shape[0]
+        chunk = int(max(256, chunk_bytes // (8 * max(n, 1))))
+        Fa = np.empty((F.shape[1] + 2, N))
+        Fa[:-2] = F.T
+        Fa[-2] = 1.0
+        Fa[-1] = const
+        Ca = np.empty((n, F.shape[1] + 2))
+        Ca[:, :-2] = coef
+        Ca[:, -1] = 1.0
+        with _single_thread_blas():
+            M, S1, S2 = self._lse_loop(Fa, Ca, cconst, N, chunk)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lse = M + np.log(S1)
+            ess = np.where(S2 > 0, S1 * S1 / S2, 0.0)
+        lse = np.where(np.isfinite(lse), lse, -np.inf)
+        return lse, ess
+
+    @staticmethod
+    def _lse_loop(Fa, Ca, cconst, N, chunk):
+        n = Ca.shape[0]
+        M = np.full(n, -np.inf)  # running max of the log terms per row
+        S1 = np.zeros(n)  # Σ exp(term − M)
+        S2 = np.zeros(n)  # Σ exp(2(term − M))
+        ones = np.ones(chunk)
+        for start in range(0, N, chunk):
+            ref = np.where(np.isfinite(M), M, 0.0)
+            Ca[:, -2] = cconst - ref
+            lr = Ca @ Fa[:, start : start + chunk]  # log terms relative to the running max
+            mc = lr.max(axis=1)
+            up = np.where(np.isfinite(M), np.maximum(mc, 0.0), mc)  # raise of the max (≥ 0)
+            up = np.where(np.isfinite(up), up, 0.0)
+            if np.any(up != 0.0):
+                lr -= up[:, None]
+            # Clamp far-underflowing terms (≤ e⁻⁷⁰⁰ relative to the max: negligible) because exp
+            # of huge negative numbers takes a slow denormal path.
+            np.maximum(lr, -700.0, out=lr)
+            np.exp(lr, out=lr)
+            with np.errstate(over="ignore", invalid="ignore"):
+                scale = np.where(np.isfinite(M), np.exp(-up), 0.0)
+            S1 = S1 * scale + lr @ ones[: lr.shape[1]]  # GEMV: faster than a strided row sum
+            S2 = S2 * (scale * scale) + np.einsum("ij,ij->i", lr, lr)
+            M = np.where(np.isfinite(mc), ref + up, M)
+        return M, S1, S2
+
+    def log_density(self, theta: np.ndarray, raw: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """log Σ_m w_m p(θ|ψ_m) for θ (n, all columns), ψ raw (M, ·): population predictive density.
+
+        Only the pooled columns have a population density; the result is the density of those
+        columns (the others are not modelled).  ``weights`` default to 1/M.
+        """
+        F, const = self.features(theta)
+        coef, cconst = self.coefficients(raw)
+        const = const - np.sum(np.log(self.hi - self.lo))  # undo the prior ratio: density, not ratio
+        w = np.full(coef.shape[0], 1.0 / coef.shape[0]) if weights is None else np.asarray(weights, float)
+        with np.errstate(divide="ignore"):
+            lw = np.log(w / w.sum())
+        # sum over ψ rows: treat the rows as the "samples" axis of log_ratio_stats
+        lse, _ = self.log_ratio_stats(coef, cconst + lw, F, const)
+        return lse
+
+
+# --------------------------------------------------------------------------------------
+# result
+# --------------------------------------------------------------------------------------
+@dataclass
+class HierarchicalResult:
+    """Output of :func:`hierarchical`.
+
+    Attributes
+    ----------
+    hyper_samples : ndarray (n, 2d+q)
+        Hyper-posterior draws (equal weights): ``mu_<P>`` (transformed units, see
+        ``transforms``), ``sd_<P>`` (transformed units), ``corr_<P>_<Q>`` (full_cov only).
+        Fixed hyperparameters appear as constant columns.
+    hyper_names : list of str
+    names : list of str
+        Pooled parameter names (columns of ``predictive``).
+    all_names : list of str
+        Stage-1 column names (columns of ``updated[...]``).
+    bounds : ndarray (len(all_names), 2)
+    transforms : dict name -> transform
+    specimens : list of str
+    log_evidence, log_evidence_se : float
+        log p(all data | hyperprior family) = TMCMC log-evidence over ψ + Σ_i log Z_i; the SE
+        combines the TMCMC SE, the stage-1 SEs and the importance-sampling noise in quadrature.
+    log_evidence_parts : dict
+    log_marginal : ndarray (n, n_specimens)
+        log p̂(d_i | ψ_m) at each hyper-posterior draw.
+    ess : ndarray (n, n_specimens)
+        Importance ESS of each specimen at each hyper-posterior draw.
+    ess_summary : dict specimen -> {"min", "q10", "median", "n"}
+    ess_collapsed : dict specimen -> bool
+        True when the 10 % quantile of the ESS over hyper-posterior draws is below
+        ``ess_threshold``: the updated individual and p̂(d_i|ψ) rest on too few samples;
+        run :func:`refine_individual` for that specimen.
+    ess_trace : list of ndarray
+        Per TMCMC likelihood call, the minimum ESS over the ψ population for each specimen.
+    updated : dict specimen -> ndarray (n_updated, len(all_names))
+        Updated individual posteriors p(θ_i | all data) (equal weights, resampled).
+    updated_weights : dict specimen -> ndarray (N_i,)
+        Normalised weights on the stage-1 samples behind ``updated``.
+    updated_ess : dict specimen -> float
+    predictive : ndarray (n, d)
+        Posterior predictive of a new, unseen specimen (pooled columns).
+    warnings : list of str
+    timings : dict
+    sampler_result : object
+        The TMCMC result over the free hyperparameters.
+    model : HierarchicalModel
+    raw_samples : ndarray (n, 2d+q)
+        Hyper draws in sampler coordinates (used by :func:`refine_individual`).
+    """
+
+    hyper_samples: np.ndarray
+    hyper_names: list
+    names: list
+    all_names: list
+    bounds: np.ndarray
+    transforms: dict
+    specimens: list
+    log_evidence: float
+    log_evidence_se: float
+    log_evidence_parts: dict
+    log_marginal: np.ndarray
+    ess: np.ndarray
+    ess_summary: dict
+    ess_collapsed: dict
+    ess_trace: list
+    updated: dict
+    updated_weights: dict
+    updated_ess: dict
+    predictive: np.ndarray
+    warnings: list
+    timings: dict
+    sampler_result: Any
+    model: HierarchicalModel
+    raw_samples: np.ndarray
+    options: dict = field(default_factory=dict)
+
+    @property
+    def collapsed(self) -> bool:
+        """True if any specimen's importance ESS collapsed."""
+        return any(self.ess_collapsed.values())
+
+    def hyper(self, name: str) -> np.ndarray:
+        """Draws of one hyperparameter by name (e.g. ``"mu_VOLF"``)."""
+        try:
+            return self.hyper_samples[:, self.hyper_names.index(name)]
+        except ValueError:
+            raise HbmError(f"hierarchical: no hyperparameter {name!r}; have {self.hyper_names}") from None
+
+    def summary(self, q: tuple[float, float] = (0.05, 0.95)) -> dict[str, dict[str, float]]:
+        """Mean, sd and quantile interval of every hyperparameter."""
+        lo, hi = np.quantile(self.hyper_samples, q, axis=0)
+        return {
+            n: {"mean": float(m), "sd": float(s), "lo": float(a), "hi": float(b)}
+            for n, m, s, a, b in zip(
+                self.hyper_names, self.hyper_samples.mean(0), self.hyper_samples.std(0), lo, hi
+            )
+        }
+
+    def updated_array(self) -> np.ndarray:
+        """Updated individuals stacked as (n_updated, n_specimens, len(all_names)) (draw, specimen, param)."""
+        return np.stack([self.updated[k] for k in self.specimens], axis=1)
+
+    def population_summary(self, q: tuple[float, float] = (0.05, 0.95)) -> dict[str, dict[str, float]]:
+        """Population estimates on the θ scale, per pooled parameter.
+
+        ``center`` / ``center_lo`` / ``center_hi``: median and interval of g⁻¹(mu) (the
+        population median for log/logit, the untruncated mean for identity);
+        ``predictive_median`` / ``predictive_lo`` / ``predictive_hi``: the new-specimen
+        predictive (population spread plus hyper-uncertainty).
+        """
+        d = self.model.d
+        centre = self.model.from_z(self.hyper_samples[:, :d].copy())
+        out = {}
+        for k, p in enumerate(self.names):
+            c = np.quantile(centre[:, k], [0.5, q[0], q[1]])
+            pr = np.quantile(self.predictive[:, k], [0.5, q[0], q[1]])
+            out[p] = {"center": float(c[0]), "center_lo": float(c[1]), "center_hi": float(c[2]),
+                      "predictive_median": float(pr[0]), "predictive_lo": float(pr[1]),
+                      "predictive_hi": float(pr[2])}
+        return out
+
+    def population_log_density(self, theta: np.ndarray, n_hyper: int = 500, seed=0) -> np.ndarray:
+        """log of the population predictive density of new-specimen θ (pooled columns), averaged
+        over (a thinned subset of) the hyper-posterior draws."""
+        raw = _thin(self.raw_samples, n_hyper, seed)
+        return self.model.log_density(theta, raw)
+
+
+def _thin(a: np.ndarray, n: int, seed) -> np.ndarray:
+    if a.shape[0] <= n:
+        return a
+    rng = np.random.default_rng(seed)
+    return a[np.sort(rng.choice(a.shape[0], n, replace=False))]
+
+
+# --------------------------------------------------------------------------------------
+# entry point
+# --------------------------------------------------------------------------------------
+def _parse_stage1(stage1, n_cols):
+    specs, samples, logz, logz_se = [], [], [], []
+    if not isinstance(stage1, Mapping) or not stage1:
+        raise HbmError("hierarchical: stage1 must be a non-empty mapping specimen -> (samples, log_Z[, log_Z_se])")
+    for key, val in stage1.items():
+        if not isinstance(val, (tuple, list)) or len(val) not in (2, 3):
+            raise HbmError(f"hierarchical: stage1[{key!r}] must be (samples, log_Z) or (samples, log_Z, log_Z_se)")
+        x = np.asarray(val[0], float)
+        if x.ndim != 2 or x.shape[1] != n_cols or x.shape[0] < 2:
+            raise HbmError(f"hierarchical: stage1[{key!r}] samples must be (N>=2, {n_cols}), got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise HbmError(f"hierarchical: stage1[{key!r}] samples contain non-finite values")
+        lz = float(val[1])
+        if not np.isfinite(lz):
+            raise HbmError(f"hierarchical: stage1[{key!r}] log_Z must be finite, got {val[1]!r}")
+        specs.append(str(key))
+        samples.append(x)
+        logz.append(lz)
+        logz_se.append(float(val[2]) if len(val) == 3 and val[2] is not None else 0.0)
+    return specs, samples, np.array(logz), np.array(logz_se)
+
+
+def hierarchical(
+    stage1: Mapping[str, tuple],
+    names: Sequence[str],
+    bounds,
+    *,
+    transforms: Mapping[str, str] | None = None,
+    pooled: Sequence[str] | None = None,
+    n_samples: int = 2000,
+    seed=None,
+    full_cov: Sequence[str] | None = None,
+    sd_prior: str = "loguniform",
+    sd_range: tuple[float, float] = (1e-3, 1.0),
+    mu_bounds: Mapping[str, tuple[float, float]] | None = None,
+    logit_range: float = 8.0,
+    fix: Mapping[str, float] | None = None,
+    ess_threshold: float = 50.0,
+    thin: int | None = None,
+    n_updated: int | None = None,
+    n_hyper_updated: int = 1000,
+    chunk_bytes: float = 4e6,
+    progress: bool = True,
+    sampler: Callable | None = None,
+    tmcmc_options: Mapping[str, Any] | None = None,
+) -> HierarchicalResult:
+    """Hyper-posterior, hyper-evidence, updated individuals and population predictive.
+
+    Parameters
+    ----------
+    stage1 : mapping specimen -> (samples (N_i, d), log_Z_i[, log_Z_se_i])
+        Equal-weight stage-1 posterior samples drawn under the uniform prior on ``bounds``
+        and their log-evidence.
+    names : sequence of str
+        Column names of the stage-1 samples.
+    bounds : array_like (d, 2)
+        The stage-1 uniform prior box.
+    transforms : mapping name -> {"identity","log","logit"}, optional
+        Transform of each pooled parameter (module docstring explains the choice).
+    pooled : sequence of str, optional
+        Parameters with a population distribution (default all); e.g. leave the noise
+        ``sigma`` out.
+    n_samples : int
+        TMCMC population size over ψ (= number of hyper-posterior draws).
+    seed : int, SeedSequence or Generator
+        Everything random (TMCMC, resampling, predictive) derives from it.
+    full_cov : sequence of str, optional
+        Pooled parameters sharing a full covariance (logit transform required).
+    sd_prior, sd_range, mu_bounds, logit_range, fix
+        Hyperprior choices, see :class:`HierarchicalModel`.
+    ess_threshold : float
+        ESS below which a specimen's importance sampling is flagged as collapsed.
+    thin : int, optional
+        Use at most this many stage-1 samples per specimen (a seeded random subset) in the
+        hyper-posterior; cost is linear in it.  Default: all.  The updated individuals are
+        then weights over the subset.
+    n_updated : int, optional
+        Draws per updated individual (default ``n_samples``).
+    n_hyper_updated : int
+        Hyper-posterior draws used to average the shrinkage weights.
+    chunk_bytes : float
+        Memory bound of one (n_ψ, chunk) block of log-ratios.
+    progress : bool
+        Passed to the TMCMC driver.
+    sampler : callable, optional
+        Replacement for :func:`hbm.samplers.tmcmc.tmcmc` (same signature); default tmcmc.
+    tmcmc_options : mapping, optional
+        Extra keyword arguments for the sampler (``n_steps``, ``kernel``, ...).
+
+    Returns
+    -------
+    HierarchicalResult
+    """
+    t0 = time.perf_counter()
+    names = [str(n) for n in names]
+    model = HierarchicalModel(
+        names, bounds, pooled=pooled, transforms=transforms, full_cov=full_cov, sd_prior=sd_prior,
+        sd_range=sd_range, mu_bounds=mu_bounds, logit_range=logit_range, fix=fix,
+    )
+    specs, samples, logz, logz_se = _parse_stage1(stage1, len(names))
+    ss = np.random.SeedSequence(seed if not isinstance(seed, np.random.Generator) else seed.integers(2**63))
+    s_tmcmc, s_upd, s_pred, s_thin = ss.spawn(4)
+    if thin is not None:
+        if int(thin) < 2:
+            raise HbmError(f"hierarchical: thin must be >= 2, got {thin}")
+        rng_t = np.random.default_rng(s_thin)
+        samples = [x if x.shape[0] <= thin else x[np.sort(rng_t.choice(x.shape[0], int(thin), replace=False))]
+                   for x in samples]
+    for key, x in zip(specs, samples):
+        out = (x < model.all_bounds[:, 0] - 1e-12 * np.ptp(model.all_bounds, axis=1)) | (
+            x > model.all_bounds[:, 1] + 1e-12 * np.ptp(model.all_bounds, axis=1)
+        )
+        if out.any():
+            j = int(np.argmax(out.any(axis=0)))
+            raise HbmError(f"hierarchical: stage1[{key!r}] has samples of {names[j]} outside the prior box {model.all_bounds[j].tolist()}")
+    feats = [model.features(x) for x in samples]
+    logN = np.log([x.shape[0] for x in samples])
+    trace: list[np.ndarray] = []
+
+    def per_specimen(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        coef, cconst = model.coefficients(raw)
+        lm = np.empty((raw.shape[0], len(specs)))
+        ess = np.empty_like(lm)
+        for i, (F, c) in enumerate(feats):  # loop over specimens (few), vectorised over ψ and samples
+            lse, e = model.log_ratio_stats(F, c, coef, cconst, chunk_bytes)
+            lm[:, i] = lse - logN[i]
+            ess[:, i] = e
+        return lm, ess
+
+    def target(x: np.ndarray) -> np.ndarray:
+        x = np.atleast_2d(np.asarray(x, float))
+        raw = model.expand(x)
+        lm, ess = per_specimen(raw)
+        trace.append(ess.min(axis=0))
+        out = lm.sum(axis=1) + model.log_hyperprior_correction(raw)
+        return np.where(np.isfinite(out), out, -np.inf)
+
+    if sampler is None:
+        from .tmcmc import tmcmc as sampler  # sampler-layer sibling; imported lazily
+    opts = dict(tmcmc_options or {})
+    t1 = time.perf_counter()
+    res = sampler(target, model.box, int(n_samples), seed=int(s_tmcmc.generate_state(1)[0]), progress=progress, **opts)
+    t2 = time.perf_counter()
+
+    x = np.asarray(res.samples, float)
+    raw = model.expand(x)
+    lm, ess = per_specimen(raw)
+    hyper = model.natural(raw)
+
+    # --- ESS diagnostics ------------------------------------------------------------------
+    warn_list: list[str] = []
+    ess_summary, collapsed = {}, {}
+    for i, key in enumerate(specs):
+        e = ess[:, i]
+        ess_summary[key] = {
+            "min": float(e.min()), "q10": float(np.quantile(e, 0.1)), "median": float(np.median(e)),
+            "n": int(samples[i].shape[0]),
+        }
+        collapsed[key] = bool(ess_summary[key]["q10"] < ess_threshold)
+        if collapsed[key]:
+            msg = (
+                f"hierarchical: importance ESS of specimen {key!r} collapsed (10% quantile "
+                f"{ess_summary[key]['q10']:.1f}, median {ess_summary[key]['median']:.1f} of "
+                f"{samples[i].shape[0]} stage-1 samples < {ess_threshold:g}); its updated posterior and "
+                f"p(d|psi) are unreliable: run hbm.samplers.hierarchical.refine_individual for it"
+            )
+            warn_list.append(msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=2)
+
+    # --- evidence -------------------------------------------------------------------------
+    # IS noise: Var[log mean r] ≈ 1/ESS − 1/N per specimen (delta method), at each draw.
+    is_var = np.sum(np.maximum(1.0 / np.maximum(ess, 1e-300) - 1.0 / np.exp(logN), 0.0), axis=1)
+    se_tm = float(getattr(res, "log_evidence_se", 0.0) or 0.0)
+    se_is = float(np.sqrt(np.median(is_var)))
+    se_st1 = float(np.sqrt(np.sum(logz_se**2)))
+    log_ev = float(res.log_evidence) + float(logz.sum())
+    se = float(np.sqrt(se_tm**2 + se_is**2 + se_st1**2))
+    parts = {
+        "tmcmc": float(res.log_evidence), "tmcmc_se": se_tm, "sum_log_Z": float(logz.sum()),
+        "stage1_se": se_st1, "importance_se": se_is,
+    }
+
+    # --- updated individuals (per-draw normalised weights, averaged over draws) -----------
+    t3 = time.perf_counter()
+    rng_u = np.random.default_rng(s_upd)
+    sub = np.arange(raw.shape[0]) if raw.shape[0] <= n_hyper_updated else np.sort(
+        rng_u.choice(raw.shape[0], n_hyper_updated, replace=False)
+    )
+    coef, cconst = model.coefficients(raw[sub])
+    n_upd = int(n_updated or n_samples)
+    updated, upd_w, upd_ess = {}, {}, {}
+    for i, key in enumerate(specs):
+        lse = lm[sub, i] + logN[i]  # log Σ_j r_ij(ψ_m)
+        # Σ_m exp(log r_mj − lse_m): rows are draws; use the chunked kernel with the roles swapped
+        F, c = feats[i]
+        lw, _ = model.log_ratio_stats(coef, cconst - lse, F, c, chunk_bytes)
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        upd_w[key] = w
+        upd_ess[key] = _ess(w)
+        updated[key] = samples[i][systematic_resample(w, n_upd, rng_u)]
+    t4 = time.perf_counter()
+
+    # --- posterior predictive of a new specimen -------------------------------------------
+    predictive = _draw_population(model, raw, raw.shape[0], np.random.default_rng(s_pred))
+    t5 = time.perf_counter()
+
+    return HierarchicalResult(
+        hyper_samples=hyper, hyper_names=list(model.hyper_names), names=list(model.names),
+        all_names=list(names), bounds=model.all_bounds.copy(), transforms=dict(model.transforms),
+        specimens=specs, log_evidence=log_ev, log_evidence_se=se, log_evidence_parts=parts,
+        log_marginal=lm + logz[None, :], ess=ess, ess_summary=ess_summary, ess_collapsed=collapsed,
+        ess_trace=trace, updated=updated, updated_weights=upd_w, updated_ess=upd_ess,
+        predictive=predictive, warnings=warn_list,
+        timings={"setup": t1 - t0, "tmcmc": t2 - t1, "updated": t4 - t3, "predictive": t5 - t4,
+                 "total": t5 - t0, "likelihood_calls": len(trace)},
+        sampler_result=res, model=model, raw_samples=raw,
+        options={"n_samples": int(n_samples), "sd_prior": sd_prior, "sd_range": list(sd_range),
+                 "full_cov": list(model.full_cov), "fix": dict(model.fix), "ess_threshold": ess_threshold,
+                 "logit_range": logit_range, "mu_lo": model.mu_lo.tolist(), "mu_hi": model.mu_hi.tolist()},
+    )
+
+
+def _draw_population(model: HierarchicalModel, raw: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """θ_new ~ p(θ|ψ) with ψ drawn uniformly from ``raw`` (pooled columns)."""
+    idx = rng.integers(0, raw.shape[0], n)
+    nat = model.natural(raw[idx])
+    d = model.d
+    mu, sd = nat[:, :d], nat[:, d : 2 * d]
+    z = np.empty((n, d))
+    diag = np.ones(d, bool)
+    diag[model.S] = False
+    if diag.any():
+        # inverse-CDF sampling of the truncated normal in the transformed space
+        a = (model.zlo[diag] - mu[:, diag]) / sd[:, diag]
+        b = (model.zhi[diag] - mu[:, diag]) / sd[:, diag]
+        la, lb = np.exp(log_ndtr(a)), np.exp(log_ndtr(b))
+        u = rng.random((n, int(diag.sum())))
+        # mirror in the upper tail for accuracy
+        flip = a > 0
+        lam, lbm = np.exp(log_ndtr(-b)), np.exp(log_ndtr(-a))
+        x = np.where(flip, -ndtri(lam + u * (lbm - lam)), ndtri(la + u * (lb - la)))
+        zz = mu[:, diag] + sd[:, diag] * x
+        z[:, diag] = np.clip(zz, model.zlo[diag], model.zhi[diag])
+    if model.m:
+        L = _cpc_to_corr_chol(raw[idx, 2 * d :], model.m) * sd[:, model.S][:, :, None]
+        z[:, model.S] = mu[:, model.S] + np.einsum("nab,nb->na", L, rng.standard_normal((n, model.m)))
+    return model.from_z(z)
+
+
+def refine_individual(
+    result: HierarchicalResult,
+    specimen: str,
+    log_likelihood: Callable[[np.ndarray], np.ndarray],
+    *,
+    n_samples: int = 2000,
+    seed=None,
+    n_hyper: int = 500,
+    weighting: str = "loo",
+    progress: bool = True,
+    sampler: Callable | None = None,
+    **tmcmc_options,
+) -> Any:
+    """Fresh TMCMC of p(θ_i | all data) for a specimen whose importance ESS collapsed.
+
+    The target (on the stage-1 box, uniform reference) is
+
+        log p(d_i|θ) + log Σ_m w_m p(θ|ψ_m) − log p_prior(θ),
+
+    over hyper-posterior draws ψ_m.  ``weighting="loo"`` (default) uses
+    w_m ∝ 1/p̂(d_i|ψ_m), which turns p(ψ|all data) into p(ψ|data without i): then the target
+    is exactly p(d_i|θ)·∫p(θ|ψ)p(ψ|D₋ᵢ)dψ ∝ p(θ_i|all data).  ``weighting="plain"`` uses
+    w_m = 1/M (the population predictive given all data; counts d_i twice, slightly
+    over-concentrated, but does not rely on p̂(d_i|ψ)).
+
+    Parameters
+    ----------
+    result : HierarchicalResult
+    specimen : str
+    log_likelihood : callable (n, len(result.all_names)) -> (n,)
+        The specimen's stage-1 log-likelihood.
+    n_samples, seed, progress, sampler, **tmcmc_options
+        Passed to the TMCMC driver.
+    n_hyper : int
+        Number of hyper-posterior draws in the mixture (thinned at random).
+    weighting : {"loo", "plain"}
+
+    Returns
+    -------
+    TMCMCResult
+        ``.samples`` are draws of the updated posterior of the specimen (all stage-1 columns).
+    """
+    if specimen not in result.specimens:
+        raise HbmError(f"refine_individual: unknown specimen {specimen!r}; have {result.specimens}")
+    if weighting not in ("loo", "plain"):
+        raise HbmError(f"refine_individual: weighting must be 'loo' or 'plain', got {weighting!r}")
+    ss = np.random.SeedSequence(seed if not isinstance(seed, np.random.Generator) else seed.integers(2**63))
+    s_thin, s_run = ss.spawn(2)
+    rng = np.random.default_rng(s_thin)
+    idx = np.arange(result.raw_samples.shape[0])
+    if idx.size > n_hyper:
+        idx = np.sort(rng.choice(idx.size, n_hyper, replace=False))
+    raw = result.raw_samples[idx]
+    i = result.specimens.index(specimen)
+    if weighting == "loo":
+        lw = -result.log_marginal[idx, i]
+        w = np.exp(lw - lw.max())
+    else:
+        w = np.ones(idx.size)
+    model = result.model
+    log_prior = -np.sum(np.log(model.hi - model.lo))
+
+    def target(theta: np.ndarray) -> np.ndarray:
+        theta = np.atleast_2d(np.asarray(theta, float))
+        ll = np.asarray(log_likelihood(theta), float)
+        lp = model.log_density(theta, raw, w)
+        out = ll + lp - log_prior
+        return np.where(np.isfinite(out), out, -np.inf)
+
+    if sampler is None:
+        from .tmcmc import tmcmc as sampler
+    return sampler(target, result.bounds, int(n_samples), seed=int(s_run.generate_state(1)[0]), progress=progress,
+                   **tmcmc_options)
