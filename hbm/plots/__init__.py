@@ -1,0 +1,33 @@
+"""Figures (matplotlib, Agg backend).  The only hbm package that imports matplotlib.
+
+Modules: :mod:`hbm.plots.specimen` (corner plot, posterior predictive and extrapolation,
+Sobol bars), :mod:`hbm.plots.population` (VOLF–T1 manifolds, forest plot, hyper-posterior
+densities); other helpers add their own modules (diagnose, organ).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # headless: figures are files, never windows
+import matplotlib.pyplot as plt  # noqa: E402
+
+__all__ = ["plt", "save", "RELEVANCE_COLORS"]
+
+#: colours of the thesis's relevance classes (Table 2.1)
+RELEVANCE_COLORS = {"very important": "#b2182b", "important": "#ef8a62", "unimportant": "#67a9cf",
+                    "irrelevant": "#bababa"}
+
+
+def save(fig, path: str | os.PathLike, dpi: int = 110, tight: bool = True) -> Path:
+    """Save ``fig`` atomically (format from the suffix, PNG by default) and close it."""
+    from ..utils import atomic_path
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format=path.suffix.lstrip(".") or "png")
+    plt.close(fig)
+    return path

@@ -1,0 +1,228 @@
+"""Markdown report of a workflow run (``<out>/report.md``).
+
+Sections: run settings, timings, one table per specimen (posterior mean, sd, 90 % interval,
+log-evidence ± SE, automatically detected identified directions, manifold), identifiable
+combinations across specimens, population estimates (hierarchical layer), specimen variability,
+then any ``extra_sections`` (hooks ``f(workflow_result) -> markdown``, e.g. organ predictions).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ._version import __version__
+from .utils import atomic_write_text
+
+__all__ = ["render_report", "write_report", "fmt"]
+
+
+def fmt(x: float, digits: int = 4) -> str:
+    """Compact number formatting for tables."""
+    if x is None or not np.isfinite(x):
+        return "–"
+    return f"{x:.{digits}g}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _rel(path: Path, base: Path) -> str:
+    try:
+        return os.path.relpath(path, base)
+    except ValueError:  # pragma: no cover - other drive
+        return str(path)
+
+
+def render_report(wres, *, base: Path | None = None,
+                  extra_sections: Sequence[Callable] | None = None) -> str:
+    """The Markdown text for a :class:`hbm.workflow.WorkflowResult`."""
+    from .fit import COMBINATIONS, summarize
+    from .plots.population import quantity_samples
+    from .workflow import population_table, specimen_variability
+
+    cfg = wres.config
+    base = Path(base or wres.out)
+    results = wres.results
+    ids = sorted(results)
+    t = wres.timings
+    parts = [f"# hbm run report\n\nGenerated {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M UTC} by hbm "
+             f"{__version__}. {len(ids)} specimens from `{cfg.data}`"
+             + (f"; {len(wres.skipped)} reused from a previous run ({', '.join(wres.skipped)})" if wres.skipped else "")
+             + "."]
+    if wres.errors:
+        parts.append("**Failed specimens:**\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in sorted(wres.errors.items())))
+
+    # ---- settings
+    rows = [("samples (TMCMC N)", cfg.samples), ("kernel", cfg.kernel), ("noise model", cfg.noise),
+            ("seed", cfg.seed), ("workers", cfg.workers if cfg.workers is not None else "all cores"),
+            ("scheduler", cfg.scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS") or "embedded LocalCluster"),
+            ("CMA-ES restarts / budget per run", f"{cfg.restarts} / {cfg.maxfevals} evaluations"),
+            ("bound sweep", cfg.sweep or "none"), ("Sobol N", cfg.sobol_n if cfg.sobol else "off"),
+            ("fixed", cfg.fix or "none"), ("narrowed bounds", cfg.bounds or "none"),
+            ("hierarchical samples", cfg.hier_samples if cfg.hierarchical else "off"),
+            ("quick", "yes" if cfg.quick else "no")]
+    parts.append("## Run settings\n\n" + _table(["setting", "value"], rows))
+
+    # ---- timings
+    trow = [("specimen fits (parallel phase, wall)", t.get("specimens_wall"))]
+    for ph, lab in (("cmaes", "CMA-ES"), ("tmcmc", "TMCMC"), ("predictive", "posterior predictive"),
+                    ("sobol", "Sobol")):
+        trow.append((f"{lab} (sum over specimens, CPU in tasks)", t.get(f"{ph}_cpu")))
+    trow += [("hierarchical layer", t.get("hierarchical")), ("identifiability + manifolds", t.get("identify")),
+             ("figures", t.get("figures")), ("total before report", t.get("total_before_report"))]
+    parts.append("## Timings (seconds)\n\n" + _table(["phase", "s"], [(a, fmt(b, 3)) for a, b in trow]))
+
+    # ---- per specimen
+    sec = ["## Specimens"]
+    for sid in ids:
+        r = results[sid]
+        s = summarize(r)
+        rows = [(k, fmt(v["mean"]), fmt(v["sd"], 3), f"[{fmt(v['lower'])}, {fmt(v['upper'])}]")
+                for k, v in s.items()]
+        st = len(r.stages)
+        txt = [f"### {sid}\n",
+               f"log-evidence **{r.log_evidence:.3f} ± {r.log_evidence_se:.3f}** ({st} TMCMC stages, "
+               f"{r.n_samples} samples" + (f", fixed {r.fixed}" if r.fixed else "") + ")\n",
+               _table(["quantity", "mean", "sd", "90% interval"], rows)]
+        dirs = wres.directions.get(sid) or []
+        if dirs:
+            txt.append("\nDetected automatically (posterior principal directions in log space whose sd is "
+                       "small relative to the prior's): "
+                       + "; ".join(f"`{d['expression']}`"
+                                   + (f" = {fmt(d['median'])} [{fmt(d['lo'])}, {fmt(d['hi'])}]"
+                                      if np.isfinite(d.get("median", np.nan)) else "")
+                                   + f" (sd ratio {d['ratio']:.2g})" for d in dirs[:5]))
+        m = wres.manifolds.get(sid)
+        if m is not None:
+            txt.append(f"\nVOLF–T1 manifold from {m['source']}: VOLF ∈ [{fmt(min(m['points_x']), 3)}, "
+                       f"{fmt(max(m['points_x']), 3)}], variation of (1−VOLF)·T1 along it ((max−min)/median) "
+                       f"{m['combination_rel_spread']:.1%}"
+                       + (f"; level (1−VOLF)·T1 = {fmt(m['level'][0])} [{fmt(m['level'][1])}, {fmt(m['level'][2])}]"
+                          if "level" in m else "") + ".")
+        if r.sobol:
+            order = sorted(r.sobol["ST"], key=lambda k: -np.nan_to_num(r.sobol["ST"][k], nan=-1))
+            txt.append("\nSobol (ST, " + str(r.sobol.get("qoi", "")) + "): "
+                       + ", ".join(f"{k} {fmt(r.sobol['ST'][k], 2)} ({r.sobol['relevance'].get(k, '')})"
+                                   for k in order))
+        figs = [f for f in wres.figures if Path(f).name.startswith(sid + "_")]
+        if figs:
+            txt.append("\nFigures: " + ", ".join(f"[{Path(f).stem.split('_')[-1]}]({_rel(Path(f), base)})"
+                                                 for f in figs))
+        sec.append("\n".join(txt))
+    parts.append("\n\n".join(sec))
+
+    # ---- identifiable combinations across specimens
+    combos = [c for c in COMBINATIONS if all(c in summarize(results[s]) for s in ids)] if ids else []
+    if combos:
+        rows = []
+        for sid in ids:
+            s = summarize(results[sid])
+            rows.append([sid] + [f"{fmt(s[c]['mean'])} [{fmt(s[c]['lower'])}, {fmt(s[c]['upper'])}]" for c in combos])
+        parts.append("## Identifiable combinations (posterior mean [90% interval], MPa)\n\n"
+                     "Uniaxial data identify G = c·GF + (1−c)·GM, c·P1 and (1−c)·T1 (c = VOLF); the "
+                     "individual parameters slide along manifolds.\n\n"
+                     + _table(["specimen"] + combos, rows))
+
+    # ---- manifolds compared
+    objs = {k: m["object"] for k, m in wres.manifolds.items() if "object" in m}
+    if len(objs) >= 2:
+        try:
+            from .identify import compare_manifolds
+
+            cmp = compare_manifolds(objs)
+            parts.append("## VOLF–T1 manifolds across specimens\n\nLevel of (1−VOLF)·T1 along each "
+                         "specimen's manifold (flatness: (max−min)/median along the spline; ≈ 0 means the "
+                         "manifold is the hyperbola (1−VOLF)·T1 = const).\n\n" + cmp.table()
+                         + f"\n\nSpread of the levels (max/min): {cmp.spread:.3g}.")
+        except Exception as exc:  # comparison is a bonus; never lose the report over it
+            parts.append(f"## VOLF–T1 manifolds across specimens\n\n(comparison failed: {exc})")
+
+    # ---- population
+    h = wres.hierarchical
+    if h is not None:
+        pt = population_table(h)
+        rows = [(k, v["transform"], f"{fmt(v['median'])} [{fmt(v['median_lower'])}, {fmt(v['median_upper'])}]",
+                 f"[{fmt(v.get('new_lower'))}, {fmt(v.get('new_upper'))}]", fmt(v["sd_transformed"], 3))
+                for k, v in pt.items()]
+        txt = ["## Population estimates (hierarchical layer)\n",
+               f"Each parameter θ_k ~ Normal(mu_k, sd_k) in a transformed space (column 'transform': log for "
+               f"positive moduli spanning decades, logit on the prior box for bounded quantities, identity "
+               f"(truncated to the box) for THETA whose posteriors pile up at 60°); uniform hyperprior on mu, "
+               f"{h.attrs.get('hyperprior', {}).get('sd', 'log-uniform sd')}; hyper-posterior by TMCMC "
+               f"reusing the stage-1 samples. Hyper-evidence "
+               f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**.\n",
+               _table(["parameter", "transform", "population median [90%]", "new specimen 90%",
+                       "sd (transformed units)"], rows)]
+        pop = quantity_samples(h.pooled_names, h.new_specimen) if h.new_specimen is not None else {}
+        if pop:
+            med = {}
+            if h.updated is not None:
+                med = {c: np.median(quantity_samples(h.param_names, h.updated.reshape(-1, h.updated.shape[-1]))[c])
+                       for c in pop}
+            rows = [(c, f"[{fmt(np.quantile(v, 0.05))}, {fmt(np.quantile(v, 0.95))}]", fmt(np.median(v)),
+                     fmt(med.get(c)))
+                    for c, v in pop.items()]
+            txt.append("\nIdentifiable quantities of a new specimen (population predictive):\n\n"
+                       + _table(["quantity", "90% interval", "median", "median over updated individuals"], rows))
+        ess = h.attrs.get("ess_summary", {})
+        if ess:
+            low = {k: v for k, v in ess.items() if v.get("q10", np.inf) < 50}
+            txt.append("\nImportance ESS per specimen (min / 10% quantile over hyper-posterior draws): "
+                       + ", ".join(f"{k} {fmt(v.get('min'), 3)}/{fmt(v.get('q10'), 3)}" for k, v in ess.items())
+                       + (f". **ESS collapsed for {sorted(low)}**: their updated posteriors come from a fresh "
+                          f"TMCMC run ({h.attrs.get('refined')}), but the hyper-posterior itself rests on "
+                          f"importance estimates with few effective samples; treat the hyperparameters of "
+                          f"individually unidentified parameters (VOLF, P1, T1, GF, GM) as unreliable, or pool "
+                          f"only identified ones (`hbm run --pool EOPT,T2,THETA`)." if low else "."))
+        if h.attrs.get("warnings"):
+            txt.append("\nWarnings: " + "; ".join(map(str, h.attrs["warnings"][:5])))
+        parts.append("\n".join(txt))
+
+    # ---- variability
+    if len(ids) >= 2:
+        rows = []
+        keys = [k for k in ("G", "VOLF*P1", "(1-VOLF)*T1", "T2", "THETA", "EOPT")]
+        qs = {sid: quantity_samples(list(results[sid].as_dict()),
+                                    np.column_stack(list(results[sid].as_dict().values()))) for sid in ids}
+        for k in keys:
+            if not all(k in qs[s] for s in ids):
+                continue
+            v = specimen_variability({s: qs[s][k] for s in ids})
+            verdict = "differ" if v["p_value"] < 0.01 else "compatible with one common value"
+            pairs = ", ".join(f"{a}≠{b}" for a, b in v["separated_pairs"][:6])
+            more = f" (+{len(v['separated_pairs']) - 6} more)" if len(v["separated_pairs"]) > 6 else ""
+            rows.append((k, f"{v['Q']:.1f}", v["df"], f"{v['p_value']:.2g}", verdict,
+                         f"{len(v['separated_pairs'])}/{v['n_pairs']}: {pairs}{more}"))
+        parts.append("## Specimen variability\n\nDo rats differ beyond their posterior uncertainty? Cochran's Q "
+                     "of the posterior means (log scale for positive quantities) against χ²(S−1), and the "
+                     "pairs whose posterior difference excludes 0 with 95% probability.\n\n"
+                     + _table(["quantity", "Q", "df", "p", "verdict", "separated pairs"], rows))
+
+    # ---- across-specimen figures
+    pop_figs = [f for f in wres.figures if not any(Path(f).name.startswith(s + "_") for s in ids)]
+    if pop_figs:
+        parts.append("## Figures across specimens\n\n" + "\n".join(f"![{Path(f).stem}]({_rel(Path(f), base)})"
+                                                                  for f in pop_figs))
+    for hook in extra_sections or ():
+        try:
+            txt = hook(wres)
+        except Exception as exc:  # a broken hook must not lose the report
+            txt = f"## {getattr(hook, '__name__', 'extra section')}\n\n(failed: {type(exc).__name__}: {exc})"
+        if txt:
+            parts.append(str(txt).strip())
+    return "\n\n".join(parts) + "\n"
+
+
+def write_report(wres, path: str | os.PathLike, *, extra_sections: Sequence[Callable] | None = None) -> Path:
+    """Render and write the report atomically; returns its path."""
+    path = Path(path)
+    atomic_write_text(path, render_report(wres, base=path.parent, extra_sections=extra_sections))
+    return path
