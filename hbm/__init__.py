@@ -1,9 +1,36 @@
-"""hbm — Bayesian learning of skeletal-muscle model parameters across specimens."""
+"""hbm — Bayesian learning of skeletal-muscle model parameters across specimens.
+
+The main entry points, by role:
+
+* physics: :func:`spyrou_model`, :class:`Model`, :class:`Effect`, :mod:`hbm.effects`, :mod:`hbm.organ`
+* data: :func:`load_specimen`, :func:`load_specimens`, :func:`save_specimen`, :func:`synthetic_specimen`
+* inference: :func:`make_likelihood`, :func:`tmcmc`, :func:`optimize`, :func:`sobol`,
+  :func:`fit_specimen`, :func:`hierarchical`
+* workflow: :func:`run_workflow` (the six-specimen dask run behind ``hbm run``)
+* the missing-physics loop: :func:`diagnose`, :func:`extend`
+"""
 
 from ._version import __version__
 from .model import Effect, Loading, Model, Parameter, State, spyrou_model
 from .data import load_specimen, load_specimens, save_specimen, synthetic_specimen
-from . import data, effects
+from .likelihood import Likelihood, make_likelihood
+from .samplers import TMCMCResult, tmcmc
+from .samplers.hierarchical import HierarchicalResult, hierarchical
+from .sensitivity import SobolResult, sobol
+from .identify import identifiable_directions, volf_t1_manifold
+from .organ import FusiformGeometry, load_geometry, organ_response
+from .fit import FitResult, fit_specimen
+from .workflow import RunConfig, run_workflow
+from . import data, effects, io, organ
+# Bound last on purpose: these functions shadow their same-named submodules as attributes of
+# the package (``hbm.optimize`` is the function); ``from hbm.optimize import ...`` still works.
+from .optimize import OptimizeResult, optimize
+from .diagnose import Diagnosis, diagnose, extend
 
 __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "spyrou_model",
-           "load_specimen", "load_specimens", "save_specimen", "synthetic_specimen", "data", "effects"]
+           "load_specimen", "load_specimens", "save_specimen", "synthetic_specimen",
+           "Likelihood", "make_likelihood", "TMCMCResult", "tmcmc", "HierarchicalResult", "hierarchical",
+           "SobolResult", "sobol", "OptimizeResult", "optimize", "identifiable_directions",
+           "volf_t1_manifold", "FusiformGeometry", "load_geometry", "organ_response",
+           "FitResult", "fit_specimen", "RunConfig", "run_workflow", "Diagnosis", "diagnose", "extend",
+           "data", "effects", "io", "organ"]

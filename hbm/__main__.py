@@ -1,5 +1,9 @@
+"""``python -m hbm``: the command line."""
+
 import sys
 
-from .cli import main
+# Guarded: dask worker processes re-import __main__ and must not run the CLI again.
+if __name__ == "__main__":
+    from .cli import main
 
-sys.exit(main())
+    sys.exit(main())
