@@ -72,7 +72,7 @@ class RunConfig:
     scheduler: str | None = None
     seed: int = 0
     sobol: bool = True
-    sobol_n: int = 256
+    sobol_n: int = 1024
     restarts: int = 3
     sweep: str | None = "VOLF:0.07"
     maxfevals: int = 3000

@@ -128,3 +128,26 @@ def test_shipped_hawkins_specimen_ranking():
                 bounds={"P1": (1e-4, 0.01), "T1": (0.0, 0.3), "T2": (150.0, 175.0)})
     assert res.ranking[0] == "THETA"
     assert all(res.relevance[k] == "irrelevant" for k in ("GF", "GM", "P1"))
+
+
+class Exponential(Effect):
+    """Stress = (1 + ε)·exp(2A + B): log W = 2A + B + const, additive in A and B."""
+
+    name = "exponential"
+    stage = "elastic"
+    parameters = (Parameter("A", 0.0, 1.0), Parameter("B", 0.0, 1.0))
+
+    def stress(self, state, p):
+        return (1.0 + state.eps) * np.exp(2.0 * p["A"] + p["B"])
+
+
+def test_log_integrated_stress_is_additive_closed_form():
+    """For log W = 2A + B + c with A, B ~ U(0, 1): S1 = ST = 4/5 and 1/5 exactly; the raw W is
+    not additive (ST_A > S1_A), so the two QoIs must differ."""
+    model = Model([Exponential()])
+    strain = np.linspace(0.0, 0.3, 7)
+    res = sobol(model, strain, n=2048, qoi="log_integrated_stress", seed=3, per_point=False)
+    np.testing.assert_allclose([res.S1["A"], res.S1["B"]], [0.8, 0.2], atol=0.03)
+    np.testing.assert_allclose([res.ST["A"], res.ST["B"]], [0.8, 0.2], atol=0.03)
+    raw = sobol(model, strain, n=2048, qoi="integrated_stress", seed=3, per_point=False)
+    assert raw.ST["A"] - raw.S1["A"] > 0.02

@@ -57,7 +57,7 @@ def register(subparsers) -> None:
                         "'none' to skip)")
     p.add_argument("--maxfevals", type=int, default=3000, metavar="M",
                    help="evaluation budget per CMA-ES run (default 3000)")
-    p.add_argument("--sobol-n", type=int, default=256, metavar="N", help="Sobol base sample size (default 256)")
+    p.add_argument("--sobol-n", type=int, default=1024, metavar="N", help="Sobol base sample size (default 1024)")
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
     p.add_argument("--hier-samples", type=int, default=1000, metavar="N",
                    help="TMCMC population over the hyperparameters (default 1000)")
