@@ -100,6 +100,8 @@ def load_specimen_arg(spec: str):
     path = Path(spec)
     if path.exists():
         return load_specimen(path)
+    if path.suffix.lower() == ".csv" or len(path.parts) > 1:
+        raise HbmError(f"specimen {spec!r}: no such file (expected a CSV path or a specimen id)")
     candidate = SPECIMEN_FOLDER / f"{spec}.csv"
     if candidate.exists():
         return load_specimen(candidate)
