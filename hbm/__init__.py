@@ -21,6 +21,7 @@ from .identify import identifiable_directions, volf_t1_manifold
 from .organ import FusiformGeometry, load_geometry, organ_response
 from .fit import FitResult, fit_specimen
 from .workflow import RunConfig, run_workflow
+from .organ_report import predict_organ
 from . import data, effects, io, organ
 # Bound last on purpose: these functions shadow their same-named submodules as attributes of
 # the package (``hbm.optimize`` is the function); ``from hbm.optimize import ...`` still works.
@@ -32,5 +33,5 @@ __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "s
            "Likelihood", "make_likelihood", "TMCMCResult", "tmcmc", "HierarchicalResult", "hierarchical",
            "SobolResult", "sobol", "OptimizeResult", "optimize", "identifiable_directions",
            "volf_t1_manifold", "FusiformGeometry", "load_geometry", "organ_response",
-           "FitResult", "fit_specimen", "RunConfig", "run_workflow", "Diagnosis", "diagnose", "extend",
+           "predict_organ", "FitResult", "fit_specimen", "RunConfig", "run_workflow", "Diagnosis", "diagnose", "extend",
            "data", "effects", "io", "organ"]

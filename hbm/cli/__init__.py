@@ -10,7 +10,7 @@ from .._version import __version__
 from ..errors import HbmError
 
 # subcommand modules, in the order shown by --help
-COMMANDS = ["run", "fit", "optimize", "sobol", "diagnose", "data"]
+COMMANDS = ["run", "fit", "optimize", "sobol", "diagnose", "predict", "data"]
 
 DESCRIPTION = """\
 hbm: Bayesian learning of skeletal-muscle model parameters across specimens.

@@ -21,6 +21,7 @@ Outputs in --out:
   figures/*.png       corner, predictive, Sobol per specimen; manifolds, forest, hyper-posterior
   report.md           tables, population estimates, specimen variability, timings
   run.json            settings and timings
+  organ/              with --geometry: organ-scale predictions (see 'hbm predict organ -h')
 
 Re-running skips specimens whose result file is complete (same settings) and resumes
 interrupted ones from <out>/checkpoints/.  Results do not depend on --workers.
@@ -33,6 +34,7 @@ examples:
   hbm run
   hbm run --quick --workers 2 --out /tmp/smoke
   hbm run --samples 5000 --kernel manifold --scheduler tcp://10.0.0.5:8786
+  hbm run --geometry data/geometry/fusiform.toml
 """
 
 
@@ -71,6 +73,9 @@ def register(subparsers) -> None:
     p.add_argument("--quick", action="store_true",
                    help="smoke run: N<=500, 2 restarts, sweep VOLF:0.1, Sobol N 128, 500 hyper samples")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--geometry", metavar="FILE.toml",
+                   help="also predict a fusiform muscle's force-elongation curves (hbm predict organ) into "
+                        "<out>/organ and add them to the report")
     p.set_defaults(func=run)
 
 
@@ -83,6 +88,12 @@ def run(args: argparse.Namespace) -> int:
     if args.sobol_n & (args.sobol_n - 1):
         raise HbmError(f"--sobol-n must be a power of 2, got {args.sobol_n}")
     sweep = None if str(args.sweep).lower() in ("none", "", "off") else args.sweep
+    hooks = []
+    if getattr(args, "geometry", None):
+        from ..organ_report import organ_report_hook
+
+        # the geometry is read now, so a bad file fails before hours of fitting
+        hooks.append(organ_report_hook(args.geometry, model=model, seed=args.seed, figures=not args.no_figures))
     cfg = RunConfig(data=args.data, out=args.out, samples=args.samples, kernel=args.kernel, noise=args.noise,
                     workers=args.workers, scheduler=args.scheduler, seed=args.seed, sobol=not args.no_sobol,
                     sobol_n=args.sobol_n, restarts=args.restarts, sweep=sweep, maxfevals=args.maxfevals,
@@ -91,10 +102,16 @@ def run(args: argparse.Namespace) -> int:
                     retries=args.retries, quick=args.quick,
                     hier_pooled=[x.strip() for x in args.pool.split(",") if x.strip()] if args.pool else None)
     is_base = model.effect_names == ("matrix", "fibers", "collagen") and model.name == "spyrou"
-    res = run_workflow(cfg, model=None if is_base else model)
+    res = run_workflow(cfg, model=None if is_base else model, extra_sections=hooks)
     print(f"{len(res.results)} specimens fitted ({len(res.skipped)} reused), "
           f"{len(res.errors)} failed; report: {res.report_path}")
     t = res.timings
-    print("time: " + ", ".join(f"{k} {t[k]:.1f} s" for k in ("specimens_wall", "hierarchical", "figures", "total")
-                               if k in t))
+    print("time: " + ", ".join(f"{k} {t[k]:.1f} s" for k in ("specimens_wall", "hierarchical", "figures", "organ",
+                                                              "total") if k in t))
+    for hook in hooks:
+        pred = getattr(hook, "prediction", None)
+        if pred is None:
+            print("organ prediction FAILED (see the report's organ section)")
+            return 1
+        print(f"organ prediction: {pred.path}")
     return 1 if res.errors else 0
