@@ -161,6 +161,13 @@ def render_report(wres, *, base: Path | None = None,
                f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**.\n",
                _table(["parameter", "transform", "population median [90%]", "new specimen 90%",
                        "sd (transformed units)"], rows)]
+        reasons = h.attrs.get("pool_reasons") or {}
+        if reasons:
+            # why each parameter is (not) pooled: a population over parameters the curves do not
+            # inform makes the reused-sample importance weights degenerate
+            txt.append("\nPooled parameters (`--pool auto`: posterior sd in the transformed space below 2/3 "
+                       "of the prior's in at least half of the specimens; the others keep their own prior):\n")
+            txt.extend(f"- {v}" if str(v).startswith(f"{k}:") else f"- {k}: {v}" for k, v in reasons.items())
         pop = quantity_samples(h.pooled_names, h.new_specimen) if h.new_specimen is not None else {}
         if pop:
             med = {}
@@ -179,9 +186,9 @@ def render_report(wres, *, base: Path | None = None,
                        + ", ".join(f"{k} {fmt(v.get('min'), 3)}/{fmt(v.get('q10'), 3)}" for k, v in ess.items())
                        + (f". **ESS collapsed for {sorted(low)}**: their updated posteriors come from a fresh "
                           f"TMCMC run ({h.attrs.get('refined')}), but the hyper-posterior itself rests on "
-                          f"importance estimates with few effective samples; treat the hyperparameters of "
-                          f"individually unidentified parameters (VOLF, P1, T1, GF, GM) as unreliable, or pool "
-                          f"only identified ones (`hbm run --pool EOPT,T2,THETA`)." if low else "."))
+                          f"importance estimates with few effective samples; treat their hyperparameters as "
+                          f"unreliable, pool only parameters the data inform (`hbm run --pool auto`, the "
+                          f"default) or increase --samples." if low else "."))
         if h.attrs.get("warnings"):
             txt.append("\nWarnings: " + "; ".join(map(str, h.attrs["warnings"][:5])))
         parts.append("\n".join(txt))

@@ -81,7 +81,8 @@ class RunConfig:
     hierarchical: bool = True
     hier_samples: int = 1000
     hier_max_steps: int = 25
-    hier_pooled: list | None = None
+    hier_pooled: list | str | None = "auto"
+    hier_estimator: str = "raw"
     hier_transforms: dict | None = None
     hier_sd_range: tuple = DEFAULT_SD_RANGE
     figures: bool = True
@@ -548,7 +549,7 @@ def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], 
     """Hyper-posterior, ESS check (+ fresh TMCMC fallback), updated individuals -> hierarchical.nc."""
     from .likelihood import make_likelihood
     from .model import spyrou_model
-    from .samplers.hierarchical import hierarchical
+    from .samplers.hierarchical import auto_pool, hierarchical
 
     model = spyrou_model() if model is None else model
     first = next(iter(results.values()))
@@ -558,16 +559,24 @@ def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], 
             raise HbmError(f"hierarchical: specimen {sid} was fitted with other parameters/boxes than "
                            f"{first.specimen_id}; re-run all specimens with the same settings")
     model_names = [n for n in names if n in model.parameter_names]
-    if cfg.hier_pooled:
-        bad = [p for p in cfg.hier_pooled if p not in model_names]
-        if bad:
-            raise HbmError(f"--pool: {', '.join(bad)} not among the free model parameters {', '.join(model_names)}")
-        model_names = [n for n in model_names if n in cfg.hier_pooled]
     transforms = {n: DEFAULT_TRANSFORMS.get(n, "logit") for n in model_names}
     transforms.update({k: v for k, v in dict(cfg.hier_transforms or {}).items() if k in model_names})
     for n in model_names:  # log needs a positive box
         if transforms[n] == "log" and first.bounds[names.index(n), 0] <= 0:
             transforms[n] = "logit"
+    pool_reasons = None
+    if cfg.hier_pooled == "auto":  # parameters informed in at least half of the specimens
+        choice = auto_pool({sid: r.samples for sid, r in results.items()}, names, first.bounds, transforms,
+                           candidates=model_names)
+        pool_reasons = {k: v["reason"] for k, v in choice.reasons.items()}
+        model_names = choice.pooled
+        _log(f"pooled (auto): {', '.join(model_names)}", cfg.progress)
+    elif cfg.hier_pooled and cfg.hier_pooled != "all":
+        bad = [p for p in cfg.hier_pooled if p not in model_names]
+        if bad:
+            raise HbmError(f"--pool: {', '.join(bad)} not among the free model parameters {', '.join(model_names)}")
+        model_names = [n for n in model_names if n in cfg.hier_pooled]
+    transforms = {n: transforms[n] for n in model_names}
     stage1 = {sid: (r.samples, r.log_evidence, r.log_evidence_se) for sid, r in results.items()}
     noise_col = len([n for n in names if n in model.parameter_names])  # first noise column (common box)
     sigma_bounds = tuple(first.bounds[noise_col]) if noise_col < len(names) else None
@@ -577,7 +586,7 @@ def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], 
         warnings.simplefilter("always")
         h = hierarchical(stage1, names, first.bounds, transforms=transforms, pooled=model_names,
                          n_samples=int(cfg.hier_samples), seed=seed, progress=cfg.progress,
-                         sd_range=tuple(cfg.hier_sd_range),
+                         sd_range=tuple(cfg.hier_sd_range), estimator=cfg.hier_estimator,
                          # each ψ evaluation is a (n_ψ × 2d) @ (2d × Σ N_i) product: cap the MH steps per
                          # stage so the layer stays at tens of seconds for six specimens
                          tmcmc_options={"max_steps": int(cfg.hier_max_steps)})
@@ -605,7 +614,8 @@ def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], 
             updated[sid] = job.result() if cl is not None else job
     refined = sorted(collapsed)
     ess_min = np.array([float(h.ess_summary[s]["min"]) for s in h.specimens])
-    attrs = {"transforms": transforms, "pooled": model_names,
+    attrs = {"transforms": transforms, "pooled": model_names, "pool_reasons": pool_reasons,
+             "estimator": cfg.hier_estimator,
              "bounds": {n: list(map(float, first.bounds[names.index(n)])) for n in model_names},
              "log_evidence_parts": h.log_evidence_parts, "warnings": warn_msgs, "refined": refined,
              "ess_summary": h.ess_summary, "hyperprior": {"mu": "uniform on transformed box",

@@ -63,10 +63,13 @@ def register(subparsers) -> None:
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
     p.add_argument("--hier-samples", type=int, default=1000, metavar="N",
                    help="TMCMC population over the hyperparameters (default 1000)")
-    p.add_argument("--pool", metavar="P1,P2,...",
-                   help="parameters given a population distribution (default: all model parameters; e.g. "
-                        "EOPT,T2,THETA pools only the individually identified ones, which keeps the "
-                        "importance ESS healthy)")
+    p.add_argument("--pool", metavar="auto|all|P1,P2,...", default="auto",
+                   help="parameters given a population distribution: 'auto' (default) pools those whose "
+                        "posterior sd (transformed space) is below 2/3 of the prior's in at least half of the "
+                        "specimens (reasons in the report); 'all' pools every model parameter; or a list")
+    p.add_argument("--hier-estimator", choices=("raw", "kernel"), default="raw",
+                   help="estimator of p(d_i|psi): raw importance ratios (default, unbiased) or kernel-smoothed "
+                        "ratios (O(h^2) bias, robust when the population is narrower than a posterior)")
     p.add_argument("--no-hierarchical", action="store_true", help="skip the hierarchical layer")
     p.add_argument("--no-figures", action="store_true", help="skip figures")
     p.add_argument("--retries", type=int, default=1, metavar="R", help="dask retries per specimen task (default 1)")
@@ -100,7 +103,9 @@ def run(args: argparse.Namespace) -> int:
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
                     retries=args.retries, quick=args.quick,
-                    hier_pooled=[x.strip() for x in args.pool.split(",") if x.strip()] if args.pool else None)
+                    hier_estimator=args.hier_estimator,
+                    hier_pooled=(args.pool if args.pool in ("auto", "all")
+                                 else [x.strip() for x in args.pool.split(",") if x.strip()] or "auto"))
     is_base = model.effect_names == ("matrix", "fibers", "collagen") and model.name == "spyrou"
     res = run_workflow(cfg, model=None if is_base else model, extra_sections=hooks)
     print(f"{len(res.results)} specimens fitted ({len(res.skipped)} reused), "

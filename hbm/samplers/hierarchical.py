@@ -55,6 +55,56 @@ TMCMC over ψ targets Σ_i log mean_j r_ij(ψ); the hyper-evidence is its log-ev
 Σ_i log Z_i, so it is log p(all data | hyperprior family) and families (transforms, full
 covariance, sd prior) can be compared by it.
 
+When the sample reuse fails, and what to pool
+---------------------------------------------
+The ESS of the ratios is a product over the pooled parameters (one factor per dimension for
+a diagonal population), and a factor is small in two situations:
+
+* *wide populations of prior-like parameters*: for a parameter the data do not inform, the
+  stage-1 samples follow the uniform prior, whose density in the transformed space has
+  exponential tails (logistic for logit, e^z for log), while p(d_i|ψ) is flat in its (mu, sd),
+  so the hyper-posterior returns the hyperprior, which reaches |mu| near ``logit_range`` and
+  sd of several units.  Such a population puts its mass where the samples are exponentially
+  rare and one or two extreme samples carry all the weight.  On the six shipped specimens
+  (2000 samples each, all eight parameters pooled) this is what collapses the ESS (min ≈ 1,
+  10 % quantile 1.8–31): per parameter the ESS falls as sd_k grows (correlation of log ESS_k
+  with log sd_k −0.5 to −0.8 for VOLF, EOPT, P1, GF, GM), VOLF/EOPT/GM alone keep a median of
+  300–600 of 2000, and eight such factors multiply to a handful.  Capping sd at the prior's
+  sd does not help: the populations then become narrower than the prior-like posteriors and
+  the factors stay ≈ 0.5 each.
+* *narrow populations*: a population much narrower than a specimen's posterior leaves few
+  samples in its support (the kernel estimator below addresses this).
+
+Hence :func:`auto_pool`: pool only parameters whose stage-1 posterior sd in the transformed
+space is below ``max_sd_ratio`` (2/3) of the uniform prior's sd there
+(:func:`prior_sd_transformed`) in at least half of the specimens; the others keep their
+stage-1 prior and cost nothing.  On the shipped specimens it selects T2 and THETA (VOLF, T1
+and GM are prior-like everywhere, EOPT, P1 and GF informed in one or two specimens) and the
+ESS 10 % quantile becomes 174–987 with a minimum of 121.
+
+Kernel-smoothed estimator (``estimator="kernel"``)
+--------------------------------------------------
+Each stage-1 sample is replaced by a Gaussian kernel N(z; z_ij, H_i) in the transformed space,
+H_i = h_i²·diag Σ_i with Σ_i the specimen's posterior covariance of the pooled z (diagonal) and
+h_i from Silverman's rule for d = number of pooled parameters (:func:`kernel_bandwidth`).
+This smooths the stage-1 likelihood L_i(z) ∝ post_i(z)/p0(z) (p0 the density of the uniform
+θ prior in z, i.e. including the transform's Jacobian, exactly as in the raw ratio) into
+L_i * K_H, and for a Gaussian population the z-integral is analytic:
+
+    p(d_i|ψ) ≈ Z_i · mean_j N(z_ij; mu, S + H_i) / p0(z_ij),
+
+i.e. the raw estimator applied to the population widened by H_i; for identity/log the widened
+normal is truncated to the transformed box like the population itself (its normaliser uses
+the widened sd).  It keeps the matrix-product form (per-specimen coefficients), is linear in
+N, and its bias is O(h²): the marginal's variance grows by h²Σ_i, a relative change ≤ h² of
+the marginal variance.  Measured on the Gaussian toy of the tests (six specimens, N = 2500):
+hyper-evidence error +0.07 ± 0.07 nat (raw: −0.006 ± 0.09), posterior mean of sd −0.018
+(raw +0.005), of mu unchanged.  Where populations are narrow it raises the ESS a lot (the
+collapse toy: 29–33 → 640 of 2000); on the shipped specimens the collapse is of the first kind and
+the gain is small (auto pool: 10 % quantiles +0 to +21 % over raw), so the default is "raw".
+The updated individuals always reweight the stage-1 samples with the *raw* ratios (no
+smoothing bias; ``ess_raw`` is their ESS and triggers ``ess_collapsed``).
+
 Updated individuals ("shrinkage")
 ---------------------------------
 p(θ_i | all data) = ∫ p(θ_i | d_i, ψ) p(ψ | all data) dψ.  p(θ_i|d_i, ψ) is represented by
@@ -88,10 +138,16 @@ __all__ = [
     "hierarchical",
     "refine_individual",
     "systematic_resample",
+    "kernel_bandwidth",
+    "auto_pool",
+    "PoolChoice",
+    "prior_sd_transformed",
     "TRANSFORMS",
+    "ESTIMATORS",
 ]
 
 TRANSFORMS = ("identity", "log", "logit")
+ESTIMATORS = ("raw", "kernel")
 _LOG2PI = np.log(2.0 * np.pi)
 _CPC_MAX = 0.99
 # Stage-1 samples sitting exactly on a box edge would map to ±inf under log/logit.
@@ -461,18 +517,31 @@ class HierarchicalModel:
         const = logjac + np.sum(np.log(self.hi - self.lo)) - np.sum(np.log(self.s))
         return F, const
 
-    def coefficients(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Coefficients (n_ψ, n_f) and constants (n_ψ,) of the quadratic form, for all ψ at once."""
+    def coefficients(self, raw: np.ndarray, extra_var: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Coefficients (n_ψ, n_f) and constants (n_ψ,) of the quadratic form, for all ψ at once.
+
+        ``extra_var`` (d,), in transformed units², is added to the population covariance
+        (S → S + diag(extra_var)) before truncation to the box: the kernel-smoothed estimator
+        (see the module docstring) evaluates this widened population at the stage-1 samples.
+        """
         raw = np.atleast_2d(raw)
         n, d = raw.shape[0], self.d
         mu = (raw[:, :d] - self.c) / self.s
         sd = raw[:, d : 2 * d]
         sd = np.exp(sd) if self.sd_prior == "loguniform" else sd
         sdt = sd / self.s
+        ext = None
+        if extra_var is not None:
+            ext = np.asarray(extra_var, float) / self.s**2  # standardised units
+            if ext.shape != (d,) or np.any(ext < 0) or not np.all(np.isfinite(ext)):
+                raise HbmError(f"hierarchical: extra_var must be {d} finite values >= 0, got {extra_var!r}")
         prec = np.zeros((n, d))
         lin = np.empty((n, d))
         diag = np.ones(d, bool)
         diag[self.S] = False
+        if ext is not None:  # independent Gaussians: the variances add
+            sdt = sdt.copy()
+            sdt[:, diag] = np.sqrt(sdt[:, diag] ** 2 + ext[diag])
         prec[:, diag] = 1.0 / sdt[:, diag] ** 2
         lin[:, diag] = mu[:, diag] * prec[:, diag]
         # −½ μᵀPμ − ½ log det Σ − d/2 log 2π − log(truncation mass)
@@ -486,6 +555,8 @@ class HierarchicalModel:
             Lc = _cpc_to_corr_chol(raw[:, 2 * d :], self.m)
             ss = sdt[:, self.S]
             Lcov = ss[:, :, None] * Lc  # Cholesky factor of D R D
+            if ext is not None:  # Cholesky factor of D R D + diag(extra)
+                Lcov = np.linalg.cholesky(Lcov @ np.swapaxes(Lcov, 1, 2) + np.diag(ext[self.S]))
             eye = np.broadcast_to(np.eye(self.m), Lcov.shape)
             Linv = np.linalg.solve(Lcov, eye)
             P = np.swapaxes(Linv, 1, 2) @ Linv  # Σ⁻¹ = L⁻ᵀ L⁻¹
@@ -556,6 +627,31 @@ class HierarchicalModel:
             M = np.where(np.isfinite(mc), ref + up, M)
         return M, S1, S2
 
+    def kernel_variance(self, theta: np.ndarray, bandwidth: str | float = "silverman") -> tuple[float, np.ndarray]:
+        """(h, h²·diag Σ) of the smoothing kernel for one specimen's stage-1 samples ``theta``.
+
+        Σ is the sample covariance of the pooled columns in the transformed space (diagonal),
+        h the bandwidth factor of :func:`kernel_bandwidth` for N samples in d = len(pooled) dims.
+        """
+        theta = np.asarray(theta, float)
+        h = kernel_bandwidth(theta.shape[0], self.d, bandwidth)
+        z, _ = self.to_z(theta)
+        return h, h * h * z.var(axis=0, ddof=1)
+
+    def log_mean_ratio(
+        self, theta: np.ndarray, raw: np.ndarray, kernel_var: np.ndarray | None = None, chunk_bytes: float = 4e6
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """log p̂(d|ψ) − log Z and the importance ESS for one specimen, at every ψ row of ``raw``.
+
+        ``kernel_var=None``: raw ratios, log mean_j p(θ_j|ψ)/p_prior(θ_j).  Otherwise the
+        kernel-smoothed estimator (module docstring) with kernel covariance diag(kernel_var),
+        e.g. from :meth:`kernel_variance`.
+        """
+        F, c = self.features(theta)
+        coef, cconst = self.coefficients(raw, kernel_var)
+        lse, ess = self.log_ratio_stats(F, c, coef, cconst, chunk_bytes)
+        return lse - np.log(F.shape[0]), ess
+
     def log_density(self, theta: np.ndarray, raw: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
         """log Σ_m w_m p(θ|ψ_m) for θ (n, all columns), ψ raw (M, ·): population predictive density.
 
@@ -601,12 +697,19 @@ class HierarchicalResult:
     log_marginal : ndarray (n, n_specimens)
         log p̂(d_i | ψ_m) at each hyper-posterior draw.
     ess : ndarray (n, n_specimens)
-        Importance ESS of each specimen at each hyper-posterior draw.
-    ess_summary : dict specimen -> {"min", "q10", "median", "n"}
+        Importance ESS of each specimen at each hyper-posterior draw, of the estimator used
+        for p(d_i|ψ) (raw or kernel-smoothed ratios).
+    ess_raw : ndarray (n, n_specimens)
+        ESS of the raw ratios (which weight the updated individuals); equals ``ess`` for the
+        raw estimator.
+    ess_summary : dict specimen -> {"min", "q10", "median", "n", "estimator", "raw_min",
+        "raw_q10", "raw_median"}
     ess_collapsed : dict specimen -> bool
-        True when the 10 % quantile of the ESS over hyper-posterior draws is below
-        ``ess_threshold``: the updated individual and p̂(d_i|ψ) rest on too few samples;
-        run :func:`refine_individual` for that specimen.
+        True when the 10 % quantile over hyper-posterior draws of ``ess`` or of ``ess_raw``
+        is below ``ess_threshold``: the updated individual (and, if ``hyper_ess_collapsed``,
+        p̂(d_i|ψ)) rest on too few samples; run :func:`refine_individual` for that specimen.
+    hyper_ess_collapsed : dict specimen -> bool
+        The same test on ``ess`` only: p̂(d_i|ψ), hence the hyper-posterior, is unreliable.
     ess_trace : list of ndarray
         Per TMCMC likelihood call, the minimum ESS over the ψ population for each specimen.
     updated : dict specimen -> ndarray (n_updated, len(all_names))
@@ -637,8 +740,10 @@ class HierarchicalResult:
     log_evidence_parts: dict
     log_marginal: np.ndarray
     ess: np.ndarray
+    ess_raw: np.ndarray
     ess_summary: dict
     ess_collapsed: dict
+    hyper_ess_collapsed: dict
     ess_trace: list
     updated: dict
     updated_weights: dict
@@ -758,6 +863,8 @@ def hierarchical(
     progress: bool = True,
     sampler: Callable | None = None,
     tmcmc_options: Mapping[str, Any] | None = None,
+    estimator: str = "raw",
+    bandwidth: str | float = "silverman",
 ) -> HierarchicalResult:
     """Hyper-posterior, hyper-evidence, updated individuals and population predictive.
 
@@ -801,6 +908,14 @@ def hierarchical(
         Replacement for :func:`hbm.samplers.tmcmc.tmcmc` (same signature); default tmcmc.
     tmcmc_options : mapping, optional
         Extra keyword arguments for the sampler (``n_steps``, ``kernel``, ...).
+    estimator : {"raw", "kernel"}
+        Estimator of p(d_i|ψ) in the hyper-posterior: plain importance ratios ("raw",
+        unbiased) or the kernel-smoothed ratios ("kernel": O(h²) bias, no collapse when the
+        population is narrower than a specimen's posterior; module docstring).  The updated
+        individuals always use the raw ratios.
+    bandwidth : {"silverman", "scott"} or float
+        Kernel bandwidth factor h (kernel covariance h²·Σ_i, Σ_i the diagonal posterior
+        covariance of specimen i in the transformed space); see :func:`kernel_bandwidth`.
 
     Returns
     -------
@@ -831,13 +946,22 @@ def hierarchical(
     feats = [model.features(x) for x in samples]
     logN = np.log([x.shape[0] for x in samples])
     trace: list[np.ndarray] = []
+    if estimator not in ESTIMATORS:
+        raise HbmError(f"hierarchical: estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    kernel_var: list[np.ndarray | None] = [None] * len(specs)
+    kernel_h: dict[str, float] = {}
+    if estimator == "kernel":
+        for i, (key, x) in enumerate(zip(specs, samples)):
+            kernel_h[key], kernel_var[i] = model.kernel_variance(x, bandwidth)
 
-    def per_specimen(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def per_specimen(raw: np.ndarray, kvar=kernel_var) -> tuple[np.ndarray, np.ndarray]:
         coef, cconst = model.coefficients(raw)
         lm = np.empty((raw.shape[0], len(specs)))
         ess = np.empty_like(lm)
         for i, (F, c) in enumerate(feats):  # loop over specimens (few), vectorised over ψ and samples
-            lse, e = model.log_ratio_stats(F, c, coef, cconst, chunk_bytes)
+            # kernel: each specimen sees the population widened by its own kernel covariance
+            ci, cci = (coef, cconst) if kvar[i] is None else model.coefficients(raw, kvar[i])
+            lse, e = model.log_ratio_stats(F, c, ci, cci, chunk_bytes)
             lm[:, i] = lse - logN[i]
             ess[:, i] = e
         return lm, ess
@@ -860,25 +984,39 @@ def hierarchical(
     x = np.asarray(res.samples, float)
     raw = model.expand(x)
     lm, ess = per_specimen(raw)
+    # the updated individuals reweight the stage-1 samples with the raw ratios: their ESS
+    lm_raw, ess_raw = (lm, ess) if estimator == "raw" else per_specimen(raw, [None] * len(specs))
     hyper = model.natural(raw)
 
     # --- ESS diagnostics ------------------------------------------------------------------
     warn_list: list[str] = []
-    ess_summary, collapsed = {}, {}
+    ess_summary, collapsed, hyper_collapsed = {}, {}, {}
     for i, key in enumerate(specs):
-        e = ess[:, i]
+        e, er = ess[:, i], ess_raw[:, i]
         ess_summary[key] = {
             "min": float(e.min()), "q10": float(np.quantile(e, 0.1)), "median": float(np.median(e)),
-            "n": int(samples[i].shape[0]),
+            "n": int(samples[i].shape[0]), "estimator": estimator,
+            "raw_min": float(er.min()), "raw_q10": float(np.quantile(er, 0.1)),
+            "raw_median": float(np.median(er)),
         }
-        collapsed[key] = bool(ess_summary[key]["q10"] < ess_threshold)
-        if collapsed[key]:
+        hyper_collapsed[key] = bool(ess_summary[key]["q10"] < ess_threshold)
+        collapsed[key] = bool(hyper_collapsed[key] or ess_summary[key]["raw_q10"] < ess_threshold)
+        if hyper_collapsed[key]:
             msg = (
                 f"hierarchical: importance ESS of specimen {key!r} collapsed (10% quantile "
                 f"{ess_summary[key]['q10']:.1f}, median {ess_summary[key]['median']:.1f} of "
-                f"{samples[i].shape[0]} stage-1 samples < {ess_threshold:g}); its updated posterior and "
-                f"p(d|psi) are unreliable: run hbm.samplers.hierarchical.refine_individual for it"
+                f"{samples[i].shape[0]} stage-1 samples < {ess_threshold:g}, estimator {estimator!r}); "
+                f"its updated posterior and p(d|psi) are unreliable: run "
+                f"hbm.samplers.hierarchical.refine_individual for it"
             )
+        elif collapsed[key]:
+            msg = (
+                f"hierarchical: importance ESS of specimen {key!r} collapsed for its updated posterior "
+                f"(raw ratios: 10% quantile {ess_summary[key]['raw_q10']:.1f} < {ess_threshold:g}); "
+                f"p(d|psi) is fine ({estimator} ESS 10% quantile {ess_summary[key]['q10']:.1f}): run "
+                f"hbm.samplers.hierarchical.refine_individual for its updated posterior"
+            )
+        if collapsed[key]:
             warn_list.append(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=2)
 
@@ -905,7 +1043,7 @@ def hierarchical(
     n_upd = int(n_updated or n_samples)
     updated, upd_w, upd_ess = {}, {}, {}
     for i, key in enumerate(specs):
-        lse = lm[sub, i] + logN[i]  # log Σ_j r_ij(ψ_m)
+        lse = lm_raw[sub, i] + logN[i]  # log Σ_j r_ij(ψ_m), raw ratios
         # Σ_m exp(log r_mj − lse_m): rows are draws; use the chunked kernel with the roles swapped
         F, c = feats[i]
         lw, _ = model.log_ratio_stats(coef, cconst - lse, F, c, chunk_bytes)
@@ -924,7 +1062,8 @@ def hierarchical(
         hyper_samples=hyper, hyper_names=list(model.hyper_names), names=list(model.names),
         all_names=list(names), bounds=model.all_bounds.copy(), transforms=dict(model.transforms),
         specimens=specs, log_evidence=log_ev, log_evidence_se=se, log_evidence_parts=parts,
-        log_marginal=lm + logz[None, :], ess=ess, ess_summary=ess_summary, ess_collapsed=collapsed,
+        log_marginal=lm + logz[None, :], ess=ess, ess_raw=ess_raw, ess_summary=ess_summary,
+        ess_collapsed=collapsed, hyper_ess_collapsed=hyper_collapsed,
         ess_trace=trace, updated=updated, updated_weights=upd_w, updated_ess=upd_ess,
         predictive=predictive, warnings=warn_list,
         timings={"setup": t1 - t0, "tmcmc": t2 - t1, "updated": t4 - t3, "predictive": t5 - t4,
@@ -932,7 +1071,10 @@ def hierarchical(
         sampler_result=res, model=model, raw_samples=raw,
         options={"n_samples": int(n_samples), "sd_prior": sd_prior, "sd_range": list(sd_range),
                  "full_cov": list(model.full_cov), "fix": dict(model.fix), "ess_threshold": ess_threshold,
-                 "logit_range": logit_range, "mu_lo": model.mu_lo.tolist(), "mu_hi": model.mu_hi.tolist()},
+                 "logit_range": logit_range, "mu_lo": model.mu_lo.tolist(), "mu_hi": model.mu_hi.tolist(),
+                 "estimator": estimator, "bandwidth": bandwidth if isinstance(bandwidth, str) else float(bandwidth),
+                 "kernel_h": kernel_h,
+                 "kernel_sd": {k: np.sqrt(v).tolist() for k, v in zip(specs, kernel_var) if v is not None}},
     )
 
 
@@ -1036,3 +1178,171 @@ def refine_individual(
         from .tmcmc import tmcmc as sampler
     return sampler(target, result.bounds, int(n_samples), seed=int(s_run.generate_state(1)[0]), progress=progress,
                    **tmcmc_options)
+
+
+# --------------------------------------------------------------------------------------
+# kernel bandwidth and the choice of pooled parameters
+# --------------------------------------------------------------------------------------
+def kernel_bandwidth(n: int, d: int, rule: str | float = "silverman") -> float:
+    """Bandwidth factor h of the Gaussian kernel N(θ_ij, h²Σ_i) for ``n`` samples in ``d`` dims.
+
+    ``"silverman"``: h = (4 / (d + 2))^(1/(d+4)) · n^(−1/(d+4)) (AMISE-optimal for a normal
+    density, Silverman 1986 eq. 4.14); ``"scott"``: h = n^(−1/(d+4)).  A float is used as is.
+    """
+    if isinstance(rule, str):
+        if n < 2 or d < 1:
+            raise HbmError(f"hierarchical: kernel bandwidth needs n >= 2 samples and d >= 1, got n={n}, d={d}")
+        if rule == "silverman":
+            return float((4.0 / (d + 2.0)) ** (1.0 / (d + 4.0)) * n ** (-1.0 / (d + 4.0)))
+        if rule == "scott":
+            return float(n ** (-1.0 / (d + 4.0)))
+        raise HbmError(f"hierarchical: bandwidth must be 'silverman', 'scott' or a number > 0, got {rule!r}")
+    h = float(rule)
+    if not (np.isfinite(h) and h > 0):
+        raise HbmError(f"hierarchical: bandwidth must be 'silverman', 'scott' or a number > 0, got {rule!r}")
+    return h
+
+
+def prior_sd_transformed(kind: str, lo: float, hi: float) -> float:
+    """sd of z = g(θ) when θ is uniform on [lo, hi] (the stage-1 prior seen in the transformed space).
+
+    identity: (hi − lo)/√12; logit: π/√3 (the standard logistic); log: sd of log θ, whose density
+    is e^z/(hi − lo) on [log lo, log hi] (64-point Gauss–Legendre, exact to rounding for any box).
+    """
+    if kind == "identity":
+        return float((hi - lo) / np.sqrt(12.0))
+    if kind == "logit":
+        return float(np.pi / np.sqrt(3.0))
+    if kind == "log":
+        if not lo > 0:
+            raise HbmError(f"hierarchical: transform 'log' needs a positive lower bound, got {lo:g}")
+        a, b = np.log(lo), np.log(hi)
+        x, w = np.polynomial.legendre.leggauss(64)
+        z = 0.5 * (b - a) * x + 0.5 * (a + b)
+        p = w * np.exp(z - b)  # density ∝ e^z; scaled by e^−b against overflow
+        p /= p.sum()
+        m = np.sum(p * z)
+        return float(np.sqrt(np.sum(p * (z - m) ** 2)))
+    raise HbmError(f"hierarchical: transform must be one of {TRANSFORMS}, got {kind!r}")
+
+
+@dataclass
+class PoolChoice:
+    """Result of :func:`auto_pool`: the chosen names (also iterable as ``pooled, reasons = ...``).
+
+    Attributes
+    ----------
+    pooled : list of str
+        Parameters to pool, in column order.
+    reasons : dict name -> dict
+        Per candidate: ``sd_ratio`` (per specimen, posterior sd / prior sd in the transformed
+        space), ``informative`` (per specimen, bool), ``n_informative``, ``n_specimens``,
+        ``pooled`` (bool) and a one-line ``reason``.
+    """
+
+    pooled: list
+    reasons: dict
+
+    def __iter__(self):
+        return iter((self.pooled, self.reasons))
+
+
+def auto_pool(
+    samples_by_specimen: Mapping[str, np.ndarray],
+    names: Sequence[str],
+    bounds,
+    transforms: Mapping[str, str] | None = None,
+    *,
+    candidates: Sequence[str] | None = None,
+    max_sd_ratio: float = 2.0 / 3.0,
+    min_fraction: float = 0.5,
+    min_pooled: int = 1,
+) -> PoolChoice:
+    """Choose the parameters worth pooling: those the stage-1 data inform in most specimens.
+
+    A parameter is *informative* for a specimen when its stage-1 posterior sd in the
+    transformed space (the space of the population model) is below ``max_sd_ratio`` times the
+    sd of the stage-1 uniform prior in that space (:func:`prior_sd_transformed`); the default
+    2/3 means a variance contraction 1 − σ²_post/σ²_prior of at least 5/9.  It is pooled when it
+    is informative in at least ``min_fraction`` of the specimens.
+
+    Why: for a parameter whose posteriors are prior-like, p(d_i|ψ) is flat in its (mu, sd), the
+    hyper-posterior returns the hyperprior, and that hyperprior reaches populations whose mass
+    lies in the transformed tails (|mu| near logit_range, sd of several logit units) where the
+    stage-1 samples, drawn under a uniform prior, are exponentially rare: the importance ratios
+    are then dominated by one or two extreme samples and the ESS collapses, multiplicatively
+    over such parameters.  Pooling them adds nothing but noise; they keep their stage-1 prior.
+
+    Parameters
+    ----------
+    samples_by_specimen : mapping specimen -> ndarray (N_i, len(names))
+        Stage-1 posterior samples.
+    names : sequence of str
+        Column names.
+    bounds : array_like (len(names), 2)
+        Stage-1 uniform prior box.
+    transforms : mapping name -> {"identity","log","logit"}, optional
+        Transform of each candidate (default identity), as passed to :func:`hierarchical`.
+    candidates : sequence of str, optional
+        Names that may be pooled (default all), e.g. the model parameters without ``sigma``.
+    max_sd_ratio : float
+        Posterior/prior sd ratio below which a specimen counts as informed.
+    min_fraction : float
+        Fraction of specimens that must be informed.
+    min_pooled : int
+        If fewer candidates pass, the best-informed ones (most informed specimens, then the
+        smallest median ratio) are added up to this number, with a reason saying so, so that a
+        hierarchical layer can always run; 0 allows an empty choice.
+
+    Returns
+    -------
+    PoolChoice
+        ``pooled`` and per-candidate ``reasons``.
+    """
+    names = [str(n) for n in names]
+    candidates = list(names) if candidates is None else [str(c) for c in candidates]
+    bad = [c for c in candidates if c not in names]
+    if bad:
+        raise HbmError(f"auto_pool: candidates {bad} are not among names {names}")
+    if not samples_by_specimen:
+        raise HbmError("auto_pool: samples_by_specimen is empty")
+    if not (0 < max_sd_ratio) or not (0 < min_fraction <= 1):
+        raise HbmError(f"auto_pool: need max_sd_ratio > 0 and 0 < min_fraction <= 1, got {max_sd_ratio}, {min_fraction}")
+    tr = {c: dict(transforms or {}).get(c, "identity") for c in candidates}
+    model = HierarchicalModel(names, bounds, pooled=candidates, transforms=tr)
+    prior_sd = np.array([prior_sd_transformed(k, lo, hi) for k, lo, hi in zip(model.kinds, model.lo, model.hi)])
+    ratios = []
+    for key, x in samples_by_specimen.items():
+        x = np.asarray(x, float)
+        if x.ndim != 2 or x.shape[1] != len(names) or x.shape[0] < 2:
+            raise HbmError(f"auto_pool: samples of {key!r} must be (N>=2, {len(names)}), got {x.shape}")
+        z, _ = model.to_z(x)
+        ratios.append(z.std(axis=0, ddof=1) / prior_sd)
+    ratios = np.array(ratios)  # (n_specimens, n_candidates)
+    informative = ratios < max_sd_ratio
+    n_spec = ratios.shape[0]
+    need = int(np.ceil(min_fraction * n_spec - 1e-9))
+    pooled, reasons = [], {}
+    for k, c in enumerate(candidates):
+        n_inf = int(informative[:, k].sum())
+        ok = n_inf >= need
+        if ok:
+            pooled.append(c)
+        reasons[c] = {
+            "sd_ratio": ratios[:, k].tolist(), "informative": informative[:, k].tolist(),
+            "n_informative": n_inf, "n_specimens": n_spec, "pooled": ok, "transform": tr[c],
+            "reason": (f"{c}: posterior sd < {max_sd_ratio:.2f} x prior sd ({tr[c]} space) in {n_inf}/{n_spec} "
+                       f"specimens (need {need}); median ratio {np.median(ratios[:, k]):.2f} -> "
+                       + ("pooled" if ok else "not pooled (keeps its stage-1 prior)")),
+        }
+    if len(pooled) < min_pooled:
+        # rank the rest: most informed specimens first, then the smallest median sd ratio
+        rest = sorted((c for c in candidates if c not in pooled),
+                      key=lambda c: (-reasons[c]["n_informative"], float(np.median(reasons[c]["sd_ratio"]))))
+        for c in rest[: min_pooled - len(pooled)]:
+            pooled.append(c)
+            reasons[c]["pooled"] = True
+            reasons[c]["reason"] = reasons[c]["reason"].replace(
+                "not pooled (keeps its stage-1 prior)", f"pooled anyway: best informed of the candidates (min_pooled={min_pooled})")
+    pooled = [n for n in names if n in pooled]
+    return PoolChoice(pooled=pooled, reasons=reasons)
