@@ -18,8 +18,11 @@ Pin to one core for timing::
         python workflows/benchmarks/muscle_posterior.py
 
 Options: ``--quick`` (small smoke run), ``--seeds K``, ``--configs NAME,...``, ``--n N`` (override
-N of every config), ``--out DIR``, ``--peers`` (PyMC SMC from the separate env ``.venv-pymc``; see
-README.md in this folder).
+N of every config), ``--out DIR``, ``--peers`` (also PyMC 5 ``sample_smc`` at N = 2000 and 10,000,
+run by ``pymc_peer.py`` in a separate benchmark environment: ``$HBM_PYMC_PYTHON``, else
+``../bench-venv/bin/python`` or ``.venv-pymc/bin/python``; see README.md in this folder),
+``--peer-seeds K`` (default 3), ``--peers-only``, ``--fresh``.  The saved table accumulates: rows of
+configurations not re-run are kept from the existing JSON unless ``--fresh``.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -106,6 +110,9 @@ class InlineLikelihood:
             out = -n * np.log(s) - 0.5 * n * np.log(2 * np.pi) - np.einsum("ij,ij->i", r, r) / (2 * s * s)
         return np.where(np.isfinite(out), out, -np.inf)
 
+    def predict(self, theta):
+        return self.model.stress(self.strain, np.asarray(theta, dtype=float)[:, :-1])
+
     def gradient_fim(self, theta):
         theta = np.asarray(theta, dtype=float)
         n = self.stress.size
@@ -175,77 +182,130 @@ def run_one(lik, gold, name, kwargs, seed, n_override=None) -> dict:
 def table(rows: list[dict], gold_logz: float) -> str:
     """Markdown table of medians over seeds per configuration."""
     out = ["| config | N | seeds | wall s | CPU s | stages | evaluations | share in likelihood | log Ẑ ± SE "
-           "| \\|error\\| | SE covers error | max mean err (gold sd) |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "| sd of log Ẑ over seeds | \\|error\\| | SE covers error | max mean err (gold sd) | measured |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     by = {}
     for r in rows:
         by.setdefault(r["config"], []).append(r)
     for name, rs in by.items():
         med = lambda k: statistics.median(r[k] for r in rs)  # noqa: E731
-        covered = sum(r["abs_error"] <= max(2 * r["log_evidence_se"], 1e-12) for r in rs)
+        has_se = all(r.get("log_evidence_se") is not None for r in rs)
+        has_share = all(r.get("lik_share") is not None for r in rs)
+        covered = (f"{sum(r['abs_error'] <= max(2 * r['log_evidence_se'], 1e-12) for r in rs)}/{len(rs)} (2 SE)"
+                   if has_se else "no SE")
+        lz = f"{med('log_evidence'):.2f} ± {med('log_evidence_se'):.2f}" if has_se else f"{med('log_evidence'):.2f}"
+        sd = f"{statistics.stdev(r['log_evidence'] for r in rs):.2f}" if len(rs) > 1 else "–"
+        share = f"{100 * med('lik_share'):.0f}%" if has_share else "–"
+        when = sorted({(f"{r['measured']} (load {r['load']:.1f})" if "load" in r else r["measured"])
+                       if "measured" in r else "before 06:00 (load ≈ 10)" for r in rs})
         out.append(
             f"| {name} | {rs[0]['N']} | {len(rs)} | {med('wall'):.2f} | {med('cpu'):.2f} | {med('stages'):.0f} | "
-            f"{med('evaluations'):.3g} | {100 * med('lik_share'):.0f}% | "
-            f"{med('log_evidence'):.2f} ± {med('log_evidence_se'):.2f} | {med('abs_error'):.2f} | "
-            f"{covered}/{len(rs)} (2 SE) | {med('max_mean_err_sd'):.2f} |")
+            f"{med('evaluations'):.3g} | {share} | "
+            f"{lz} | {sd} | {med('abs_error'):.2f} | {covered} | {med('max_mean_err_sd'):.2f} | {', '.join(when)} |")
     out.append("")
     out.append(f"Gold: log Z = {gold_logz} (sd between long runs 0.29). Medians over seeds; "
-               "'SE covers error' counts runs with |error| ≤ 2·SE. CPU s = process time (robust to "
-               "other jobs on the machine); wall s is what a user waits.")
+               "'SE covers error' counts runs with |error| ≤ 2·SE (PyMC reports no SE: its between-seed sd "
+               "is the column before). CPU s = process time (robust to other jobs on the machine); wall s "
+               "is what a user waits. 'measured' = UTC time of the run and the machine's 1-min load average at its end (the rows without one were measured "
+               "earlier on a machine with load ≈ 10, so their wall times are ~4–5× their CPU times).")
     return "\n".join(out)
 
 
-# Runs inside the separate PyMC environment (PyMC is not an hbm dependency): the base model
-# written in pytensor, uniform priors on the gold box, iid Gaussian noise, pm.sample_smc.
-PEER_CODE = r"""
-import json, sys, time
-import numpy as np, pymc as pm, pytensor.tensor as pt
-bench, n, seed = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-rows = [l for l in open(bench + "/muscle_benchmark.csv") if l.strip() and not l.startswith("#")][1:]
-eps, obs = np.array([[float(v) for v in r.split(",")[:2]] for r in rows]).T
-gold = json.load(open(bench + "/muscle_benchmark_gold.json"))
-lam = 1.0 + eps
-box = dict(VOLF=(0.5, 0.99), EOPT=(0, 0.2), P1=(1e-4, 0.5), T1=(0, 20), T2=(0, 200), THETA=(55, 60),
-           GF=(1e-4, 0.1), GM=(1e-4, 0.1), sigma=(1e-4, 0.05))
-with pm.Model():
-    p = {k: pm.Uniform(k, lo, hi) for k, (lo, hi) in box.items()}
-    c, th = p["VOLF"], p["THETA"] * np.pi / 180
-    lh = pt.sqrt(pt.cos(th) ** 2 * lam ** 2 + pt.sin(th) ** 2 / lam)
-    mu = ((c * p["GF"] + (1 - c) * p["GM"]) * (lam ** 2 - 1 / lam)
-          + lam * c * p["P1"] * pt.maximum(eps - p["EOPT"], 0)
-          + lam * (1 - c) * p["T1"] * (pt.exp(p["T2"] * pt.maximum(lh - 1, 0)) - 1))
-    pm.Normal("y", mu, p["sigma"], observed=obs)
-    t = time.perf_counter()
-    idata = pm.sample_smc(draws=n, chains=1, random_seed=seed, progressbar=False)
-    wall = time.perf_counter() - t
-post = idata.posterior
-lz = np.asarray(idata.sample_stats["log_marginal_likelihood"]).ravel()
-lz = float([v for v in np.concatenate([np.atleast_1d(x) for x in lz]) if np.isfinite(v)][-1])
-c = post["VOLF"].values.ravel()
-comb = {"(1-VOLF)*T1": (1 - c) * post["T1"].values.ravel(), "VOLF*P1": c * post["P1"].values.ravel(),
-        "G=VOLF*GF+(1-VOLF)*GM": c * post["GF"].values.ravel() + (1 - c) * post["GM"].values.ravel()}
-for k in ("EOPT", "T2", "THETA", "sigma"):
-    comb[k] = post[k].values.ravel()
-g = gold["posterior_mean_and_sd"]
-err = max(abs(comb[k].mean() - g[k][0]) / g[k][1] for k in g)
-print(json.dumps({"N": n, "seed": seed, "wall": wall, "log_evidence": lz, "max_mean_err_sd": err}))
-"""
+# ---------------------------------------------------------------------------------------------
+# PyMC SMC peers: pymc_peer.py runs in a separate benchmark environment (PyMC is not an hbm
+# dependency).  Its pytensor model is checked against hbm's numpy likelihood before any run.
+# ---------------------------------------------------------------------------------------------
+PEER_SCRIPT = Path(__file__).resolve().with_name("pymc_peer.py")
+PEER_TOL = 1e-10  # relative agreement demanded of the pytensor re-implementation
+PEER_SIZES, PEER_SEEDS = (2000, 10000), 3
+PEER_PROTOCOL = ("PyMC timed after one warm-up run (pytensor's compiled-code cache is warm, as for any repeated "
+                 "use); time = the pm.sample_smc call with draws=N, chains=1, cores=1, the default IMH kernel "
+                 "(threshold 0.5, correlation_threshold 0.01); evaluations = N·(1 + Σ IMH steps per stage).")
 
 
-def run_peers(seeds: list[int], quick: bool) -> list[str]:
-    """PyMC SMC in the separate environment ``.venv-pymc`` (see README.md); one line per run."""
-    py = Path(os.environ.get("HBM_PYMC_PYTHON", ROOT / ".venv-pymc" / "bin" / "python"))
+def peer_python() -> Path:
+    """Python of the bench environment: $HBM_PYMC_PYTHON, else ../bench-venv or .venv-pymc."""
+    env = os.environ.get("HBM_PYMC_PYTHON")
+    if env:
+        return Path(env)
+    for cand in (ROOT.parent / "bench-venv" / "bin" / "python", ROOT / ".venv-pymc" / "bin" / "python"):
+        if cand.exists():
+            return cand
+    return ROOT.parent / "bench-venv" / "bin" / "python"
+
+
+def _peer_call(py: Path, args: list[str], timeout: float = 3600) -> dict:
+    p = subprocess.run([str(py), str(PEER_SCRIPT), *args], capture_output=True, text=True, timeout=timeout)
+    lines = p.stdout.strip().splitlines()
+    if p.returncode != 0 or not lines:
+        tail = p.stderr.strip().splitlines()[-1:] or ["no output"]
+        raise RuntimeError(f"pymc_peer.py {args[0]} failed (exit {p.returncode}): {tail[0][:300]}")
+    return json.loads(lines[-1])
+
+
+def check_peer_model(py: Path, lik, tmp: Path) -> tuple[float, str]:
+    """Largest relative difference between the PyMC model and hbm (stress and log-likelihood).
+
+    Parameter rows: the benchmark's generating parameters, a point near the gold posterior, one
+    with slack collagen wherever λ < 1.30 (THETA = 60; the ⟨λH − 1⟩₊ branch), one with T2 = 0
+    (collagen term exactly zero), and three uniform draws from the box (extreme stresses).
+    """
+    names = list(lik.names)
+    rows = [dict(VOLF=0.9, EOPT=0.184, P1=0.13, T1=1.5, T2=9.3, THETA=60, GF=0.012, GM=0.009, sigma=0.00297),
+            dict(VOLF=0.7, EOPT=0.165, P1=0.14, T1=0.23, T2=19.5, THETA=59.3, GF=0.008, GM=0.007, sigma=0.0024),
+            dict(VOLF=0.6, EOPT=0.05, P1=0.3, T1=5.0, T2=50.0, THETA=60.0, GF=0.05, GM=1e-3, sigma=0.01),
+            dict(VOLF=0.6, EOPT=0.0, P1=0.3, T1=5.0, T2=0.0, THETA=55.0, GF=0.05, GM=1e-3, sigma=0.01)]
+    rng = np.random.default_rng(12345)
+    rows += [dict(zip(names, map(float, rng.uniform(lik.bounds[:, 0], lik.bounds[:, 1])))) for _ in range(3)]
+    f = tmp / "peer_theta.json"
+    atomic_write_text(f, json.dumps(rows))
+    out = _peer_call(py, ["check", "--bench", str(BENCH), "--theta", str(f)])
+    theta = np.array([[r[k] for k in names] for r in rows])
+    ref_s = lik.predict(theta)
+    ref_l = lik(theta)
+    ds = np.abs(np.asarray(out["stress"]) - ref_s) / np.maximum(np.abs(ref_s), 1e-12)
+    dl = np.abs(np.asarray(out["log_likelihood"]) - ref_l) / np.maximum(np.abs(ref_l), 1.0)
+    worst = float(max(ds.max(), dl.max()))
+    return worst, (f"pytensor model vs hbm at {len(rows)} parameter sets: max relative difference "
+                   f"{ds.max():.1e} (stress), {dl.max():.1e} (log-likelihood via the PyMC model's datalogp)")
+
+
+def run_peers(gold: dict, lik, peer_seeds: list[int], quick: bool) -> tuple[list[dict], list[str]]:
+    """PyMC ``sample_smc`` (IMH, chains=1, cores=1) rows in the table's format, and notes."""
+    py = peer_python()
     if not py.exists():
-        return [f"PyMC peer skipped: environment {py} is missing "
-                "(python -m venv .venv-pymc && .venv-pymc/bin/pip install pymc)."]
-    lines = []
-    for n in ([500] if quick else [2000, 10000]):
-        for seed in seeds[:1] if quick else seeds[:3]:
-            p = subprocess.run([str(py), "-c", PEER_CODE, str(BENCH), str(n), str(seed)],
-                               capture_output=True, text=True)
-            out = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else p.stderr.strip()[-300:]
-            lines.append(f"PyMC SMC N={n} seed={seed}: {out}")
-    return lines
+        return [], [f"PyMC peer skipped: bench environment python {py} is missing (see README.md: "
+                    "python3.11 -m venv ../bench-venv && ../bench-venv/bin/pip install 'pymc>=5.20,<6')."]
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            worst, msg = check_peer_model(py, lik, Path(tmp))
+    except Exception as e:  # noqa: BLE001 - a broken bench env must not break the hbm benchmark
+        return [], [f"PyMC peer skipped: {e}"]
+    notes = [msg]
+    if not worst <= PEER_TOL:
+        return [], notes + [f"PyMC peer not run: the pytensor model disagrees with hbm (> {PEER_TOL:g})."]
+    # warm-up: the first sample_smc compiles the logp functions with g++ (~13 s, in child processes
+    # that process_time does not see); pytensor caches them, so the timed runs measure sampling
+    try:
+        _peer_call(py, ["run", "--bench", str(BENCH), "--n", "100", "--seed", "999"])
+    except Exception as e:  # noqa: BLE001
+        return [], notes + [f"PyMC peer warm-up failed: {e}"]
+    notes.append(PEER_PROTOCOL)
+    rows = []
+    for n in ([300] if quick else PEER_SIZES):
+        for seed in peer_seeds:
+            try:
+                r = _peer_call(py, ["run", "--bench", str(BENCH), "--n", str(n), "--seed", str(seed)])
+            except Exception as e:  # noqa: BLE001
+                notes.append(f"PyMC SMC N={n} seed={seed} failed: {e}")
+                continue
+            r.update(config=f"PyMC {r['pymc']} SMC IMH N={n}", lik_share=None, log_evidence_se=None,
+                     abs_error=abs(r["log_evidence"] - gold["log_evidence"]), model_check=msg)
+            rows.append(r)
+            print(f"{r['config']:>18} seed {seed}: {r['wall']:.2f} s, {r['stages']} stages, "
+                  f"log Z {r['log_evidence']:.2f}, max mean err {r['max_mean_err_sd']:.2f} sd",
+                  file=sys.stderr, flush=True)
+    return rows, notes
 
 
 def main(argv=None) -> int:
@@ -255,7 +315,14 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", default=None, help=f"comma-separated subset of {', '.join(CONFIGS)}")
     ap.add_argument("--n", type=int, default=None, help="override N of every configuration")
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmarks"), help="output folder")
-    ap.add_argument("--peers", action="store_true", help="also run PyMC SMC from .venv-pymc")
+    ap.add_argument("--peers", action="store_true",
+                    help="also run PyMC SMC (N = 2000, 10000) from the bench environment (README.md)")
+    ap.add_argument("--peer-seeds", type=int, default=PEER_SEEDS, help=f"seeds per PyMC size (default {PEER_SEEDS})")
+    ap.add_argument("--peers-only", action="store_true", help="run only the PyMC peers (implies --peers)")
+    ap.add_argument("--table-only", action="store_true",
+                    help="run nothing: re-render the Markdown table from the saved JSON")
+    ap.add_argument("--fresh", action="store_true",
+                    help="do not keep rows of configurations not re-run from an existing table")
     args = ap.parse_args(argv)
 
     names = list(CONFIGS) if args.configs is None else [c.strip() for c in args.configs.split(",")]
@@ -269,26 +336,63 @@ def main(argv=None) -> int:
         names = names if args.configs else QUICK_CONFIGS
         seeds = seeds[:1] if args.seeds == 5 else seeds
         n_override = n_override or 500
+    if args.peers_only:
+        names, args.peers = [], True
+    if args.table_only:
+        names, args.peers, args.fresh = [], False, False
+    out = Path(args.out)
+    stem = "muscle_posterior_quick" if args.quick else "muscle_posterior"
+    stamp = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
     lik, gold, kind = make_problem()
     rows = []
     for name in names:
         for seed in seeds[: CONFIGS[name].get("_seeds", len(seeds))]:
             r = run_one(lik, gold, name, CONFIGS[name], seed, n_override)
+            r["measured"] = stamp
             rows.append(r)
             print(f"{name:>18} seed {seed}: {r['wall']:.2f} s, {r['stages']} stages, "
                   f"log Z {r['log_evidence']:.2f} ± {r['log_evidence_se']:.2f}, "
                   f"max mean err {r['max_mean_err_sd']:.2f} sd", file=sys.stderr, flush=True)
-    md = ["# TMCMC on the muscle benchmark posterior", "",
-          f"Likelihood: {kind}; threads: OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}, "
-          f"CPU affinity: {sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else '?'}; "
-          f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", "",
-          table(rows, gold["log_evidence"])]
+    notes: list[str] = []
     if args.peers:
-        md += ["", "## Peers", ""] + ["- " + s for s in run_peers(seeds, args.quick)]
+        peer_seeds = seeds[:1] if args.quick else list(range(args.peer_seeds))
+        prow, notes = run_peers(gold, lik, peer_seeds, args.quick)
+        for r in prow:
+            r["measured"] = stamp
+        rows += prow
+    # keep the rows of configurations not re-run now (the table accumulates across invocations)
+    old_path = out / f"{stem}.json"
+    if not args.fresh and old_path.exists():
+        try:
+            old = json.loads(old_path.read_text())
+        except ValueError:
+            old = []
+        rerun = {r["config"] for r in rows}
+        rows = [r for r in old if r.get("config") not in rerun] + rows
+    # hbm configurations in CONFIGS order, then the peers (stable: seeds keep their order)
+    order = {c: i for i, c in enumerate(CONFIGS)}
+    rows.sort(key=lambda r: order.get(r["config"], len(order)))
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    for r in rows:  # 1-min load average of the 2-core machine at the end of this invocation
+        if r.get("measured") == stamp and "load" not in r:
+            r["load"] = float(load[0])
+    if args.table_only:
+        head = f"Likelihood: {kind}. Table re-rendered {stamp} UTC from the saved runs (times: column 'measured')."
+    else:
+        head = (f"Likelihood: {kind}. Last invocation {stamp} UTC: OMP_NUM_THREADS="
+                f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, CPU affinity "
+                f"{sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else '?'}, load average at "
+                f"the end {load[0]:.2f} (1 min) / {load[1]:.2f} (5 min) on 2 cores.")
+    md = ["# TMCMC on the muscle benchmark posterior", "", head, "", table(rows, gold["log_evidence"])]
+    # the model check and timing protocol of peer rows kept from earlier invocations
+    for r in rows:
+        for note in ((r["model_check"], PEER_PROTOCOL) if r.get("model_check") else ()):
+            if note not in notes:
+                notes.append(note)
+    if notes:
+        md += ["", "## Peers", ""] + ["- " + s for s in notes]
     text = "\n".join(md) + "\n"
     print(text)
-    out = Path(args.out)
-    stem = "muscle_posterior_quick" if args.quick else "muscle_posterior"
     atomic_write_text(out / f"{stem}.md", text)
     atomic_write_text(out / f"{stem}.json", json.dumps(rows, indent=1))
     return 0

@@ -1,0 +1,66 @@
+"""Benchmark helpers of issue 6: the PyMC peer's prior box and model, the hierarchical-scaling script.
+
+Timings are never asserted; the PyMC model check runs only where the separate bench environment
+exists (it is not an hbm dependency).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+HERE = Path(__file__).resolve().parents[1] / "workflows" / "benchmarks"
+BENCH = Path(__file__).resolve().parents[2] / "shared" / "bench"
+needs_bench = pytest.mark.skipif(not (BENCH / "muscle_benchmark.csv").exists(), reason="benchmark data not present")
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", HERE / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@needs_bench
+def test_peer_reads_the_same_problem_as_hbm():
+    """pymc_peer.py (numpy-only at import) parses the gold prior box and data exactly as hbm's side."""
+    peer, main = _load("pymc_peer"), _load("muscle_posterior")
+    eps, obs, box, gold = peer.read_bench(BENCH)
+    lik, gold2, _ = main.make_problem()
+    assert gold == gold2
+    assert list(box) == list(lik.names)  # same parameters, same order
+    np.testing.assert_array_equal(np.array([box[n] for n in lik.names]), lik.bounds)
+    np.testing.assert_array_equal(eps, lik.data["strain"].values)
+    np.testing.assert_array_equal(obs, lik.data["stress"].values)
+
+
+@pytest.mark.skipif(not _load("muscle_posterior").peer_python().exists(), reason="PyMC bench environment absent")
+@needs_bench
+def test_pytensor_model_agrees_with_hbm(tmp_path):
+    main = _load("muscle_posterior")
+    lik, _, _ = main.make_problem()
+    worst, msg = main.check_peer_model(main.peer_python(), lik, tmp_path)
+    assert worst <= 1e-10, msg
+
+
+def test_hierarchical_scaling_quick(tmp_path):
+    mod = _load("hierarchical_scaling")
+    assert mod.main(["--quick", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path), "--repeats", "1"]) == 0
+    res = json.loads((tmp_path / "hierarchical_scaling_quick.json").read_text())
+    rows = res["rows"]
+    assert [r["N"] for r in rows] == [200, 400] and res["meta"]["n_specimens"] == 6
+    assert res["meta"]["n_pooled"] == 8
+    for r in rows:
+        assert r["N_total"] == 6 * r["N"]
+        assert r["layer"]["calls"] > 0 and r["layer"]["psi_rows"] >= r["layer"]["calls"]
+        assert np.isfinite(r["layer"]["log_evidence"]) and r["fixed"]["cpu"] >= 0
+    # nested subsets: the N=200 set is the first half of the N=400 set
+    st, _, _ = mod.stage1_samples(400, 0, tmp_path / "cache")
+    a, b = mod.subsets(st, 200, 0), mod.subsets(st, 400, 0)
+    for sid in st:
+        np.testing.assert_array_equal(a[sid][0], b[sid][0][:200])
+    assert "| 400 | 2400 |" in (tmp_path / "hierarchical_scaling_quick.md").read_text()
