@@ -277,8 +277,107 @@ def test_progress_bar_on_stderr(capsys):
     assert "tmcmc" in cap.err
 
 
+def corr_gauss(x):
+    """N(m, C) with correlation 0.95 and sds (1, 2), normalised (log Z = −log of the box area)."""
+    r = x - CG_MEAN
+    q = np.einsum("ni,ij,nj->n", r, CG_PREC, r)
+    return -0.5 * q - 0.5 * CG_LOGDET - LOG2PI
+
+
+CG_MEAN = np.array([1.0, -1.0])
+CG_COV = np.array([[1.0, 0.95 * 2.0], [0.95 * 2.0, 4.0]])
+CG_PREC = np.linalg.inv(CG_COV)
+CG_LOGDET = float(np.linalg.slogdet(CG_COV)[1])
+CORR_GAUSS = (corr_gauss, np.array([[-10.0, 12.0], [-20.0, 20.0]]), -math.log(22.0 * 40.0))
+
+
+@pytest.mark.parametrize("transform", ["logit", "none"])
+def test_differential_evolution_kernel_correlated_gaussian(transform):
+    """Pure DE moves (ter Braak 2006, difference vectors from the fixed stage-start population):
+    posterior mean, covariance and log Z of a correlated 2-D Gaussian against the closed form."""
+    f, b, truth = CORR_GAUSS
+    res = tmcmc(f, b, 2000, seed=31, progress=False, de_fraction=1.0, transform=transform)
+    check_evidence(res, truth)
+    x = res.samples
+    sd = np.sqrt(np.diag(CG_COV))
+    assert np.all(np.abs(x.mean(axis=0) - CG_MEAN) < 0.1 * sd)
+    c = np.cov(x, rowvar=False)
+    np.testing.assert_allclose(np.sqrt(np.diag(c)), sd, rtol=0.08)
+    assert abs(c[0, 1] / np.sqrt(c[0, 0] * c[1, 1]) - 0.95) < 0.02
+    # DE proposals were made and accepted at a useful rate (γ = 2.38/√(2d) on a Gaussian ≈ 0.3–0.5)
+    acc = np.array([s["de_acceptance"] for s in res.stages])
+    assert np.all(np.isfinite(acc)) and 0.15 < acc.mean() < 0.8
+
+
+def test_cov_target_default_per_kernel():
+    from hbm.samplers.tmcmc import DEFAULT_COV_TARGET
+    assert TMCMCConfig(100).cov_target == DEFAULT_COV_TARGET["rw"] == 1.0
+    assert TMCMCConfig(100, kernel="manifold").cov_target == DEFAULT_COV_TARGET["manifold"] == 1.0
+    f, b, _ = GAUSS9
+    res = tmcmc(f, b, 300, seed=2, progress=False, n_steps=2, cov_target=1.5)
+    assert res.config.cov_target == 1.5
+    assert all(abs(s["cov"] - 1.5) < 1e-6 for s in res.stages[:-1])
+    old = tmcmc(f, b, 300, seed=2, progress=False, n_steps=2)
+    assert old.config.cov_target == 1.0 and all(abs(s["cov"] - 1.0) < 1e-6 for s in old.stages[:-1])
+    assert len(old.stages) > len(res.stages)  # smaller CoV target: more, gentler stages
+
+
+def test_de_fraction_zero_is_the_plain_random_walk():
+    """de_fraction = 0 draws no extra random numbers: same stream as the random-walk kernel."""
+    f, b, _ = BANANA
+    a = tmcmc(f, b, 300, seed=3, progress=False)
+    c = tmcmc(f, b, 300, seed=3, progress=False, de_fraction=0.0, de_jump=0.5)
+    assert np.array_equal(a.samples, c.samples)
+    assert all(math.isnan(s["de_acceptance"]) for s in a.stages)
+
+
+def test_de_pairs_exclude_self_and_are_uniform():
+    from hbm.samplers.tmcmc import _pairs_excluding_self
+    rng = np.random.default_rng(0)
+    n, m = 5, 200_000
+    rows = rng.integers(0, n, m)
+    a, b = _pairs_excluding_self(n, m, rng, rows)
+    assert np.all((a != rows) & (b != rows) & (a != b))
+    assert a.min() >= 0 and max(a.max(), b.max()) < n
+    # for row 0 the 12 ordered pairs of {1..4} are equally likely (chi-square, 11 dof)
+    sel = rows == 0
+    counts = np.bincount(a[sel] * n + b[sel], minlength=n * n).reshape(n, n)[1:, 1:]
+    obs = counts[~np.eye(4, dtype=bool)]
+    exp = sel.sum() / 12
+    assert np.sum((obs - exp) ** 2 / exp) < 35.0  # p ≈ 2e-4 under uniformity
+
+
+@pytest.mark.parametrize("mixing", ["max_corr", "pca", "ll_rank", "max_corr_ll"])
+def test_mixing_criteria_give_correct_evidence(mixing):
+    f, b, truth = BANANA
+    res = tmcmc(f, b, 1000, seed=13, progress=False, mixing=mixing, mixing_every=2)
+    check_evidence(res, truth)
+    assert all(s["n_steps"] >= 2 for s in res.stages)
+    assert all(s["mixing"] <= 0.1 or s["n_steps"] == 100 for s in res.stages)
+
+
+def test_logit_prior_density_matches_jacobian():
+    """log p(u) of the logit coordinates = log |dx/du| / width, by central differences."""
+    from hbm.samplers.tmcmc import _from_logit, _to_logit
+    b = np.array([[0.5, 0.99], [-3.0, 7.0], [1e-4, 0.05]])
+    rng = np.random.default_rng(1)
+    u = rng.normal(0.0, 6.0, (50, 3))
+    u[0] = [40.0, -40.0, 0.0]  # far tails stay finite
+    x, lp = _from_logit(u, b, True)
+    assert np.all(np.isfinite(lp)) and np.all((x >= b[:, 0]) & (x <= b[:, 1]))
+    h = 1e-5
+    jac = (_from_logit(u + h, b) - _from_logit(u - h, b)) / (2 * h)
+    fd = np.sum(np.log(jac[1:] / (b[:, 1] - b[:, 0])), axis=1)
+    np.testing.assert_allclose(lp[1:], fd, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(_from_logit(_to_logit(x[1:], b), b), x[1:], rtol=1e-12, atol=1e-15)
+
+
 @pytest.mark.parametrize("kw, msg", [
     ({"kernel": "hmc"}, "kernel"),
+    ({"de_fraction": 1.5}, "de_fraction"),
+    ({"de_gamma": 0.0}, "de_gamma"),
+    ({"mixing": "fast"}, "mixing"),
+    ({"mixing_every": 0}, "mixing_every"),
     ({"kernel": "manifold"}, "gradient_fim"),
     ({"cov_target": -1.0}, "cov_target"),
     ({"n_steps": 0}, "n_steps"),

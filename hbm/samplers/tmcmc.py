@@ -42,10 +42,17 @@ GradientFIM = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray]"]
 _CHECKPOINT_VERSION = 1
 
 #: Default population size: on the 9-parameter muscle benchmark (DESIGN.md §6) N = 2000 with the
-#: default adaptive steps reaches |log Ẑ − gold| ≈ 0.1 and posterior means within ~0.2 gold sd in
-#: ~4–5 s of CPU on a loaded machine (N = 1500: 2.7 s, means within ~0.3 sd); see
-#: workflows/benchmarks/README.md.
+#: default adaptive steps and CoV target 1.0 reaches a median |log Ẑ − gold| ≈ 0.1 and posterior
+#: means within a median ~0.17 gold sd in ~4.1–4.5 s of CPU (20 seeds; CoV target 1.5: 0.19,
+#: 0.24 sd with one seed in 20 at 1.03 sd, 3.1 s); see workflows/benchmarks/README.md.
 DEFAULT_N_SAMPLES = 2000
+
+#: Default CoV target per kernel.  Random walk: 1.0.  ``cov_target=1.5`` saves ~31 % CPU on the
+#: muscle benchmark (10 instead of 15 stages) but doubles the median evidence error (0.10 → 0.19
+#: nats) and put one seed in 20 1.03 gold sd off in a posterior mean; the evidence feeds model
+#: choice (``hbm diagnose``), so accuracy wins the default.  Manifold: 1.0 (at 1.5 its error on
+#: the 9-D Gaussian validation exceeded the random walk's).
+DEFAULT_COV_TARGET = {"rw": 1.0, "manifold": 1.0}
 
 
 # ----------------------------------------------------------------------------------------
@@ -62,8 +69,9 @@ class TMCMCConfig:
     kernel : {"rw", "manifold"}
         Random walk with the weighted population covariance, or simplified mMALA with the
         tempered Fisher metric (``gradient_fim`` required).
-    cov_target : float
-        Target coefficient of variation of the incremental weights (1 ⇔ ESS = N/2).
+    cov_target : float or None
+        Target coefficient of variation of the incremental weights (1 ⇔ ESS = N/2, 1.5 ⇔ ESS =
+        0.31·N); None = :data:`DEFAULT_COV_TARGET` of the kernel (resolved on construction).
     proposal_scale : float
         Initial scale of the random-walk proposal relative to the population covariance
         (adapted toward ``target_acceptance`` when ``adapt_scale``).
@@ -96,11 +104,33 @@ class TMCMCConfig:
         the spread of their evidences gives ``log_evidence_se`` including the error of incomplete
         mixing.  The final stage pools them (each weighted by its evidence).  K = 1 (or N < 80)
         falls back to the per-stage delta-method SE.
+    de_fraction : float
+        Probability that a particle proposes a differential-evolution move (ter Braak 2006) instead
+        of the random walk at each MH step: u' = u + γ·(P_a − P_b) + de_noise·L z with P the
+        stage-start population (held fixed during the stage) and a ≠ b particles not descended
+        from the particle's own ancestor, so the kernel is symmetric and exact.  0 (default)
+        leaves the random-walk stream untouched.  On the muscle benchmark (0.5, 1.0) it did not
+        reduce the steps per stage (the late stages stay at ``max_steps``) and made log Ẑ less
+        accurate (median error 0.2 with 0.5, ~0.6 with 1.0, vs 0.1 without).  DE pairs span the
+        islands, so the island SE can be optimistic with DE moves.
+    de_gamma : float or None
+        DE step factor γ; None = 2.38/√(2d) (optimal for Gaussian targets).
+    de_jump : float
+        Probability that a DE proposal uses γ = 1 (jumps between modes).
+    de_noise : float
+        Scale of the Gaussian jitter added to a DE move, relative to the population covariance.
+    mixing : {"max_corr", "pca", "ll_rank", "max_corr_ll"}
+        Decorrelation measure of the adaptive step count: largest |correlation| between stage-start
+        and current positions over the sampling coordinates ("max_corr", default), over the
+        stage-start principal axes ("pca"), of the log-likelihood ranks ("ll_rank"), or over
+        coordinates and log-likelihood rank ("max_corr_ll").
+    mixing_every : int
+        Evaluate the mixing measure every k steps only (after ``min_steps``).
     """
 
     n_samples: int
     kernel: str = "rw"
-    cov_target: float = 1.0
+    cov_target: Optional[float] = None
     proposal_scale: float = 0.2
     n_steps: Optional[int] = None
     min_steps: int = 2
@@ -115,6 +145,16 @@ class TMCMCConfig:
     ridge: float = 0.1
     transform: str = "logit"
     n_islands: int = 4
+    de_fraction: float = 0.0
+    de_gamma: Optional[float] = None
+    de_jump: float = 0.1
+    de_noise: float = 0.05
+    mixing: str = "max_corr"
+    mixing_every: int = 1
+
+    def __post_init__(self) -> None:
+        if self.cov_target is None:  # kernel-dependent default (frozen dataclass: set once here)
+            object.__setattr__(self, "cov_target", DEFAULT_COV_TARGET.get(self.kernel, 1.0))
 
     def validate(self) -> None:
         if int(self.n_samples) < 4:
@@ -137,6 +177,18 @@ class TMCMCConfig:
             raise HbmError(f"tmcmc: target_acceptance must be in (0, 1), got {self.target_acceptance}")
         if int(self.min_steps) < 1 or int(self.max_steps) < int(self.min_steps):
             raise HbmError("tmcmc: need 1 <= min_steps <= max_steps")
+        if not 0.0 <= self.de_fraction <= 1.0:
+            raise HbmError(f"tmcmc: de_fraction must be in [0, 1], got {self.de_fraction}")
+        if self.de_gamma is not None and not self.de_gamma > 0:
+            raise HbmError(f"tmcmc: de_gamma must be > 0 or None, got {self.de_gamma}")
+        if not 0.0 <= self.de_jump <= 1.0:
+            raise HbmError(f"tmcmc: de_jump must be in [0, 1], got {self.de_jump}")
+        if not self.de_noise >= 0:
+            raise HbmError(f"tmcmc: de_noise must be >= 0, got {self.de_noise}")
+        if self.mixing not in _MIXING:
+            raise HbmError(f"tmcmc: mixing must be one of {sorted(_MIXING)}, got {self.mixing!r}")
+        if int(self.mixing_every) < 1:
+            raise HbmError(f"tmcmc: mixing_every must be >= 1, got {self.mixing_every}")
 
 
 class TMCMCState(NamedTuple):
@@ -375,53 +427,147 @@ def _to_logit(x: np.ndarray, bounds: np.ndarray) -> np.ndarray:
 def _from_logit(u: np.ndarray, bounds: np.ndarray, with_log_prior: bool = False):
     """Inverse of :func:`_to_logit`; optionally also the log density of u under the uniform prior.
 
-    x uniform on the box ⇔ each u_i standard logistic: log p(u) = Σ log f(1 − f).
+    x uniform on the box ⇔ each u_i standard logistic: log p(u) = Σ log f(1 − f)
+    = −Σ|u_i| − 2·log Π(1 + e^{−|u_i|}) (one log per particle instead of one per coordinate; the
+    product lies in [1, 2^d], so it is formed directly for d ≤ 500).
     """
-    e = np.exp(-np.abs(u))  # stable logistic
-    f = np.where(u >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+    a = np.abs(u)
+    e = np.exp(-a)  # stable logistic: never overflows
+    r = 1.0 / (1.0 + e)
+    f = np.where(u >= 0, r, e * r)
     x = bounds[:, 0] + f * (bounds[:, 1] - bounds[:, 0])
     if not with_log_prior:
         return x
-    return x, np.sum(-np.abs(u) - 2.0 * np.log1p(e), axis=1)
+    if u.shape[1] <= 500:
+        return x, -np.sum(a, axis=1) - 2.0 * np.log(np.prod(1.0 + e, axis=1))
+    return x, np.sum(-a - 2.0 * np.log1p(e), axis=1)
 
 
-def _mixing(start: np.ndarray, x: np.ndarray) -> float:
-    """Largest |Pearson correlation| over coordinates between stage-start and current positions."""
-    a = start - start.mean(axis=0)
-    b = x - x.mean(axis=0)
-    num = np.einsum("ij,ij->j", a, b)
-    den = np.sqrt(np.einsum("ij,ij->j", a, a) * np.einsum("ij,ij->j", b, b))
-    with np.errstate(invalid="ignore", divide="ignore"):
+class _Mixing:
+    """Decorrelation of the current population from the stage start (precomputes the start side)."""
+
+    def __init__(self, kind: str, start: np.ndarray, ll: np.ndarray):
+        self.kind = kind
+        if kind == "max_corr":
+            a = start - start.mean(axis=0)
+        elif kind == "pca":
+            # principal axes of the stage-start population: the slow direction of a ridge is the
+            # largest-variance one; correlation per axis instead of per raw coordinate
+            c = np.cov(start, rowvar=False).reshape(start.shape[1], start.shape[1])
+            _, vec = np.linalg.eigh(c)
+            self.vec = vec
+            a = (start - start.mean(axis=0)) @ vec
+        elif kind == "ll_rank":
+            a = _ranks(ll)[:, None]
+        elif kind == "max_corr_ll":
+            a = np.column_stack([start - start.mean(axis=0), _ranks(ll)])
+        a = a - a.mean(axis=0)
+        norm = np.sqrt(np.einsum("ij,ij->j", a, a))
+        self.a = a / np.where(norm > 0, norm, 1.0)
+
+    def __call__(self, x: np.ndarray, ll: np.ndarray) -> float:
+        if self.kind == "max_corr":
+            b = x
+        elif self.kind == "pca":
+            b = x @ self.vec
+        elif self.kind == "ll_rank":
+            b = _ranks(ll)[:, None]
+        else:
+            b = np.column_stack([x, _ranks(ll)])
+        b = b - b.mean(axis=0)
+        num = np.einsum("ij,ij->j", self.a, b)
+        den = np.sqrt(np.einsum("ij,ij->j", b, b))
         r = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-    return float(np.max(np.abs(r)))
+        return float(np.max(np.abs(r)))
+
+
+def _ranks(v: np.ndarray) -> np.ndarray:
+    """Ranks 0..n−1 of v (−inf/NaN lowest, ties in index order)."""
+    v = np.where(np.isfinite(v), v, -1e300)
+    r = np.empty(len(v))
+    r[np.argsort(v, kind="stable")] = np.arange(len(v))
+    return r
+
+
+_MIXING = ("max_corr", "pca", "ll_rank", "max_corr_ll")
 
 
 # ----------------------------------------------------------------------------------------
 # Metropolis–Hastings kernels (vectorised over the population)
 # ----------------------------------------------------------------------------------------
-def _rw_step(x, ll, lp, beta, chol, scale, bounds, evaluate, rng):
-    """One random-walk MH step for the whole population.
+def _pairs_excluding_self(n: int, m: int, rng: np.random.Generator, rows: np.ndarray):
+    """Two distinct indices a ≠ b in [0, n), both ≠ rows[i], uniform over ordered pairs."""
+    a = rng.integers(0, n - 1, m)
+    a += a >= rows
+    b = rng.integers(0, n - 2, m)
+    lo, hi = np.minimum(rows, a), np.maximum(rows, a)
+    b += b >= lo
+    b += b >= hi
+    return a, b
 
-    ``evaluate(u)`` returns (log-likelihood, log-prior density of the sampling coordinates) for a
-    batch; ``lp`` is the log-prior of the current points (0 in box coordinates, the logistic
-    density under the logit transform).  Returns (x, ll, lp, accepted mask, n_evaluations).
+
+def _rw_de_step(x, ll, lp, beta, chol, scale, bounds, evaluate, rng, pop, anc, de_fraction, gamma,
+                de_jump, de_noise):
+    """One MH step of the whole population mixing random-walk and differential-evolution moves.
+
+    Each particle independently (probability ``de_fraction``, a choice that does not depend on its
+    position, so the step is a mixture of MH kernels each leaving the tempered target invariant)
+    proposes the differential-evolution move (ter Braak 2006)
+
+        u' = u + γ·(P_a − P_b) + de_noise·L z,
+
+    with P the stage-start population held fixed during the stage and a ≠ b two other particles
+    drawn uniformly among those not descended from the same ancestor as the particle itself
+    (``anc``: ancestor index of every particle after resampling) — the increment distribution is
+    then symmetric and does not depend on u or on u's own start, so the plain Metropolis ratio is
+    exact; γ = 1 with probability ``de_jump`` (jumps between modes).  Otherwise (or when no valid
+    pair is found in a few vectorised redraws) the Gaussian random walk u' = u + scale·L z.
+
+    ``evaluate(u)`` returns (log-likelihood, log-prior density of the sampling coordinates); ``lp``
+    is that log-prior at the current points.  With ``de_fraction == 0`` the random stream is the
+    plain random walk's.  Returns (x, ll, lp, accepted, is_de, n_evaluations).
     """
     n, d = x.shape
-    prop = x + (scale * rng.standard_normal((n, d))) @ chol.T
+    zl = rng.standard_normal((n, d)) @ chol.T
     log_u = np.log(rng.random(n))
-    inside = _in_box(prop, bounds) if bounds is not None else np.ones(n, dtype=bool)
-    if inside.all():
+    prop = x + scale * zl
+    is_de = np.zeros(n, dtype=bool)
+    if de_fraction > 0 and n >= 4:
+        rows = np.flatnonzero(rng.random(n) < de_fraction)
+        a = np.empty(len(rows), dtype=np.int64)
+        b = np.empty(len(rows), dtype=np.int64)
+        todo = np.arange(len(rows))
+        for _ in range(8):  # vectorised redraws of the few pairs hitting a relative of the particle
+            if not len(todo):
+                break
+            ai, bi = _pairs_excluding_self(n, len(todo), rng, rows[todo])
+            a[todo], b[todo] = ai, bi
+            own = anc[rows[todo]]
+            bad = (anc[ai] == own) | (anc[bi] == own) | (anc[ai] == anc[bi])
+            todo = todo[bad]
+        ok = np.ones(len(rows), dtype=bool)
+        ok[todo] = False  # no valid pair found: this particle keeps its random-walk proposal
+        rows, a, b = rows[ok], a[ok], b[ok]
+        g = np.where(rng.random(len(rows)) < de_jump, 1.0, gamma)
+        prop[rows] = x[rows] + g[:, None] * (pop[a] - pop[b]) + de_noise * zl[rows]
+        is_de[rows] = True
+    inside = _in_box(prop, bounds) if bounds is not None else None
+    if inside is None or inside.all():
         ll_prop, lp_prop = evaluate(prop)
+        n_eval = n
+        ok_prop = np.isfinite(ll_prop)
     else:
         ll_prop, lp_prop = np.full(n, -np.inf), np.zeros(n)
         ll_prop[inside], lp_prop[inside] = evaluate(prop[inside])
+        n_eval = int(inside.sum())
+        ok_prop = inside & np.isfinite(ll_prop)
     with np.errstate(invalid="ignore"):
         log_ratio = beta * (ll_prop - ll) + (lp_prop - lp)
-    accept = inside & np.isfinite(ll_prop) & ((log_ratio >= log_u) | ~np.isfinite(ll))
+    accept = ok_prop & ((log_ratio >= log_u) | ~np.isfinite(ll))
     x = np.where(accept[:, None], prop, x)
     ll = np.where(accept, ll_prop, ll)
     lp = np.where(accept, lp_prop, lp)
-    return x, ll, lp, accept, int(inside.sum())
+    return x, ll, lp, accept, is_de, n_eval
 
 
 def _manifold_parts(grad, fim, beta, ridge_prec, eps):
@@ -628,7 +774,7 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     # 3. Metropolis–Hastings moves
     scale, eps = float(state.scale), float(state.epsilon)
     n_eval = 0
-    acc_total, n_done, mix = 0.0, 0, 1.0
+    acc_total, n_done, mix, mix_at = 0.0, 0, 1.0, -1
     fixed = config.n_steps is not None
     max_steps = int(config.n_steps) if fixed else int(config.max_steps)
     min_steps = int(config.n_steps) if fixed else int(config.min_steps)
@@ -641,9 +787,17 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         ridge_prec = config.ridge * np.linalg.inv(sigma)
         ridge_prec = 0.5 * (ridge_prec + ridge_prec.T)
         oks = []
+    mixer = _Mixing(config.mixing, start, ll)
+    gamma = config.de_gamma if config.de_gamma is not None else 2.38 / math.sqrt(2.0 * d)
+    acc_de: list = []
     for k in range(max_steps):
         if config.kernel == "rw":
-            x, ll, lp, acc, ne = _rw_step(x, ll, lp, beta, chol_rw, scale, box, evaluate, rng)
+            x, ll, lp, acc, is_de, ne = _rw_de_step(x, ll, lp, beta, chol_rw, scale, box, evaluate, rng,
+                                                    start, idx, config.de_fraction, gamma,
+                                                    config.de_jump, config.de_noise)
+            acc_rw = acc[~is_de]
+            if is_de.any():
+                acc_de.append(float(acc[is_de].mean()))
         else:
             x, ll, grad, fim, acc, ne, okf = _manifold_step(
                 x, ll, grad, fim, beta, eps, ridge_prec, chol_rw, scale, bounds,
@@ -656,17 +810,19 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         if config.adapt_scale:
             # multiplicative adaptation of the population-level step toward the target acceptance
             if config.kernel == "rw":
-                factor = math.exp(0.5 * (a - config.target_acceptance) / max(config.target_acceptance, 0.1))
-                scale = float(np.clip(scale * factor, 1e-4, 10.0))
+                if len(acc_rw):
+                    a_rw = float(acc_rw.mean())
+                    factor = math.exp(0.5 * (a_rw - config.target_acceptance) / max(config.target_acceptance, 0.1))
+                    scale = float(np.clip(scale * factor, 1e-4, 10.0))
             else:
                 ta = config.target_acceptance_manifold
                 eps = float(np.clip(eps * math.exp((a - ta) / max(ta, 0.1)), 1e-8, 1e3))
-        if not fixed and k + 1 >= min_steps:
-            mix = _mixing(start, x)
+        if not fixed and k + 1 >= min_steps and (k + 1 - min_steps) % int(config.mixing_every) == 0:
+            mix, mix_at = mixer(x, ll), n_done
             if mix <= config.mixing_target:
                 break
-    if fixed or n_done < min_steps:
-        mix = _mixing(start, x)
+    if mix_at != n_done:
+        mix = mixer(x, ll)
     if config.kernel == "manifold":
         metric_ok = float(np.mean(oks)) if oks else float("nan")
     if use_logit:
@@ -680,7 +836,8 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         "acceptance_rate": acc_total / max(n_done, 1), "log_evidence_increment": log_mean_w,
         "log_evidence_increment_var": var_inc, "evaluations": n_eval, "n_steps": n_done,
         "scale": scale, "epsilon": eps if config.kernel == "manifold" else float("nan"),
-        "mixing": mix, "metric_ok": metric_ok, "capped": bool(capped),
+        "mixing": mix, "metric_ok": metric_ok,
+        "de_acceptance": float(np.mean(acc_de)) if acc_de else float("nan"), "capped": bool(capped),
     }
     return new, info
 
@@ -756,7 +913,8 @@ def _load_checkpoint(path: Path, fingerprint: str) -> tuple[TMCMCState, list]:
 # driver
 # ----------------------------------------------------------------------------------------
 def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: int = DEFAULT_N_SAMPLES, *, seed,
-          kernel: str = "rw", gradient_fim: Optional[GradientFIM] = None, cov_target: float = 1.0,
+          kernel: str = "rw", gradient_fim: Optional[GradientFIM] = None,
+          cov_target: Optional[float] = None,
           proposal_scale: float = 0.2, n_steps: Optional[int] = None, max_stages: int = 100,
           checkpoint: Optional[str | os.PathLike] = None, progress: bool = True,
           **options: Any) -> TMCMCResult:
@@ -777,8 +935,9 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: int = DEFAULT_N_SAMP
     gradient_fim : callable, optional
         θ (n, d) → (gradient (n, d), Fisher information (n, d, d)) of the log-likelihood;
         required for ``kernel="manifold"``.
-    cov_target : float
-        Target CoV of the incremental weights per stage (1 ⇔ ESS ≈ N/2).
+    cov_target : float or None
+        Target CoV of the incremental weights per stage (1 ⇔ ESS ≈ N/2); None = the kernel's
+        default (:data:`DEFAULT_COV_TARGET`: 1.0 for both kernels).
     proposal_scale : float
         Initial random-walk scale relative to the weighted population covariance.
     n_steps : int or None
@@ -792,8 +951,8 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: int = DEFAULT_N_SAMP
         tqdm progress bar on stderr.
     **options
         Further :class:`TMCMCConfig` fields (transform, n_islands, min_steps, max_steps,
-        mixing_target, target_acceptance, target_acceptance_manifold, adapt_scale, resampling,
-        min_dbeta, ridge).
+        mixing_target, mixing, mixing_every, target_acceptance, target_acceptance_manifold,
+        adapt_scale, resampling, min_dbeta, ridge, de_fraction, de_gamma, de_jump, de_noise).
 
     Returns
     -------
@@ -803,7 +962,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: int = DEFAULT_N_SAMP
     unknown = set(options) - {f.name for f in dataclasses.fields(TMCMCConfig)}
     if unknown:
         raise HbmError(f"tmcmc: unknown options {sorted(unknown)}")
-    config = TMCMCConfig(n_samples=int(n_samples), kernel=kernel, cov_target=float(cov_target),
+    config = TMCMCConfig(n_samples=int(n_samples), kernel=kernel, cov_target=None if cov_target is None else float(cov_target),
                          proposal_scale=float(proposal_scale),
                          n_steps=None if n_steps is None else int(n_steps),
                          max_stages=int(max_stages), **options)

@@ -66,6 +66,14 @@ CONFIGS: dict[str, dict] = {
     "box-rw-20steps-N10k": {"n_samples": 10000, "transform": "none", "n_steps": 20, "adapt_scale": False,
                             "n_islands": 1, "_seeds": 3},
     "manifold-20steps-N1500": {"kernel": "manifold", "n_steps": 20, "_seeds": 1},
+    # levers measured for the default (see README.md, "Levers tried")
+    "cov1.5-N2k": {"n_samples": 2000, "cov_target": 1.5},
+    "cov1.25-N2k": {"n_samples": 2000, "cov_target": 1.25},
+    "cov2-N2k": {"n_samples": 2000, "cov_target": 2.0},
+    "cov0.5-max35-N2k": {"n_samples": 2000, "cov_target": 0.5, "max_steps": 35},
+    "de0.5-N2k": {"n_samples": 2000, "de_fraction": 0.5},
+    "llrank-N2k": {"n_samples": 2000, "mixing": "ll_rank"},
+    "max60-N2k": {"n_samples": 2000, "max_steps": 60},
 }
 QUICK_CONFIGS = ["default"]
 
