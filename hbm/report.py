@@ -72,10 +72,14 @@ def render_report(wres, *, base: Path | None = None,
     parts.append("## Run settings\n\n" + _table(["setting", "value"], rows))
 
     # ---- timings
-    trow = [("specimen fits (parallel phase, wall)", t.get("specimens_wall"))]
+    reused = list(getattr(wres, "skipped", []) or [])
+    fit_label = "specimen fits (parallel phase, wall)"
+    if reused:  # a resumed/re-run workflow: the fits' own times come from their stored results
+        fit_label += f"; {len(reused)} of {len(ids)} reused from an earlier run"
+    trow = [(fit_label, t.get("specimens_wall"))]
     for ph, lab in (("cmaes", "CMA-ES"), ("tmcmc", "TMCMC"), ("predictive", "posterior predictive"),
                     ("sobol", "Sobol")):
-        trow.append((f"{lab} (sum over specimens, CPU in tasks)", t.get(f"{ph}_cpu")))
+        trow.append((f"{lab} (sum over specimens, in tasks{', as stored' if reused else ''})", t.get(f"{ph}_cpu")))
     trow += [("hierarchical layer", t.get("hierarchical")), ("identifiability + manifolds", t.get("identify")),
              ("figures", t.get("figures")), ("total before report", t.get("total_before_report"))]
     parts.append("## Timings (seconds)\n\n" + _table(["phase", "s"], [(a, fmt(b, 3)) for a, b in trow]))

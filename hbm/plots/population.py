@@ -134,7 +134,7 @@ def hyper_plot(hier, results=None, *, path=None):
     names = list(hier.pooled_names)
     tr = dict(hier.attrs.get("transforms", {}))
     bnd = dict(hier.attrs.get("bounds", {}))
-    ncol = 4
+    ncol = max(1, min(4, len(names)))  # no empty panels when few parameters are pooled
     nrow = int(np.ceil(len(names) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 2.7 * nrow), squeeze=False)
     for j, (ax, nm) in enumerate(zip(axes.ravel(), names)):
