@@ -276,6 +276,19 @@ def _mark_complete(path: Path) -> None:
         nc.setncattr("complete", np.int32(1))
 
 
+def _write_tree(tree, path: str | os.PathLike, complete: bool | None) -> Path:
+    """Write a DataTree atomically; with ``complete`` set the flag is the last write before the rename.
+
+    ``complete=None``: files without a completeness flag.
+    """
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tree.to_netcdf(tmp, engine="netcdf4")
+        if complete:
+            _mark_complete(tmp)
+    return path
+
+
 def write_specimen_result(result: SpecimenResult, path: str | os.PathLike) -> Path:
     """Write ``result`` to ``path`` atomically (temp file, ``complete`` flag last, rename).
 
@@ -285,11 +298,7 @@ def write_specimen_result(result: SpecimenResult, path: str | os.PathLike) -> Pa
     """
     path = Path(path)
     tree = _specimen_tree(result)
-    with atomic_path(path) as tmp:
-        tree.to_netcdf(tmp, engine="netcdf4")
-        if result.complete:
-            _mark_complete(tmp)
-    return path
+    return _write_tree(tree, path, result.complete)
 
 
 # ----------------------------------------------------------------------------- reading
@@ -522,11 +531,7 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
                              "specimen_ids": _dumps(list(h.specimen_ids)),
                              "extra": _dumps(h.attrs), "hbm_version": __version__, "complete": 0})
     tree = xr.DataTree.from_dict({"/": root, **groups})
-    with atomic_path(path) as tmp:
-        tree.to_netcdf(tmp, engine="netcdf4")
-        if h.complete:
-            _mark_complete(tmp)
-    return path
+    return _write_tree(tree, path, h.complete)
 
 
 def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
@@ -603,9 +608,7 @@ def write_population_summary(path: str | os.PathLike, *, specimen_ids: Sequence[
     root = xr.Dataset(attrs={"specimen_ids": _dumps(ids), "extra": _dumps(dict(attrs or {})),
                              "hbm_version": __version__})
     tree = xr.DataTree.from_dict({"/": root, **groups})
-    with atomic_path(path) as tmp:
-        tree.to_netcdf(tmp, engine="netcdf4")
-    return Path(path)
+    return _write_tree(tree, path, None)
 
 
 def read_population_summary(path: str | os.PathLike) -> dict:
@@ -696,11 +699,7 @@ def write_organ(organ: OrganFile, path: str | os.PathLike) -> Path:
     root = xr.Dataset(attrs={"specimen_ids": _dumps(sorted(organ.curves)), "extra": _dumps(organ.attrs),
                              "hbm_version": __version__, "complete": 0})
     tree = xr.DataTree.from_dict({"/": root, **groups})
-    with atomic_path(path) as tmp:
-        tree.to_netcdf(tmp, engine="netcdf4")
-        if organ.complete:
-            _mark_complete(tmp)
-    return path
+    return _write_tree(tree, path, organ.complete)
 
 
 def read_organ(path: str | os.PathLike) -> OrganFile:
