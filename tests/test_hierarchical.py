@@ -542,3 +542,126 @@ def test_kernel_widened_ratios_match_scipy_for_mixed_covariance():
     lc = tc.logpdf(np.log(theta[:, 2])) - np.log(theta[:, 2])
     want = logsumexp(lab + lc + np.sum(np.log(bounds[:, 1] - bounds[:, 0]))) - np.log(theta.shape[0])
     np.testing.assert_allclose(lm, [want], rtol=0, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------------------
+# non-uniform stage-1 prior of the pooled columns (log_prior)
+# ----------------------------------------------------------------------------------------
+TAU = 2.5  # stage-1 prior N(0, TAU²) truncated to [-L, L] instead of the uniform box
+
+
+def gaussian_stage1_normal_prior(y, s, n, seed, tau=TAU):
+    """Exact stage-1 posteriors and evidences under the prior N(0, τ²) truncated to [-L, L],
+    with the per-sample log prior density."""
+    rng = np.random.default_rng(seed)
+    p0_mass = norm.cdf(L / tau) - norm.cdf(-L / tau)
+    st1, lp = {}, {}
+    for i, (yi, si) in enumerate(zip(y, s)):
+        v = 1.0 / (1.0 / si**2 + 1.0 / tau**2)
+        m = v * yi / si**2
+        a, b = (-L - m) / np.sqrt(v), (L - m) / np.sqrt(v)
+        x = truncnorm.rvs(a, b, loc=m, scale=np.sqrt(v), size=n, random_state=rng)
+        logz = norm.logpdf(yi, 0.0, np.sqrt(si**2 + tau**2)) + np.log(norm.cdf(b) - norm.cdf(a)) - np.log(p0_mass)
+        st1[f"s{i}"] = (x[:, None], logz)
+        lp[f"s{i}"] = norm.logpdf(x, 0.0, tau) - np.log(p0_mass)
+    return st1, lp
+
+
+def test_log_prior_importance_estimate_matches_exact_and_uniform_default_does_not():
+    n = 20_000
+    st1, lp = gaussian_stage1_normal_prior(Y, S, n, seed=21)
+    hm = HierarchicalModel(["x"], [[-L, L]])
+    mus = np.array([0.5, 0.0, 1.0, -3.0])
+    sds = np.array([1.0, 0.3, 2.0, 5.0])
+    raw = np.column_stack([mus, np.log(sds)])
+    est = np.zeros(len(mus))
+    var = np.zeros(len(mus))
+    wrong = np.zeros(len(mus))
+    for key, (x, logz) in st1.items():
+        lm, ess = hm.log_mean_ratio(x, raw, log_prior=lp[key])
+        est += logz + lm
+        var += 1.0 / ess - 1.0 / n
+        wrong += logz + hm.log_mean_ratio(x, raw)[0]
+    exact = exact_log_marginal(mus, sds)  # p(y|ψ) does not depend on the stage-1 prior
+    err = np.abs(est - exact)
+    assert np.all(err < 4 * np.sqrt(var) + 1e-3), (est, exact, np.sqrt(var))
+    assert np.all(err < 0.06)
+    assert np.all(np.abs(wrong - exact) > 1.0)
+
+
+def test_log_prior_hyper_posterior_and_evidence_match_grid():
+    st1, lp = gaussian_stage1_normal_prior(Y, S, 2500, seed=23)
+    res = hierarchical(st1, ["x"], [[-L, L]], n_samples=1000, seed=8, progress=False, tmcmc_options=FAST,
+                       log_prior=lp, thin=2000)
+    logev, p, MU, SD = _grid_posterior()
+    m_mu = np.sum(p * MU)
+    s_mu = np.sqrt(np.sum(p * MU**2) - m_mu**2)
+    m_sd = np.sum(p * SD)
+    mu_draws, sd_draws = res.hyper("mu_x"), res.hyper("sd_x")
+    assert abs(mu_draws.mean() - m_mu) < 4 * s_mu / np.sqrt(mu_draws.size / 3), (mu_draws.mean(), m_mu)
+    assert abs(mu_draws.std() - s_mu) < 0.15 * s_mu
+    assert abs(sd_draws.mean() - m_sd) < 0.15 * m_sd
+    assert abs(res.log_evidence - logev) < 4 * res.log_evidence_se + 0.05, (res.log_evidence, logev)
+    assert res.options["log_prior"] is True
+    with pytest.raises(HbmError, match="log_prior"):
+        refine_individual(res, "s0", lambda t: np.zeros(len(t)))
+    with pytest.raises(HbmError, match="log_prior"):
+        hierarchical(st1, ["x"], [[-L, L]], log_prior={"s0": lp["s0"]}, progress=False)
+
+
+def test_refine_individual_with_augment_divides_by_the_feature_prior():
+    """Pooled feature x = a + b of stage-1 parameters (a, b) ~ U(−1, 1)², triangular p0(x) = (2 − |x|)/4.
+
+    The likelihood depends on θ only through x, so p(x_i | all data) is the Gaussian closed form of
+    the population N(mu, sd²) (sd fixed, flat mu) whatever p0 is; the fresh TMCMC over (a, b) must
+    divide by p0(x), or the triangle would narrow x's posterior visibly (sd ratio ≈ 0.85 here).
+    """
+    sd = 0.5
+    y = np.array([0.2, -0.3, 0.5, 0.0, 0.4, 0.0])
+    s = np.array([0.1, 0.1, 0.1, 0.1, 0.1, 5.0])  # last specimen: almost no information
+    rng = np.random.default_rng(3)
+
+    def log_p0(x):
+        with np.errstate(divide="ignore"):
+            return np.log(np.maximum(2.0 - np.abs(x), 0.0) / 4.0)
+
+    st1, lp = {}, {}
+    for i, (yi, si) in enumerate(zip(y, s)):
+        # exact stage-1 posterior of x ∝ N(y; x, s²)·p0(x) by rejection, then (a, b) | x uniform
+        x = np.empty(0)
+        while x.size < 3000:
+            c = rng.normal(yi, si, 20000) if si < 1 else rng.uniform(-2, 2, 20000)
+            acc = rng.random(c.size) < (np.exp(log_p0(c)) * 2.0 if si < 1 else
+                                        np.exp(norm.logpdf(yi, c, si) - norm.logpdf(0, 0, si)))
+            x = np.concatenate([x, c[acc & (np.abs(c) < 2)]])
+        x = x[:3000]
+        a = rng.uniform(np.maximum(-1.0, x - 1.0), np.minimum(1.0, x + 1.0))
+        st1[f"s{i}"] = (np.column_stack([a, x - a, x]), 0.0)  # evidences do not matter at fixed sd
+        lp[f"s{i}"] = log_p0(x)
+    bounds = [[-1.0, 1.0], [-1.0, 1.0], [-2.0, 2.0]]
+    res = hierarchical(st1, ["a", "b", "x"], bounds, pooled=["x"], transforms={"x": "identity"},
+                       fix={"sd_x": sd}, log_prior=lp, n_samples=600, seed=1, progress=False, tmcmc_options=FAST)
+
+    def augment(theta):
+        xx = theta[:, 0] + theta[:, 1]
+        return np.column_stack([theta, xx]), log_p0(xx)
+
+    def loglik(theta):
+        return norm.logpdf(y[5], theta[:, 0] + theta[:, 1], s[5])
+
+    prec = 1.0 / (sd**2 + s[:5] ** 2)  # mu | other specimens (leave-one-out weighting), flat prior
+    V = 1.0 / prec.sum()
+    m = V * np.sum(prec * y[:5])
+    v = 1.0 / (1.0 / s[5] ** 2 + 1.0 / sd**2)
+    mean = v * (y[5] / s[5] ** 2 + m / sd**2)
+    sdev = np.sqrt(v + (v / sd**2) ** 2 * V)
+    with pytest.raises(HbmError, match="bounds"):
+        refine_individual(res, "s5", loglik, augment=augment)
+    out = refine_individual(res, "s5", loglik, augment=augment, bounds=bounds[:2], n_samples=2000, seed=2,
+                            progress=False, **FAST)
+    assert out.samples.shape == (2000, 2)
+    xs = out.samples.sum(axis=1)
+    assert abs(xs.mean() - mean) < 4 * sdev / np.sqrt(xs.size / 3)
+    assert abs(xs.std() - sdev) < 0.06 * sdev, (xs.std(), sdev)
+    # (a, b) | x stays uniform on its segment: a − x/2 is symmetric with the segment's spread
+    assert abs(np.mean(out.samples[:, 0] - xs / 2)) < 0.05

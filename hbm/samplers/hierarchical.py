@@ -105,6 +105,16 @@ the gain is small (auto pool: 10 % quantiles +0 to +21 % over raw), so the defau
 The updated individuals always reweight the stage-1 samples with the *raw* ratios (no
 smoothing bias; ``ess_raw`` is their ESS and triggers ``ess_collapsed``).
 
+Non-uniform stage-1 priors of the pooled columns (``log_prior``)
+----------------------------------------------------------------
+The pooled columns need not be stage-1 parameters: a caller may append derived features
+(e.g. products of parameters that the data identify) as extra columns, pool those, and pass
+``log_prior[i]`` = the log density of each sample's pooled columns under the stage-1 prior
+(in the column space).  It replaces −Σ log(hi − lo) in r_ij; everything else (transform
+Jacobian, truncation to ``bounds``, which are then the features' support hull) is unchanged.
+The unpooled columns keep their stage-1 prior *conditional on* the pooled ones, so a new
+specimen's unpooled columns are drawn from that conditional by the caller.
+
 Updated individuals ("shrinkage")
 ---------------------------------
 p(θ_i | all data) = ∫ p(θ_i | d_i, ψ) p(ψ | all data) dψ.  p(θ_i|d_i, ψ) is represented by
@@ -128,7 +138,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from scipy.special import log_ndtr, logsumexp, ndtri
+from scipy.special import log_ndtr, ndtri
 
 from ..errors import HbmError
 
@@ -502,8 +512,12 @@ class HierarchicalModel:
                 th[:, k] = self.lo[k] + (self.hi[k] - self.lo[k]) / (1.0 + np.exp(-z[:, k]))
         return np.clip(th, self.lo, self.hi)
 
-    def features(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Quadratic features F (N, n_f) and per-sample constants (N,) of log r = coef·F + const."""
+    def features(self, theta: np.ndarray, log_prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Quadratic features F (N, n_f) and per-sample constants (N,) of log r = coef·F + const.
+
+        ``log_prior`` (N,): log density of the pooled columns of each sample under the stage-1
+        prior, in the column (θ) space; default the uniform box, −Σ log(hi − lo).
+        """
         theta = np.asarray(theta, float)
         if theta.ndim != 2 or theta.shape[1] != len(self.all_names):
             raise HbmError(
@@ -513,8 +527,15 @@ class HierarchicalModel:
         zt = (z - self.c) / self.s
         cross = [zt[:, a] * zt[:, b] for a, b in self.pairs]
         F = np.column_stack([zt, zt * zt] + cross) if cross else np.column_stack([zt, zt * zt])
-        # log p_prior = −Σ log(hi − lo) over pooled columns; density of z is that of z̃ / Π s.
-        const = logjac + np.sum(np.log(self.hi - self.lo)) - np.sum(np.log(self.s))
+        # r = p(θ|ψ)/p0(θ) with p(θ|ψ) = N(z)·|g'(θ)| (logjac) and the density of z that of z̃ / Π s.
+        if log_prior is None:
+            log_p0 = -np.sum(np.log(self.hi - self.lo))
+        else:
+            log_p0 = np.asarray(log_prior, float)
+            if log_p0.shape != (theta.shape[0],) or not np.all(np.isfinite(log_p0)):
+                raise HbmError(f"hierarchical: log_prior must be {theta.shape[0]} finite values (one per "
+                               f"stage-1 sample), got shape {log_p0.shape}")
+        const = logjac - log_p0 - np.sum(np.log(self.s))
         return F, const
 
     def coefficients(self, raw: np.ndarray, extra_var: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -639,15 +660,17 @@ class HierarchicalModel:
         return h, h * h * z.var(axis=0, ddof=1)
 
     def log_mean_ratio(
-        self, theta: np.ndarray, raw: np.ndarray, kernel_var: np.ndarray | None = None, chunk_bytes: float = 4e6
+        self, theta: np.ndarray, raw: np.ndarray, kernel_var: np.ndarray | None = None, chunk_bytes: float = 4e6,
+        log_prior: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """log p̂(d|ψ) − log Z and the importance ESS for one specimen, at every ψ row of ``raw``.
 
         ``kernel_var=None``: raw ratios, log mean_j p(θ_j|ψ)/p_prior(θ_j).  Otherwise the
         kernel-smoothed estimator (module docstring) with kernel covariance diag(kernel_var),
-        e.g. from :meth:`kernel_variance`.
+        e.g. from :meth:`kernel_variance`.  ``log_prior``: per-sample stage-1 prior log density
+        of the pooled columns (default uniform box), as in :meth:`features`.
         """
-        F, c = self.features(theta)
+        F, c = self.features(theta, log_prior)
         coef, cconst = self.coefficients(raw, kernel_var)
         lse, ess = self.log_ratio_stats(F, c, coef, cconst, chunk_bytes)
         return lse - np.log(F.shape[0]), ess
@@ -865,6 +888,7 @@ def hierarchical(
     tmcmc_options: Mapping[str, Any] | None = None,
     estimator: str = "raw",
     bandwidth: str | float = "silverman",
+    log_prior: Mapping[str, np.ndarray] | None = None,
 ) -> HierarchicalResult:
     """Hyper-posterior, hyper-evidence, updated individuals and population predictive.
 
@@ -916,6 +940,13 @@ def hierarchical(
     bandwidth : {"silverman", "scott"} or float
         Kernel bandwidth factor h (kernel covariance h²·Σ_i, Σ_i the diagonal posterior
         covariance of specimen i in the transformed space); see :func:`kernel_bandwidth`.
+    log_prior : mapping specimen -> ndarray (N_i,), optional
+        Log density of each stage-1 sample's *pooled columns* under the stage-1 prior, in the
+        column space (before the transform; the transform's Jacobian is applied as usual).
+        Default: the uniform box density −Σ log(hi − lo).  Needed when the pooled columns are
+        derived features whose stage-1 prior is not uniform (e.g. products of parameters drawn
+        uniformly); their ``bounds`` are then the support hull of the features, and the
+        unpooled columns must keep a prior independent of ψ given the pooled ones.
 
     Returns
     -------
@@ -928,14 +959,26 @@ def hierarchical(
         sd_range=sd_range, mu_bounds=mu_bounds, logit_range=logit_range, fix=fix,
     )
     specs, samples, logz, logz_se = _parse_stage1(stage1, len(names))
+    if log_prior is None:
+        lps: list = [None] * len(specs)
+    else:
+        missing = [k for k in specs if k not in log_prior]
+        if missing:
+            raise HbmError(f"hierarchical: log_prior has no entry for specimens {missing}")
+        lps = [np.asarray(log_prior[k], float) for k in specs]
+        for key, x, lp in zip(specs, samples, lps):
+            if lp.shape != (x.shape[0],):
+                raise HbmError(f"hierarchical: log_prior[{key!r}] must have shape ({x.shape[0]},), got {lp.shape}")
     ss = np.random.SeedSequence(seed if not isinstance(seed, np.random.Generator) else seed.integers(2**63))
     s_tmcmc, s_upd, s_pred, s_thin = ss.spawn(4)
     if thin is not None:
         if int(thin) < 2:
             raise HbmError(f"hierarchical: thin must be >= 2, got {thin}")
         rng_t = np.random.default_rng(s_thin)
-        samples = [x if x.shape[0] <= thin else x[np.sort(rng_t.choice(x.shape[0], int(thin), replace=False))]
-                   for x in samples]
+        sel = [None if x.shape[0] <= thin else np.sort(rng_t.choice(x.shape[0], int(thin), replace=False))
+               for x in samples]
+        samples = [x if j is None else x[j] for x, j in zip(samples, sel)]
+        lps = [lp if (j is None or lp is None) else lp[j] for lp, j in zip(lps, sel)]
     for key, x in zip(specs, samples):
         out = (x < model.all_bounds[:, 0] - 1e-12 * np.ptp(model.all_bounds, axis=1)) | (
             x > model.all_bounds[:, 1] + 1e-12 * np.ptp(model.all_bounds, axis=1)
@@ -943,7 +986,7 @@ def hierarchical(
         if out.any():
             j = int(np.argmax(out.any(axis=0)))
             raise HbmError(f"hierarchical: stage1[{key!r}] has samples of {names[j]} outside the prior box {model.all_bounds[j].tolist()}")
-    feats = [model.features(x) for x in samples]
+    feats = [model.features(x, lp) for x, lp in zip(samples, lps)]
     logN = np.log([x.shape[0] for x in samples])
     trace: list[np.ndarray] = []
     if estimator not in ESTIMATORS:
@@ -1072,7 +1115,7 @@ def hierarchical(
         options={"n_samples": int(n_samples), "sd_prior": sd_prior, "sd_range": list(sd_range),
                  "full_cov": list(model.full_cov), "fix": dict(model.fix), "ess_threshold": ess_threshold,
                  "logit_range": logit_range, "mu_lo": model.mu_lo.tolist(), "mu_hi": model.mu_hi.tolist(),
-                 "estimator": estimator, "bandwidth": bandwidth if isinstance(bandwidth, str) else float(bandwidth),
+                 "estimator": estimator, "log_prior": log_prior is not None, "bandwidth": bandwidth if isinstance(bandwidth, str) else float(bandwidth),
                  "kernel_h": kernel_h,
                  "kernel_sd": {k: np.sqrt(v).tolist() for k, v in zip(specs, kernel_var) if v is not None}},
     )
@@ -1116,6 +1159,8 @@ def refine_individual(
     weighting: str = "loo",
     progress: bool = True,
     sampler: Callable | None = None,
+    augment: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+    bounds=None,
     **tmcmc_options,
 ) -> Any:
     """Fresh TMCMC of p(θ_i | all data) for a specimen whose importance ESS collapsed.
@@ -1141,16 +1186,33 @@ def refine_individual(
     n_hyper : int
         Number of hyper-posterior draws in the mixture (thinned at random).
     weighting : {"loo", "plain"}
+    augment : callable theta (n, d) -> (columns (n, len(result.all_names)), log_prior (n,)), optional
+        Required for a result built with ``log_prior`` (pooled derived features): maps the
+        likelihood's parameters to the hierarchical model's columns and returns the stage-1
+        prior log density of the pooled columns, exactly as passed to :func:`hierarchical`.
+        With a uniform stage-1 prior on θ and the unpooled directions keeping their stage-1
+        prior given the pooled ones, p(θ|ψ) = p_pop(φ(θ)|ψ)·p0(θ)/p0(φ(θ)), so the target is
+        log p(d_i|θ) + log Σ_m w_m p_pop(φ(θ)|ψ_m) − log p0(φ(θ)).  A θ whose log_prior is not
+        finite gets −inf.
+    bounds : array (d, 2), optional
+        Box of θ for the fresh run; default ``result.bounds`` (required with ``augment``,
+        whose θ are not the hierarchical model's columns).
 
     Returns
     -------
     TMCMCResult
-        ``.samples`` are draws of the updated posterior of the specimen (all stage-1 columns).
+        ``.samples`` are draws of the updated posterior of the specimen (the columns of θ).
     """
     if specimen not in result.specimens:
         raise HbmError(f"refine_individual: unknown specimen {specimen!r}; have {result.specimens}")
     if weighting not in ("loo", "plain"):
         raise HbmError(f"refine_individual: weighting must be 'loo' or 'plain', got {weighting!r}")
+    if result.options.get("log_prior") and augment is None:
+        # without the map θ -> pooled columns the stage-1 prior density of the columns is unknown
+        raise HbmError("refine_individual: a result built with log_prior (pooled derived features) needs "
+                       "augment= (theta -> (columns, log_prior)) and bounds= of the likelihood's parameters")
+    if augment is not None and bounds is None:
+        raise HbmError("refine_individual: augment= needs bounds= (the box of the likelihood's parameters)")
     ss = np.random.SeedSequence(seed if not isinstance(seed, np.random.Generator) else seed.integers(2**63))
     s_thin, s_run = ss.spawn(2)
     rng = np.random.default_rng(s_thin)
@@ -1170,13 +1232,25 @@ def refine_individual(
     def target(theta: np.ndarray) -> np.ndarray:
         theta = np.atleast_2d(np.asarray(theta, float))
         ll = np.asarray(log_likelihood(theta), float)
-        lp = model.log_density(theta, raw, w)
-        out = ll + lp - log_prior
-        return np.where(np.isfinite(out), out, -np.inf)
+        if augment is None:
+            cols, lp0 = theta, log_prior
+        else:
+            cols, lp0 = augment(theta)
+            cols, lp0 = np.asarray(cols, float), np.asarray(lp0, float)
+        ab = model.all_bounds
+        # the population is truncated to the box: columns outside it have density 0
+        ok = np.isfinite(lp0) & np.all((cols >= ab[:, 0]) & (cols <= ab[:, 1]), axis=-1)
+        # columns of a rejected θ are replaced by the box centre so the density stays finite
+        cols = np.where(ok[:, None], cols, 0.5 * (ab[:, 0] + ab[:, 1]))
+        lp = model.log_density(cols, raw, w)
+        with np.errstate(invalid="ignore"):
+            out = ll + lp - lp0
+        return np.where(ok & np.isfinite(out), out, -np.inf)
 
     if sampler is None:
         from .tmcmc import tmcmc as sampler
-    return sampler(target, result.bounds, int(n_samples), seed=int(s_run.generate_state(1)[0]), progress=progress,
+    box = result.bounds if bounds is None else np.asarray(bounds, float)
+    return sampler(target, box, int(n_samples), seed=int(s_run.generate_state(1)[0]), progress=progress,
                    **tmcmc_options)
 
 
