@@ -45,8 +45,7 @@ def render_report(wres, *, base: Path | None = None,
                   extra_sections: Sequence[Callable] | None = None) -> str:
     """The Markdown text for a :class:`hbm.workflow.WorkflowResult`."""
     from .fit import COMBINATIONS, summarize
-    from .plots.population import quantity_samples
-    from .workflow import population_table, specimen_variability
+    from .workflow import population_table, quantity_samples, specimen_variability
 
     cfg = wres.config
     base = Path(base or wres.out)
@@ -163,13 +162,28 @@ def render_report(wres, *, base: Path | None = None,
                f"{h.attrs.get('hyperprior', {}).get('sd', 'log-uniform sd')}; hyper-posterior by TMCMC "
                f"reusing the stage-1 samples. Hyper-evidence "
                f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**.\n",
-               _table(["parameter", "transform", "population median [90%]", "new specimen 90%",
-                       "sd (transformed units)"], rows)]
-        reasons = h.attrs.get("pool_reasons") or {}
-        if reasons:
+               _table(["quantity", "transform", "population median [90%]", "new specimen 90%",
+                       "population sd (transformed units)"], rows)]
+        reasons = dict(h.attrs.get("pool_reasons") or {})
+        if h.attrs.get("mode") == "combinations":
+            reasons.pop("combinations", None)
+            pooled = list(h.attrs.get("pooled", []))
+            txt.append(
+                f"\nPooled (`--pool combinations`, the default for the base model): {', '.join(pooled)}. A uniaxial "
+                "curve identifies G = VOLF·GF + (1−VOLF)·GM, VOLF·P1 and (1−VOLF)·T1, not VOLF, P1, T1, GF, GM "
+                "one by one, so the population is put on the logs of the combinations (a log-normal population "
+                "of each) together with T2 and THETA; the exact density that the uniform stage-1 prior induces "
+                "on the combinations is divided out of the importance ratios. Given its combinations, a "
+                "specimen's VOLF, P1, T1, GF, GM keep their stage-1 prior"
+                + (", and so does EOPT (not pooled)" if "EOPT" not in pooled else "")
+                + ". Fraction of new-specimen draws outside the support of the combinations (rejected): "
+                f"{fmt(h.attrs.get('outside_support_fraction'), 2)}.")
+            if "EOPT" in reasons:
+                txt.append(f"\nEOPT is pooled only when the posteriors inform it: {reasons['EOPT']}")
+        elif reasons:
             # why each parameter is (not) pooled: a population over parameters the curves do not
             # inform makes the reused-sample importance weights degenerate
-            txt.append("\nPooled parameters (`--pool auto`: posterior sd in the transformed space below 2/3 "
+            txt.append("\nPooled parameters (`--pool informed`: posterior sd in the transformed space below 2/3 "
                        "of the prior's in at least half of the specimens; the others keep their own prior):\n")
             txt.extend(f"- {v}" if str(v).startswith(f"{k}:") else f"- {k}: {v}" for k, v in reasons.items())
         pop = quantity_samples(h.pooled_names, h.new_specimen) if h.new_specimen is not None else {}
@@ -188,11 +202,11 @@ def render_report(wres, *, base: Path | None = None,
             low = {k: v for k, v in ess.items() if v.get("q10", np.inf) < 50}
             txt.append("\nImportance ESS per specimen (min / 10% quantile over hyper-posterior draws): "
                        + ", ".join(f"{k} {fmt(v.get('min'), 3)}/{fmt(v.get('q10'), 3)}" for k, v in ess.items())
-                       + (f". **ESS collapsed for {sorted(low)}**: their updated posteriors come from a fresh "
-                          f"TMCMC run ({h.attrs.get('refined')}), but the hyper-posterior itself rests on "
-                          f"importance estimates with few effective samples; treat their hyperparameters as "
-                          f"unreliable, pool only parameters the data inform (`hbm run --pool auto`, the "
-                          f"default) or increase --samples." if low else "."))
+                       + (f". **ESS collapsed for {', '.join(sorted(low))}**: their updated posteriors come from "
+                          f"a fresh TMCMC run (done for: {', '.join(h.attrs.get('refined') or []) or 'none'}), but "
+                          f"the hyper-posterior itself rests on importance estimates with few effective samples "
+                          f"for them: read the population estimates with care, increase --samples, or pool "
+                          f"fewer quantities (`--pool informed` or a list)." if low else "."))
         if h.attrs.get("warnings"):
             txt.append("\nWarnings: " + "; ".join(map(str, h.attrs["warnings"][:5])))
         parts.append("\n".join(txt))

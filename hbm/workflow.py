@@ -7,7 +7,12 @@ Phases
    Results go to ``<out>/specimens/<id>.nc``; a re-run skips complete files made with the same
    settings and resumes interrupted ones from ``<out>/checkpoints/``.
 2. **Hierarchical layer** (:func:`hbm.samplers.hierarchical.hierarchical`) on the model
-   parameters, reusing the stage-1 samples -> ``<out>/hierarchical.nc``.
+   parameters, reusing the stage-1 samples -> ``<out>/hierarchical.nc``.  ``hier_pooled``:
+   "combinations" (a population over log G, log c·P1, log (1−c)·T1, T2, THETA — what a uniaxial
+   curve identifies — with the exact stage-1 prior density of the combinations,
+   :mod:`hbm.combinations`), "informed" (the model parameters that the posteriors inform,
+   :func:`~hbm.samplers.hierarchical.auto_pool`), "all", a list of names, or "auto" (default:
+   "combinations" when VOLF, P1, T1, GF, GM, T2, THETA are free, otherwise "informed").
 3. **Identifiability and manifolds**: identifiable combinations, VOLF–T1 manifold splines ->
    ``<out>/manifolds.nc``.
 4. **Figures** (``<out>/figures/``) and the Markdown report (``<out>/report.md``); the run's
@@ -24,7 +29,6 @@ import contextlib
 import dataclasses
 import hashlib
 import json
-import math
 import os
 import sys
 import time
@@ -143,125 +147,59 @@ def _stored_hash(path) -> str | None:
 
 
 # ----------------------------------------------------------------------------- identifiability
-def identified_directions(result: io.SpecimenResult, *, rel_threshold: float = 0.05) -> list[dict]:
-    """Well-identified combinations from the posterior's principal directions in log space.
-
-    The posterior of log θ (positive parameters only) is decomposed into principal directions;
-    a direction v with a small sd, relative to the prior sd of the same combination, is a
-    product of powers Π θ_k^{v_k} that the data pin down.  Uses :mod:`hbm.identify` when it
-    provides ``identifiable_directions``; otherwise this simple PCA.
+def identified_directions(result: io.SpecimenResult) -> list[dict]:
+    """Combinations of parameters that the specimen's posterior pins down (:func:`hbm.identify.identifiable_directions`).
 
     Returns
     -------
     list of dict
-        ``{"expression": str, "powers": {name: power}, "sd_log": float, "ratio": float}``,
-        sorted by ratio (posterior sd / prior sd of the combination).
+        ``{"expression", "ratio" (posterior/prior sd of the rounded combination), "median", "lo", "hi"}``,
+        a sparse basis of the identified subspace, best first; empty when the samples are too few.
     """
+    from .identify import identifiable_directions
+
     try:
-        from . import identify as _identify  # the identify helper's generalised PCA (preferred)
-    except ImportError:  # pragma: no cover - fallback below
-        _identify = None
-    if _identify is not None and hasattr(_identify, "identifiable_directions"):
-        try:
-            rep = _identify.identifiable_directions(result.samples, result.names, bounds=result.bounds)
-        except HbmError:
-            return []
-        return [{"expression": d["label"], "ratio": float(d.get("sd_ratio_rounded", d.get("sd_ratio"))),
-                 "median": float(d.get("median", np.nan)), "lo": float(d.get("lo", np.nan)),
-                 "hi": float(d.get("hi", np.nan))} for d in rep.directions]
-    names = [n for i, n in enumerate(result.names) if result.bounds[i, 0] > 0 and n not in ("sigma", "scale",
-                                                                                            "sigma_rel", "rho")]
-    if len(names) < 2:
+        rep = identifiable_directions(result.samples, result.names, bounds=result.bounds)
+    except HbmError:
         return []
-    cols = [result.names.index(n) for n in names]
-    x = np.log(np.clip(result.samples[:, cols], 1e-300, None))
-    lo, hi = np.log(result.bounds[cols, 0]), np.log(result.bounds[cols, 1])
-    prior_sd = (hi - lo) / math.sqrt(12.0)
-    z = (x - x.mean(0)) / prior_sd  # units of prior sd: directions comparable across parameters
-    evals, evecs = np.linalg.eigh(np.cov(z, rowvar=False))
-    out = []
-    for lam, v in zip(evals, evecs.T):
-        ratio = math.sqrt(max(lam, 0.0))  # posterior sd / prior sd along v (unit-norm in z)
-        if ratio > rel_threshold * 4:
-            continue
-        powers = v / prior_sd
-        keep = np.abs(v) >= 0.15 * np.abs(v).max()
-        powers = powers / powers[np.argmax(np.abs(powers) * keep)]
-        terms = {names[i]: float(powers[i]) for i in range(len(names)) if keep[i]}
-        expr = " · ".join(f"{k}^{p:.2g}" if abs(p - 1) > 0.05 else k for k, p in terms.items())
-        out.append({"expression": expr, "powers": terms, "sd_log": float(np.std(x[:, keep] @ powers[keep])),
-                    "ratio": ratio})
-    return sorted(out, key=lambda d: d["ratio"])
+    return [{"expression": d["label"], "ratio": float(d["sd_ratio_rounded"]), "median": float(d["median"]),
+             "lo": float(d["lo"]), "hi": float(d["hi"])} for d in rep.directions]
 
 
-def manifold_spline(result: io.SpecimenResult, x_name: str = "VOLF", y_name: str = "T1",
-                    n_grid: int = 60) -> dict | None:
-    """VOLF–T1 manifold: cubic smoothing spline of T1 against VOLF.
+def manifold_spline(result: io.SpecimenResult, n_grid: int = 60) -> dict | None:
+    """The specimen's VOLF–T1 manifold (:func:`hbm.identify.volf_t1_manifold`) on a grid.
 
-    Points: the CMA-ES sweep optima (one per VOLF window) when there are at least five,
-    otherwise medians of the posterior in VOLF-quantile bins.  Uses :mod:`hbm.identify`'s
-    ``manifold_spline`` when available.
+    Points: the CMA-ES sweep optima (one per VOLF window) when there are at least four distinct
+    VOLF values, otherwise binned medians of the posterior samples.
 
     Returns
     -------
     dict or None
         ``{"x", "y" (grid), "points_x", "points_y", "x_name", "y_name", "source",
-        "combination_rel_spread"}`` where the last entry is the relative spread (sd/mean) of
-        (1−VOLF)·T1 along the points: a flat product means the manifold is that hyperbola.
+        "combination_rel_spread" (flatness of (1−VOLF)·T1 along the curve), "level", "object"}``;
+        None when VOLF or T1 is fixed or the fit is impossible.
     """
-    from scipy.interpolate import make_smoothing_spline
+    from .identify import volf_t1_manifold
 
+    pts = [(o["params"]["VOLF"], o["params"]["T1"]) for o in (result.optima or [])
+           if o.get("kind") == "sweep" and "VOLF" in o["params"] and "T1" in o["params"]]
     try:
-        from .identify import volf_t1_manifold
-    except ImportError:  # pragma: no cover
-        volf_t1_manifold = None
-    if volf_t1_manifold is not None and x_name == "VOLF" and y_name == "T1":
-        pts = [(o["params"]["VOLF"], o["params"]["T1"]) for o in (result.optima or [])
-               if o.get("kind") == "sweep" and "VOLF" in o["params"] and "T1" in o["params"]]
-        try:
-            if len({round(p[0], 9) for p in pts}) >= 4:
-                px, py = np.array(pts).T
-                man = volf_t1_manifold(px, py, source="points")
-                src = "CMA-ES sweep optima"
-            elif "VOLF" in result.names and "T1" in result.names:
-                px, py = result.column("VOLF"), result.column("T1")
-                man = volf_t1_manifold(px, py, source="samples")
-                src = "posterior samples (binned medians)"
-                px, py = man.knots_volf, np.exp(man.knots_log_t1)
-            else:
-                return None
-        except HbmError:
+        if len({round(p[0], 9) for p in pts}) >= 4:
+            px, py = np.array(pts).T
+            man = volf_t1_manifold(px, py, source="points")
+            src = "CMA-ES sweep optima"
+        elif "VOLF" in result.names and "T1" in result.names:
+            man = volf_t1_manifold(result.column("VOLF"), result.column("T1"), source="samples")
+            src = "posterior samples (binned medians)"
+            px, py = man.knots_volf, np.exp(man.knots_log_t1)
+        else:
             return None
-        g = man.grid(n_grid)
-        return {"x": g, "y": man(g), "points_x": np.asarray(px), "points_y": np.asarray(py), "x_name": x_name,
-                "y_name": y_name, "source": src, "combination_rel_spread": float(man.flatness() if callable(man.flatness) else man.flatness),
-                "level": np.asarray(man.level, float), "object": man}
-    if x_name not in result.names and x_name not in result.fixed:
+    except HbmError:
         return None
-    pts = [(o["params"][x_name], o["params"][y_name]) for o in (result.optima or [])
-           if o.get("kind") == "sweep" and x_name in o["params"] and y_name in o["params"]]
-    source = "CMA-ES sweep optima"
-    if len(pts) < 5:
-        if x_name not in result.names or y_name not in result.names:
-            return None
-        xs, ys = result.column(x_name), result.column(y_name)
-        edges = np.quantile(xs, np.linspace(0, 1, 13))
-        idx = np.clip(np.searchsorted(edges, xs, side="right") - 1, 0, 11)
-        pts = [(float(np.median(xs[idx == b])), float(np.median(ys[idx == b]))) for b in range(12) if (idx == b).any()]
-        source = "posterior medians in VOLF bins"
-    px, py = np.array(sorted(pts)).T
-    ux, inv = np.unique(px, return_inverse=True)
-    uy = np.array([py[inv == i].mean() for i in range(ux.size)])
-    grid = np.linspace(ux.min(), ux.max(), n_grid)
-    if ux.size >= 5:
-        spl = make_smoothing_spline(ux, uy)
-        gy = spl(grid)
-    else:
-        gy = np.interp(grid, ux, uy)
-    prod = (1 - px) * py
-    return {"x": grid, "y": gy, "points_x": px, "points_y": py, "x_name": x_name, "y_name": y_name,
-            "source": source, "combination_rel_spread": float(np.std(prod) / abs(np.mean(prod)))
-            if np.mean(prod) != 0 else float("nan")}
+    g = man.grid(n_grid)
+    return {"x": g, "y": man(g), "points_x": np.asarray(px), "points_y": np.asarray(py), "x_name": "VOLF",
+            "y_name": "T1", "source": src, "combination_rel_spread": float(man.flatness), "level":
+            np.asarray(man.level, float), "object": man}
 
 
 def specimen_variability(samples: Mapping[str, np.ndarray], *, log: bool = True) -> dict:
@@ -304,36 +242,80 @@ def specimen_variability(samples: Mapping[str, np.ndarray], *, log: bool = True)
             "separated_pairs": pairs, "n_pairs": len(ids) * (len(ids) - 1) // 2}
 
 
-def population_table(h, *, prob: float = 0.9) -> dict[str, dict[str, float]]:
-    """Population estimates in natural units from the hierarchical result.
+def quantity_samples(names, theta) -> dict[str, np.ndarray]:
+    """Identifiable combinations (G, VOLF*P1, (1-VOLF)*T1) plus T2, THETA, EOPT from rows of named parameters."""
+    from .model import identifiable_combinations
 
-    ``median``: g⁻¹(mu) (the population median for logit/log/identity populations without
-    active truncation), with its ``prob`` interval over the hyper-posterior; ``new_*``: the
-    predictive distribution of a new specimen's parameter.
+    theta = np.asarray(theta, float)
+    col = {n: theta[:, i] for i, n in enumerate(names)}
+    out = {}
+    if all(k in col for k in ("VOLF", "P1", "T1", "GF", "GM")):
+        out.update({k: np.asarray(v) for k, v in identifiable_combinations(list(names), theta).items()})
+    for k in ("T2", "THETA", "EOPT"):
+        if k in col:
+            out[k] = col[k]
+    return out
+
+
+def pooled_view(h) -> list[dict]:
+    """The pooled columns of a hierarchical result in natural units, for tables and figures.
+
+    A column ``log_X`` with the identity transform (``--pool combinations``) is shown as X with
+    a log-normal population; log/logit columns are mapped back with g⁻¹.
+
+    Returns
+    -------
+    list of dict
+        Per pooled column with hyperparameters: ``name`` (column), ``display`` (quantity name),
+        ``transform`` (of the displayed quantity: log, logit or identity), ``median`` (draws of
+        the population median g⁻¹(mu) over the hyper-posterior), ``new`` (a new specimen's draws
+        or None), ``sd`` (median population sd in transformed units), ``log_scale`` (bool).
     """
     from scipy.special import expit
 
-    q = [(1 - prob) / 2, 0.5, (1 + prob) / 2]
-    out = {}
     transforms = dict(h.attrs.get("transforms", {}))
     bounds = dict(h.attrs.get("bounds", {}))
+    out = []
     for j, nm in enumerate(h.pooled_names):
-        mu = h.hyper(f"mu_{nm}")
+        if f"mu_{nm}" not in h.hyper_names:  # derived column of the new specimen (--pool combinations)
+            continue
+        mu = np.asarray(h.hyper(f"mu_{nm}"), float)
         t = transforms.get(nm, "identity")
-        lo, hi = bounds.get(nm, (0.0, 1.0))
-        if t == "log":
-            med = np.exp(mu)
+        new = None if h.new_specimen is None else np.asarray(h.new_specimen[:, j], float)
+        display = nm
+        if t == "identity" and nm.startswith("log_"):  # a pooled log-combination
+            display, t = nm[4:], "log"
+            mu_nat, new = np.exp(mu), (None if new is None else np.exp(new))
+        elif t == "log":
+            mu_nat = np.exp(mu)
         elif t == "logit":
-            med = lo + (hi - lo) * expit(mu)
+            lo, hi = bounds.get(nm, (0.0, 1.0))
+            mu_nat = lo + (hi - lo) * expit(mu)
         else:
-            med = mu
-        a, b, c = np.quantile(med, q)
+            mu_nat = mu
+        out.append({"name": nm, "display": display, "transform": t, "median": mu_nat, "new": new,
+                    "sd": float(np.median(h.hyper(f"sd_{nm}"))), "log_scale": t == "log"})
+    return out
+
+
+def population_table(h, *, prob: float = 0.9) -> dict[str, dict[str, float]]:
+    """Population estimates in natural units from the hierarchical result, keyed by quantity.
+
+    ``median``: g⁻¹(mu) (the population median for logit/log/identity populations without
+    active truncation), with its ``prob`` interval over the hyper-posterior; ``new_*``: the
+    predictive distribution of a new specimen's value; ``sd_transformed``: the population sd
+    in transformed units (log units for log-normal populations).
+    """
+    q = [(1 - prob) / 2, 0.5, (1 + prob) / 2]
+    out = {}
+    for v in pooled_view(h):
+        a, b, c = np.quantile(v["median"], q)
         row = {"median": float(b), "median_lower": float(a), "median_upper": float(c),
-               "sd_transformed": float(np.median(h.hyper(f"sd_{nm}"))), "transform": t}
-        if h.new_specimen is not None:
-            na, nb, nc = np.quantile(h.new_specimen[:, j], q)
+               "sd_transformed": v["sd"], "transform": v["transform"]}
+        if v["new"] is not None:
+            na, nb, nc = np.quantile(v["new"], q)
             row.update(new_lower=float(na), new_median=float(nb), new_upper=float(nc))
-        out[nm] = row
+        out[v["display"]] = row
     return out
 
 
@@ -508,7 +490,10 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, shash, options,
         else:
             for sid in sorted(results):
                 wres.figures += [Path(p) for p in _figures_task(str(paths[sid]), str(fig_dir), model)]
-        wres.figures += ppop.population_figures(results, wres.hierarchical, wres.manifolds, fig_dir)
+        try:
+            wres.figures += ppop.population_figures(results, wres.hierarchical, wres.manifolds, fig_dir)
+        except Exception as exc:  # a figure must not sink the run
+            _log(f"population figures failed: {type(exc).__name__}: {exc}", True)
         timings["figures"] = time.perf_counter() - t
     return wres
 
@@ -529,25 +514,207 @@ def _fit_one(item, *, seed, settings_hash: str, options: Mapping) -> str:
 
 
 def _refine_task(h, sid: str, lik, n_samples: int, seed: int, n_out: int, max_steps: int = 25,
-                 n_hyper: int = 200) -> np.ndarray:
+                 n_hyper: int = 200, augment=None) -> np.ndarray:
     """Fresh TMCMC of one specimen's updated posterior; returns ``n_out`` equal-weight draws.
 
     The population prior is a mixture over ``n_hyper`` hyper-posterior draws (its cost is linear
-    in n_hyper per particle); ``max_steps`` caps the MH steps per stage.
+    in n_hyper per particle); ``max_steps`` caps the MH steps per stage.  ``augment``: the map
+    to pooled derived columns (``--pool combinations``), run over the likelihood's own box.
     """
     from .samplers.hierarchical import refine_individual
 
+    extra = {} if augment is None else {"augment": augment, "bounds": lik.bounds}
     tr = refine_individual(h, sid, lik, n_samples=n_samples, seed=seed, progress=False, n_hyper=n_hyper,
-                           max_steps=max_steps)
+                           max_steps=max_steps, **extra)
     rng = np.random.default_rng(seed)
     sel = rng.choice(tr.samples.shape[0], n_out, replace=tr.samples.shape[0] < n_out)
     return np.asarray(tr.samples)[sel]
 
 
+#: ``--pool combinations``: pool the identifiable combinations instead of the raw parameters
+COMBINATIONS = "combinations"
+#: ``--pool informed``: pool the model parameters that the posteriors inform (auto_pool)
+INFORMED = "informed"
+#: pooled coordinates of ``--pool combinations`` (identity transform: they are logs already)
+COMBINATION_COLUMNS = ("log_G", "log_VOLF*P1", "log_(1-VOLF)*T1")
+#: model parameters ``--pool combinations`` needs free
+COMBINATION_NEEDS = ("VOLF", "P1", "T1", "GF", "GM", "T2", "THETA")
+
+
+def _pool_mode(pooled, model_names: Sequence[str]):
+    """Resolve ``RunConfig.hier_pooled`` to "combinations", "informed", "all" or a list of names."""
+    if isinstance(pooled, (list, tuple)) and len(pooled) == 1 and pooled[0] in ("auto", COMBINATIONS, INFORMED, "all"):
+        pooled = pooled[0]  # the CLI splits --pool on commas
+    if pooled in (None, "auto"):
+        return COMBINATIONS if all(n in model_names for n in COMBINATION_NEEDS) else INFORMED
+    return pooled
+
+
+class _CombinationAugment:
+    """θ (stage-1 columns) -> (θ + φ columns, stage-1 prior log density of the pooled columns).
+
+    The map behind ``--pool combinations``, for the fresh-TMCMC fallback of collapsed specimens
+    (:func:`hbm.samplers.hierarchical.refine_individual`); a class so that dask can ship it.
+    """
+
+    def __init__(self, names: Sequence[str], bounds: np.ndarray, log_u: float) -> None:
+        self.names, self.bounds, self.log_u = list(names), np.asarray(bounds, float), float(log_u)
+
+    def __call__(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        from .combinations import log_density, to_features
+
+        f = to_features(self.names, theta)
+        ok = np.all(f > 0, axis=1)  # T1 = 0 exactly has no log feature (prior mass 0)
+        phi = np.log(np.where(ok[:, None], f, 1.0))
+        lp = np.full(theta.shape[0], -np.inf)
+        if ok.any():
+            lp[ok] = log_density(phi[ok], self.bounds, self.names) + self.log_u
+        return np.hstack([theta, phi]), lp
+
+
+def _unique(msgs: Sequence[str]) -> list[str]:
+    """Messages in order without repeats (a warning is both raised and kept in the result)."""
+    return list(dict.fromkeys(msgs))
+
+
+def _refine_collapsed(cfg: RunConfig, h, collapsed: Sequence[str], datasets, model,
+                      results: Mapping[str, io.SpecimenResult], cl=None, augment=None) -> dict[str, np.ndarray]:
+    """Fresh TMCMC of p(θ_i | all data) for every specimen whose importance ESS collapsed.
+
+    One dask task per specimen when a client is given; seeds spawned per specimen from the run
+    seed, so the draws do not depend on the number of workers.
+    """
+    from .likelihood import make_likelihood
+
+    if not collapsed:
+        return {}
+    _log(f"WARNING: importance ESS collapsed for {', '.join(collapsed)}: fresh TMCMC runs of their "
+         "updated posteriors p(θ_i | all data)" + (" on dask" if cl is not None else ""), True)
+    first = next(iter(results.values()))
+    names = list(first.names)
+    noise_col = len([n for n in names if n in model.parameter_names])  # first noise column (common box)
+    sigma_bounds = tuple(first.bounds[noise_col]) if noise_col < len(names) else None
+    n_up = next(iter(h.updated.values())).shape[0]
+    jobs = {}
+    h_ref = cl.scatter(h) if cl is not None else h
+    for k, sid in enumerate(h.specimens):
+        if sid not in collapsed:
+            continue
+        lik = make_likelihood(model, datasets[sid], noise=cfg.noise, fix=cfg.fix, bounds=cfg.bounds,
+                              sigma_bounds=sigma_bounds)
+        rs = int(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN, 1 + k)).generate_state(
+            1, np.uint64)[0] >> 1)
+        args = (h_ref, sid, lik, min(int(cfg.hier_samples), int(cfg.samples)), rs, n_up, int(cfg.hier_max_steps))
+        kw = {"augment": augment} if augment is not None else {}
+        jobs[sid] = (cl.submit(_refine_task, *args, key=f"refine-{sid}", pure=False, retries=cfg.retries, **kw)
+                     if cl is not None else _refine_task(*args, **kw))
+    return {sid: (job.result() if cl is not None else job) for sid, job in jobs.items()}
+
+
+def _run_hierarchical_combinations(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], datasets, out: Path,
+                                   model, names: list, model_names: list, transforms: dict, cl=None):
+    """``--pool combinations``: a population over φ = (log G, log c·P1, log (1−c)·T1), T2, THETA
+    (+ EOPT when ``auto_pool`` would pool it), with the exact stage-1 prior density of φ.
+
+    The φ columns are appended to the stage-1 samples (the other columns ride along), their
+    stage-1 prior log density goes in as ``log_prior`` (see :mod:`hbm.combinations`), and a new
+    specimen's (VOLF, P1, T1, GF, GM) are drawn from the box prior conditioned on its φ; its
+    unpooled model parameters (EOPT if not pooled) from their stage-1 (uniform) prior, as the
+    population model leaves them.  A specimen whose importance ESS collapses gets a fresh TMCMC
+    run of p(θ_i | all data) over its own parameters, with the population density of φ(θ)
+    divided by the stage-1 prior density of φ (:class:`_CombinationAugment`).
+    """
+    from .combinations import (COMBINATION_PARAMS, combination_features, log_density, sample_conditional,
+                               support_hull)
+    from .samplers.hierarchical import auto_pool, hierarchical
+
+    first = next(iter(results.values()))
+    bounds = np.asarray(first.bounds, float)
+    missing = [p for p in COMBINATION_NEEDS if p not in model_names]
+    if missing:
+        raise HbmError(f"--pool combinations needs free parameters {', '.join(missing)} (fixed or absent); "
+                       f"use --pool informed")
+    choice = auto_pool({sid: r.samples for sid, r in results.items()}, names, bounds, transforms,
+                       candidates=model_names)
+    extra = [n for n in model_names if n in ("EOPT", "T2", "THETA")
+             and (n != "EOPT" or n in choice.pooled)]
+    feats = {sid: combination_features(names, r.samples, bounds) for sid, r in results.items()}
+    # box of the φ columns: the support hull of the combinations (a zero lower end, T1 from 0, is
+    # floored; widened if a sample lies below the floor so every sample is inside)
+    hull = np.log(support_hull(bounds, names))
+    allphi = np.concatenate([f[0] for f in feats.values()])
+    hull[:, 0] = np.minimum(hull[:, 0], allphi.min(axis=0) - 1e-9)
+    hull[:, 1] = np.maximum(hull[:, 1], allphi.max(axis=0) + 1e-9)
+    aug_names = list(names) + list(COMBINATION_COLUMNS)
+    aug_bounds = np.vstack([bounds, hull])
+    pooled = list(COMBINATION_COLUMNS) + extra
+    tr = {**{c: "identity" for c in COMBINATION_COLUMNS}, **{n: transforms[n] for n in extra}}
+    # stage-1 prior of the pooled columns: p0(φ) × uniform densities of the other pooled columns
+    log_u = -float(sum(np.log(np.ptp(bounds[names.index(n)])) for n in extra))
+    stage1 = {sid: (np.hstack([r.samples, feats[sid][0]]), r.log_evidence, r.log_evidence_se)
+              for sid, r in results.items()}
+    log_prior = {sid: feats[sid][1] + log_u for sid in results}
+    reasons = {k: v["reason"] for k, v in choice.reasons.items()}
+    reasons["combinations"] = ("--pool combinations: population over log G, log VOLF*P1, log (1-VOLF)*T1 "
+                               f"(exact stage-1 prior density) and {', '.join(extra)}")
+    _log(f"pooled (combinations): {', '.join(pooled)}", cfg.progress)
+    seed = int(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN,)).generate_state(1, np.uint64)[0] >> 1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        h = hierarchical(stage1, aug_names, aug_bounds, transforms=tr, pooled=pooled,
+                         n_samples=int(cfg.hier_samples), seed=seed, progress=cfg.progress,
+                         sd_range=tuple(cfg.hier_sd_range), estimator=cfg.hier_estimator, log_prior=log_prior,
+                         tmcmc_options={"max_steps": int(cfg.hier_max_steps)})
+    warn_msgs = _unique([str(w.message) for w in caught] + list(h.warnings))
+    n_par = len(names)
+    updated = {s: np.asarray(h.updated[s])[:, :n_par] for s in h.specimens}
+    collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
+    augment = _CombinationAugment(names, bounds, log_u)
+    updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl, augment=augment))
+    # new specimen: pooled columns from the predictive, (VOLF, P1, T1, GF, GM) | φ from the box
+    # prior, unpooled model parameters from their uniform stage-1 prior
+    rng = np.random.default_rng(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN, 0)))
+    pred = np.asarray(h.predictive)
+    # The normal population lives on the hull box of φ, but p0 (hence a real specimen) lives on a
+    # smaller region (e.g. c·P1/P1_hi + (1−c)·T1/T1_hi ≤ 1): predictive draws outside it have no
+    # parameters and are rejected (rejection sampling of the population restricted to the support).
+    # The likelihood ignores that truncation mass Z_S(ψ); the rejected fraction, E_ψ[1 − Z_S(ψ)],
+    # bounds its effect and goes into the attributes.
+    inside = np.isfinite(log_density(pred[:, : len(COMBINATION_COLUMNS)], bounds, names))
+    outside_fraction = float(1.0 - inside.mean())
+    if not inside.any():
+        raise HbmError("--pool combinations: every new-specimen draw lies outside the prior support of the "
+                       "combinations; the population is not usable")
+    pred = pred[inside]
+    parts = sample_conditional(pred[:, : len(COMBINATION_COLUMNS)], bounds, rng, names)
+    derived_cols = {p: parts[:, k] for k, p in enumerate(COMBINATION_PARAMS)}
+    for n in model_names:
+        if n not in derived_cols and n not in extra:
+            lo, hi = bounds[names.index(n)]
+            derived_cols[n] = rng.uniform(lo, hi, pred.shape[0])
+    derived = [n for n in model_names if n in derived_cols]
+    new = np.column_stack([pred] + [derived_cols[n] for n in derived])
+    updated = np.stack([updated[s] for s in h.specimens], axis=1)
+    ess_min = np.array([float(h.ess_summary[s]["min"]) for s in h.specimens])
+    attrs = {"transforms": tr, "pooled": pooled, "pool_reasons": reasons, "estimator": cfg.hier_estimator,
+             "mode": COMBINATIONS, "derived": derived, "outside_support_fraction": outside_fraction,
+             "bounds": {n: list(map(float, aug_bounds[aug_names.index(n)])) for n in pooled},
+             "log_evidence_parts": h.log_evidence_parts, "warnings": warn_msgs, "refined": collapsed,
+             "ess_summary": h.ess_summary, "hyperprior": {"mu": "uniform on transformed box",
+                                                         "sd": f"loguniform on {tuple(cfg.hier_sd_range)} x mu range"}}
+    hf = io.HierarchicalFile(param_names=names, hyper_names=list(h.hyper_names),
+                             hyper_samples=np.asarray(h.hyper_samples), specimen_ids=list(h.specimens),
+                             updated=updated, new_specimen=new, log_evidence=float(h.log_evidence),
+                             log_evidence_se=float(h.log_evidence_se),
+                             stages=[dict(s) for s in getattr(h.sampler_result, "stages", [])],
+                             ess=ess_min, attrs=attrs, pooled_names=list(h.names) + derived)
+    path = io.write_hierarchical(hf, out / "hierarchical.nc")
+    return hf, path
+
+
 def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], datasets, out: Path, model,
                       cl=None):
     """Hyper-posterior, ESS check (+ fresh TMCMC fallback), updated individuals -> hierarchical.nc."""
-    from .likelihood import make_likelihood
     from .model import spyrou_model
     from .samplers.hierarchical import auto_pool, hierarchical
 
@@ -565,21 +732,26 @@ def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], 
         if transforms[n] == "log" and first.bounds[names.index(n), 0] <= 0:
             transforms[n] = "logit"
     pool_reasons = None
-    if cfg.hier_pooled == "auto":  # parameters informed in at least half of the specimens
+    mode = _pool_mode(cfg.hier_pooled, model_names)
+    if mode == COMBINATIONS:
+        return _run_hierarchical_combinations(cfg, results, datasets, out, model, names, model_names, transforms,
+                                              cl=cl)
+    if mode == INFORMED:  # parameters informed in at least half of the specimens
         choice = auto_pool({sid: r.samples for sid, r in results.items()}, names, first.bounds, transforms,
                            candidates=model_names)
         pool_reasons = {k: v["reason"] for k, v in choice.reasons.items()}
         model_names = choice.pooled
-        _log(f"pooled (auto): {', '.join(model_names)}", cfg.progress)
-    elif cfg.hier_pooled and cfg.hier_pooled != "all":
-        bad = [p for p in cfg.hier_pooled if p not in model_names]
+        _log(f"pooled (informed): {', '.join(model_names)}", cfg.progress)
+    elif mode and mode != "all":
+        if isinstance(mode, str):
+            mode = [mode]
+        bad = [p for p in mode if p not in model_names]
         if bad:
-            raise HbmError(f"--pool: {', '.join(bad)} not among the free model parameters {', '.join(model_names)}")
-        model_names = [n for n in model_names if n in cfg.hier_pooled]
+            raise HbmError(f"--pool: {', '.join(bad)} not among the free model parameters {', '.join(model_names)} "
+                           f"(or auto, combinations, informed, all)")
+        model_names = [n for n in model_names if n in mode]
     transforms = {n: transforms[n] for n in model_names}
     stage1 = {sid: (r.samples, r.log_evidence, r.log_evidence_se) for sid, r in results.items()}
-    noise_col = len([n for n in names if n in model.parameter_names])  # first noise column (common box)
-    sigma_bounds = tuple(first.bounds[noise_col]) if noise_col < len(names) else None
     # an int seed for the hierarchical layer, independent of the specimen streams
     seed = int(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN,)).generate_state(1, np.uint64)[0] >> 1)
     with warnings.catch_warnings(record=True) as caught:
@@ -590,31 +762,14 @@ def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], 
                          # each ψ evaluation is a (n_ψ × 2d) @ (2d × Σ N_i) product: cap the MH steps per
                          # stage so the layer stays at tens of seconds for six specimens
                          tmcmc_options={"max_steps": int(cfg.hier_max_steps)})
-    warn_msgs = [str(w.message) for w in caught] + list(h.warnings)
+    warn_msgs = _unique([str(w.message) for w in caught] + list(h.warnings))
     updated = {sid: np.asarray(h.updated[sid]) for sid in h.specimens}
-    collapsed = [sid for sid in h.specimens if h.ess_collapsed.get(sid)]
-    if collapsed:
-        _log(f"WARNING: importance ESS collapsed for {', '.join(collapsed)}: fresh TMCMC runs of their "
-             "updated posteriors p(θ_i | all data)" + (" on dask" if cl is not None else ""), True)
-        n_up = next(iter(updated.values())).shape[0]
-        jobs = {}
-        h_ref = cl.scatter(h) if cl is not None else h
-        for k, sid in enumerate(h.specimens):
-            if sid not in collapsed:
-                continue
-            lik = make_likelihood(model, datasets[sid], noise=cfg.noise, fix=cfg.fix, bounds=cfg.bounds,
-                                  sigma_bounds=sigma_bounds)
-            rs = int(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN, 1 + k)).generate_state(
-                1, np.uint64)[0] >> 1)
-            args = (h_ref, sid, lik, min(int(cfg.hier_samples), int(cfg.samples)), rs, n_up,
-                    int(cfg.hier_max_steps))
-            jobs[sid] = (cl.submit(_refine_task, *args, key=f"refine-{sid}", pure=False, retries=cfg.retries)
-                         if cl is not None else _refine_task(*args))
-        for sid, job in jobs.items():
-            updated[sid] = job.result() if cl is not None else job
-    refined = sorted(collapsed)
+    collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
+    updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl))
+    refined = collapsed
     ess_min = np.array([float(h.ess_summary[s]["min"]) for s in h.specimens])
     attrs = {"transforms": transforms, "pooled": model_names, "pool_reasons": pool_reasons,
+             "mode": mode if isinstance(mode, str) else "list",
              "estimator": cfg.hier_estimator,
              "bounds": {n: list(map(float, first.bounds[names.index(n)])) for n in model_names},
              "log_evidence_parts": h.log_evidence_parts, "warnings": warn_msgs, "refined": refined,

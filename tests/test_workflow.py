@@ -37,7 +37,7 @@ def data_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def client():
-    distributed = pytest.importorskip("distributed")
+    pytest.importorskip("distributed")
     from hbm.parallel import dask_client
 
     with dask_client(workers=2) as c:
@@ -71,7 +71,16 @@ def test_end_to_end_outputs(first_run):
     assert not list((out / "checkpoints").rglob("*.npz"))  # superseded by the result files
     h = io.read_hierarchical(out / "hierarchical.nc")
     assert "mu_T2" in h.hyper_names and "sd_T2" in h.hyper_names
-    assert h.updated.shape == (100, 2, 9) and h.new_specimen.shape[1] == 8
+    # default pool for the base model: the identifiable combinations; a new specimen still gets all
+    # 8 model parameters (VOLF, P1, T1, GF, GM drawn given its combinations) inside the box
+    assert h.attrs["mode"] == "combinations" and "mu_log_G" in h.hyper_names
+    from hbm.model import spyrou_model
+    from hbm.organ import theta_from_samples
+    m = spyrou_model()
+    th = theta_from_samples(m, h.pooled_names, h.new_specimen)
+    assert th.shape == (h.new_specimen.shape[0], 8)
+    assert np.all((th >= m.bounds[:, 0]) & (th <= m.bounds[:, 1]))
+    assert h.updated.shape == (100, 2, 9)
     assert np.isfinite(h.log_evidence)
     # hyper-evidence includes both specimens' stage-1 evidence
     lz = sum(r.log_evidence for r in res.results.values())

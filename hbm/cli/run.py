@@ -10,8 +10,8 @@ from ._common import add_model_arguments, build_model
 DESCRIPTION = """\
 For every specimen CSV in --data: CMA-ES optima with a VOLF bound sweep (the VOLF-T1
 manifold), the TMCMC posterior with log-evidence, and Sobol indices, in parallel on dask
-(one task per specimen).  Then the hierarchical Bayesian layer (population of specimens,
-Gaussian hyperpriors in logit/log space, hyper-evidence, updated individuals), identifiable
+(one task per specimen).  Then the hierarchical Bayesian layer (a Gaussian population over the identifiable
+combinations, hyper-evidence, updated individuals, a new specimen's predictive), identifiable
 combinations, manifold splines, figures and a Markdown report.
 
 Outputs in --out:
@@ -63,10 +63,13 @@ def register(subparsers) -> None:
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
     p.add_argument("--hier-samples", type=int, default=1000, metavar="N",
                    help="TMCMC population over the hyperparameters (default 1000)")
-    p.add_argument("--pool", metavar="auto|all|P1,P2,...", default="auto",
-                   help="parameters given a population distribution: 'auto' (default) pools those whose "
-                        "posterior sd (transformed space) is below 2/3 of the prior's in at least half of the "
-                        "specimens (reasons in the report); 'all' pools every model parameter; or a list")
+    p.add_argument("--pool", metavar="auto|combinations|informed|all|P1,P2,...", default="auto",
+                   help="what gets a population distribution: 'combinations' = the identifiable combinations "
+                        "log G, log VOLF*P1, log (1-VOLF)*T1 with T2, THETA (and EOPT when informed); "
+                        "'informed' = the model parameters whose posterior sd (transformed space) is below 2/3 "
+                        "of the prior's in at least half of the specimens; 'all' = every model parameter; or a "
+                        "list of parameters. 'auto' (default): combinations for the base model with VOLF, P1, "
+                        "T1, GF, GM, T2, THETA free, informed otherwise")
     p.add_argument("--hier-estimator", choices=("raw", "kernel"), default="raw",
                    help="estimator of p(d_i|psi): raw importance ratios (default, unbiased) or kernel-smoothed "
                         "ratios (O(h^2) bias, robust when the population is narrower than a posterior)")
@@ -104,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
                     retries=args.retries, quick=args.quick,
                     hier_estimator=args.hier_estimator,
-                    hier_pooled=(args.pool if args.pool in ("auto", "all")
+                    hier_pooled=(args.pool if args.pool in ("auto", "combinations", "informed", "all")
                                  else [x.strip() for x in args.pool.split(",") if x.strip()] or "auto"))
     is_base = model.effect_names == ("matrix", "fibers", "collagen") and model.name == "spyrou"
     res = run_workflow(cfg, model=None if is_base else model, extra_sections=hooks)

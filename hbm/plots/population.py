@@ -8,6 +8,7 @@ from typing import Mapping
 
 import numpy as np
 
+from ..workflow import pooled_view, quantity_samples
 from . import plt, save
 
 __all__ = ["manifold_plot", "forest_plot", "hyper_plot", "population_figures", "quantity_samples"]
@@ -22,21 +23,6 @@ FOREST_QUANTITIES = ("G", "VOLF*P1", "(1-VOLF)*T1", "T2", "THETA", "EOPT")
 def _colors(n):
     cmap = plt.get_cmap("tab10")
     return [cmap(i % 10) for i in range(n)]
-
-
-def quantity_samples(names, theta) -> dict[str, np.ndarray]:
-    """Identifiable combinations plus T2, THETA, EOPT from rows of (named) parameters."""
-    from ..model import identifiable_combinations
-
-    theta = np.asarray(theta, float)
-    col = {n: theta[:, i] for i, n in enumerate(names)}
-    out = {}
-    if all(k in col for k in ("VOLF", "P1", "T1", "GF", "GM")):
-        out.update({k: np.asarray(v) for k, v in identifiable_combinations(list(names), theta).items()})
-    for k in ("T2", "THETA", "EOPT"):
-        if k in col:
-            out[k] = col[k]
-    return out
 
 
 def manifold_plot(manifolds: Mapping[str, dict], results=None, *, path=None):
@@ -127,42 +113,37 @@ def forest_plot(results: Mapping, hier=None, *, prob: float = 0.9, path=None):
 
 
 def hyper_plot(hier, results=None, *, path=None):
-    """Hyper-posterior: density of each pooled parameter's population median g⁻¹(mu) (natural
-    units) and of a new specimen's value; ticks: the specimens' posterior means."""
-    from scipy.special import expit
-
-    names = list(hier.pooled_names)
-    tr = dict(hier.attrs.get("transforms", {}))
-    bnd = dict(hier.attrs.get("bounds", {}))
-    ncol = max(1, min(4, len(names)))  # no empty panels when few parameters are pooled
-    nrow = int(np.ceil(len(names) / ncol))
+    """Hyper-posterior: density of each pooled quantity's population median g⁻¹(mu) (natural
+    units) and of a new specimen's value; lines: the specimens' posterior means."""
+    view = pooled_view(hier)
+    ncol = max(1, min(4, len(view)))  # no empty panels when few quantities are pooled
+    nrow = int(np.ceil(len(view) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 2.7 * nrow), squeeze=False)
-    for j, (ax, nm) in enumerate(zip(axes.ravel(), names)):
-        mu = hier.hyper(f"mu_{nm}")
-        t = tr.get(nm, "identity")
-        lo, hi = bnd.get(nm, (np.nan, np.nan))
-        med = np.exp(mu) if t == "log" else (lo + (hi - lo) * expit(mu) if t == "logit" else mu)
-        logx = t == "log"
-        data = [med] + ([hier.new_specimen[:, j]] if hier.new_specimen is not None else [])
-        allv = np.concatenate(data)
-        if logx:
+    means = {}
+    if results:
+        means = {sid: {k: float(np.mean(v)) for k, v in quantity_samples(
+            list(results[sid].as_dict()), np.column_stack(list(results[sid].as_dict().values()))).items()}
+            for sid in sorted(results)}
+    for ax, v in zip(axes.ravel(), view):
+        med, new = v["median"], v["new"]
+        allv = np.concatenate([med] + ([new] if new is not None else []))
+        if v["log_scale"]:
             bins = np.geomspace(max(allv.min(), 1e-300), allv.max(), 50)
             ax.set_xscale("log")
         else:
             bins = np.linspace(allv.min(), allv.max(), 50)
-        ax.hist(med, bins=bins, density=True, color="#1b9e77", alpha=0.7, label="population median g⁻¹(mu)")
-        if hier.new_specimen is not None:
-            ax.hist(hier.new_specimen[:, j], bins=bins, density=True, histtype="step", color="k", lw=1.2,
-                    label="new specimen")
-        if results:
-            for sid in sorted(results):
-                r = results[sid]
-                if nm in r.names:
-                    ax.axvline(float(np.mean(r.column(nm))), color="#d95f02", lw=0.8, alpha=0.8)
-        sd = np.median(hier.hyper(f"sd_{nm}"))
-        ax.set_title(f"{nm}  ({t}; median sd {sd:.2g})", fontsize=9)
+        # probability per bin (bins equal in log on a log axis): density=True would be per linear unit
+        # and inflate the narrow low bins of a log axis
+        ax.hist(med, bins=bins, weights=np.full(med.size, 1.0 / med.size), color="#1b9e77", alpha=0.7)
+        if new is not None:
+            ax.hist(new, bins=bins, weights=np.full(new.size, 1.0 / new.size), histtype="step", color="k", lw=1.2)
+        for sid, m in means.items():
+            if v["display"] in m:
+                ax.axvline(m[v["display"]], color="#d95f02", lw=0.8, alpha=0.8)
+        ax.set_title(f"{_LABELS.get(v['display'], v['display'])}\n({v['transform']}; median population sd "
+                     f"{v['sd']:.2g})", fontsize=8.5)
         ax.set_yticks([])
-    for ax in axes.ravel()[len(names):]:
+    for ax in axes.ravel()[len(view):]:
         ax.axis("off")
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
