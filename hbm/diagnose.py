@@ -27,7 +27,6 @@ The detective works in four steps (DESIGN.md §2):
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time as _time

@@ -178,7 +178,6 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
     n, d = r.samples.shape
     if len(r.names) != d:
         raise HbmError(f"specimen {r.specimen_id}: {d} sample columns but {len(r.names)} names")
-    chain = {"chain": [0]}
     draws = {"chain": [0], "draw": np.arange(n)}
     post = xr.Dataset({nm: (("chain", "draw"), r.samples[None, :, i]) for i, nm in enumerate(r.names)},
                       coords=draws)

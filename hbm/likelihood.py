@@ -328,7 +328,7 @@ class Likelihood:
         not finite get NaN so that callers (e.g. the manifold kernel) can fall back.
         """
         theta, _ = self._as2d(theta)
-        n, d, k = theta.shape[0], self.d, self.n_model
+        n, d = theta.shape[0], self.d
         grad = np.full((n, d), np.nan)
         fim = np.full((n, d, d), np.nan)
         ok = self.in_box(theta)

@@ -17,7 +17,7 @@ from hbm.data import cycle, protocol, ramp, synthetic_specimen
 from hbm.diagnose import (LocalMisfit, _as_data, _whitener, diagnose, extend, local_refit_screen,
                           misfit_windows, model_free_noise, score_screen)
 from hbm.effects import make_effect
-from hbm.model.core import Effect, Loading, Parameter
+from hbm.model.core import Effect, Parameter
 from hbm.model.spyrou import spyrou_model
 
 # generating parameters: deliberately not the demo's (workflows/hidden_effect_demo.py)

@@ -167,7 +167,6 @@ def optima_plot(sid: str, optima, posterior=None, *, path=None):
     dobj = optima["delta_objective"].values
     kind = [str(x) for x in optima["kind"].values]
     n = E.shape[0]
-    ib = int(np.nanargmin(dobj))
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12.5, 4.8), gridspec_kw={"width_ratios": [1.3, 1]})
     if posterior is not None:
         lo, _, hi = posterior["elongation"].values
