@@ -95,14 +95,15 @@ def render_report(wres, *, base: Path | None = None,
                f"log-evidence **{r.log_evidence:.3f} ± {r.log_evidence_se:.3f}** ({st} TMCMC stages, "
                f"{r.n_samples} samples" + (f", fixed {r.fixed}" if r.fixed else "") + ")\n",
                _table(["quantity", "mean", "sd", "90% interval"], rows)]
-        dirs = wres.directions.get(sid) or []
-        if dirs:
-            txt.append("\nDetected automatically (posterior principal directions in log space whose sd is "
-                       "small relative to the prior's): "
-                       + "; ".join(f"`{d['expression']}`"
-                                   + (f" = {fmt(d['median'])} [{fmt(d['lo'])}, {fmt(d['hi'])}]"
-                                      if np.isfinite(d.get("median", np.nan)) else "")
-                                   + f" (sd ratio {d['ratio']:.2g})" for d in dirs[:5]))
+        dirs = wres.directions.get(sid)
+        if dirs is not None:
+            lead = ("\nIdentified combinations, found from the samples (a sparse basis of the directions in log "
+                    "space whose posterior sd is below 10% of the prior's; products of powers): ")
+            txt.append(lead + ("; ".join(f"`{d['expression']}`"
+                                         + (f" = {fmt(d['median'])} [{fmt(d['lo'])}, {fmt(d['hi'])}]"
+                                            if np.isfinite(d.get("median", np.nan)) else "")
+                                         + f" (sd ratio {d['ratio']:.2g})" for d in dirs[:6])
+                               or "none (no combination of up to three parameters is pinned that tightly)"))
         m = wres.manifolds.get(sid)
         if m is not None:
             txt.append(f"\nVOLF–T1 manifold from {m['source']}: VOLF ∈ [{fmt(min(m['points_x']), 3)}, "
@@ -130,8 +131,11 @@ def render_report(wres, *, base: Path | None = None,
             s = summarize(results[sid])
             rows.append([sid] + [f"{fmt(s[c]['mean'])} [{fmt(s[c]['lower'])}, {fmt(s[c]['upper'])}]" for c in combos])
         parts.append("## Identifiable combinations (posterior mean [90% interval], MPa)\n\n"
-                     "Uniaxial data identify G = c·GF + (1−c)·GM, c·P1 and (1−c)·T1 (c = VOLF); the "
-                     "individual parameters slide along manifolds.\n\n"
+                     "Uniaxial data can at best identify G = c·GF + (1−c)·GM, c·P1 and (1−c)·T1 (c = VOLF); "
+                     "the individual parameters slide along manifolds. When the collagen works in its "
+                     "near-linear range (small T2·(λH − 1) over the tested strains) only (1−c)·T1·T2 is "
+                     "learnt and (1−c)·T1 trades off against T2: see each specimen's identified "
+                     "combinations above.\n\n"
                      + _table(["specimen"] + combos, rows))
 
     # ---- manifolds compared
