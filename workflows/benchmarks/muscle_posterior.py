@@ -101,57 +101,16 @@ def read_curve(path: Path) -> tuple[np.ndarray, np.ndarray, dict]:
     return a[:, 0], a[:, 1], meta
 
 
-class InlineLikelihood:
-    """iid Gaussian log-likelihood of the base model (fallback if hbm.likelihood is missing)."""
-
-    def __init__(self, model, strain, stress):
-        self.model, self.strain, self.stress = model, strain, stress
-        self.names = tuple(model.parameter_names) + ("sigma",)
-        self.bounds = np.vstack([model.bounds, [SIGMA_BOUNDS]])
-
-    def __call__(self, theta):
-        theta = np.asarray(theta, dtype=float)
-        n = self.stress.size
-        with np.errstate(all="ignore"):
-            r = self.stress - self.model.stress(self.strain, theta[:, :-1])
-            s = theta[:, -1]
-            out = -n * np.log(s) - 0.5 * n * np.log(2 * np.pi) - np.einsum("ij,ij->i", r, r) / (2 * s * s)
-        return np.where(np.isfinite(out), out, -np.inf)
-
-    def predict(self, theta):
-        return self.model.stress(self.strain, np.asarray(theta, dtype=float)[:, :-1])
-
-    def gradient_fim(self, theta):
-        theta = np.asarray(theta, dtype=float)
-        n = self.stress.size
-        s = theta[:, -1]
-        with np.errstate(all="ignore"):
-            r = self.stress - self.model.stress(self.strain, theta[:, :-1])
-            jac = self.model.stress_jacobian(self.strain, theta[:, :-1])
-            g = np.empty(theta.shape)
-            g[:, :-1] = np.einsum("np,npk->nk", r, jac) / (s * s)[:, None]
-            g[:, -1] = -n / s + np.einsum("ij,ij->i", r, r) / s ** 3
-            f = np.zeros(theta.shape + (theta.shape[1],))
-            f[:, :-1, :-1] = np.einsum("npi,npj->nij", jac, jac) / (s * s)[:, None, None]
-            f[:, -1, -1] = 2 * n / (s * s)
-        return g, f
-
-
 def make_problem():
     """(log-likelihood object with .names/.bounds/.gradient_fim, gold dict, which likelihood)."""
     strain, stress, _ = read_curve(BENCH / "muscle_benchmark.csv")
     gold = json.loads((BENCH / "muscle_benchmark_gold.json").read_text())
-    model = hbm.spyrou_model()
-    try:
-        import xarray as xr
-        from hbm.likelihood import make_likelihood
-        ds = xr.Dataset({"strain": ("point", strain), "stress": ("point", stress)}, attrs={"id": "bench"})
-        lik = make_likelihood(model, ds, noise="iid", sigma_bounds=SIGMA_BOUNDS)
-        kind = "hbm.likelihood.make_likelihood"
-    except ImportError:
-        lik = InlineLikelihood(model, strain, stress)
-        kind = "inline"
-    return lik, gold, kind
+    import xarray as xr
+    from hbm.likelihood import make_likelihood
+
+    ds = xr.Dataset({"strain": ("point", strain), "stress": ("point", stress)}, attrs={"id": "bench"})
+    lik = make_likelihood(hbm.spyrou_model(), ds, noise="iid", sigma_bounds=SIGMA_BOUNDS)
+    return lik, gold, "hbm.likelihood.make_likelihood"
 
 
 def summarise(names, samples) -> dict[str, float]:
