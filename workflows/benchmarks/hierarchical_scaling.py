@@ -6,7 +6,8 @@ hyperparameters ψ at once, Σ_i log mean_j r_ij(ψ) as one matrix product per s
 (coef(ψ) (n_ψ × K) @ F(θ_i)ᵀ (K × N_i)) with a chunked log-sum-exp, so one likelihood call should
 cost ∝ n_ψ · Σ_i N_i and the whole layer ∝ N at a fixed number of calls.
 
-Setup, as ``hbm run`` calls the layer (hbm/workflow.py ``_run_hierarchical``): the six shipped
+Setup, as ``hbm run --pool all`` calls the layer (hbm/workflow.py ``_run_hierarchical``; the
+heaviest case: 8 pooled columns, where the default ``--pool combinations`` pools 5): the six shipped
 specimens (``data/specimens``), stage-1 = default TMCMC of the base model with iid noise and the
 workflow's common sigma box, pooled = the 8 model parameters with the workflow's transforms
 (``DEFAULT_TRANSFORMS``) and sd range, ``n_samples = RunConfig.hier_samples`` (1000) ψ draws and
@@ -124,7 +125,7 @@ def fixed_call(stage1: dict, names, bounds, pooled, transforms, n_psi: int, repe
 
 
 def whole_layer(stage1: dict, names, bounds, pooled, transforms, seed: int, cfg: RunConfig) -> dict:
-    """hierarchical(...) as hbm run calls it, with the sampler's likelihood calls timed."""
+    """hierarchical(...) as ``hbm run --pool all`` calls it, with the sampler's likelihood calls timed."""
     calls = []
 
     def timed_sampler(target, box, n, **kw):
@@ -185,7 +186,8 @@ def render(rows: list[dict], meta: dict) -> str:
         out.append(f"| {r['N']} | {r['N_total']} | {f['wall']:.3f} | {f['cpu']:.3f} | "
                    f"{1e9 * f['cpu'] / (meta['n_psi'] * r['N_total']):.2f} | "
                    f"{f['cpu'] / base['fixed']['cpu']:.2f} | {r['N'] / base['N']:.0f} |")
-    out += ["", "## Whole layer (`hierarchical(...)` as `hbm run` calls it)", "",
+    out += ["", "## Whole layer (`hierarchical(...)` as `hbm run --pool all` calls it: the heaviest case, 8 pooled "
+            "columns; the default `--pool combinations` pools 5 and its cost is in the run report)", "",
             "| N per specimen | wall s | CPU s | CPU ratio to first row | likelihood calls | ψ rows evaluated "
             "| mean call wall s | mean call CPU s | CPU ns per (ψ · sample) | share of wall in calls "
             "| TMCMC stages | log hyper-evidence ± SE | ESS q10 (min over specimens) | specimens with collapsed ESS |",
