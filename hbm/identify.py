@@ -59,7 +59,7 @@ from itertools import combinations
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
-from scipy.interpolate import CubicSpline, make_smoothing_spline
+from scipy.interpolate import PchipInterpolator, make_smoothing_spline
 from scipy.linalg import eigh
 
 from .errors import HbmError
@@ -467,10 +467,16 @@ def identifiable_directions(
 # --------------------------------------------------------------------------------------
 @dataclass
 class VolfT1Manifold:
-    """A fitted VOLF–T1 curve: T1(VOLF) = exp(S(−log(1 − VOLF))), S a natural cubic spline.
+    """A fitted VOLF–T1 curve: T1(VOLF) = exp(S(−log(1 − VOLF))), S a shape-preserving cubic spline.
+
+    S is the piecewise-cubic Hermite interpolant of Fritsch–Carlson (scipy PchipInterpolator):
+    C¹, cubic on every interval, and it never overshoots the knots.  A natural (C²) cubic spline
+    through CMA-ES sweep optima that wander (a specimen whose T1 the data do not fix, so
+    neighbouring windows land on different T1–T2 trade-offs) oscillated between knots by a
+    factor of 5 on the shipped data, which drew a manifold that no optimum supports.
 
     The abscissa −log(1 − VOLF) and the ordinate log T1 make a constant (1 − VOLF)·T1 a
-    straight line, which a natural cubic spline reproduces exactly; in plain (VOLF, T1) or
+    straight line, which the spline reproduces exactly; in plain (VOLF, T1) or
     (VOLF, log T1) coordinates the 1/(1 − VOLF) rise near VOLF → 1 put a 6 % interpolation
     error into (1 − VOLF)·T1 between equally spaced sweep optima (measured), which would be
     mistaken for a departure from the structural manifold.  Any other monotone or
@@ -500,8 +506,7 @@ class VolfT1Manifold:
     def __post_init__(self):
         self.knots_volf = np.asarray(self.knots_volf, float)
         self.knots_log_t1 = np.asarray(self.knots_log_t1, float)
-        self._spline = CubicSpline(-np.log1p(-self.knots_volf), self.knots_log_t1, bc_type="natural",
-                                   extrapolate=False)
+        self._spline = PchipInterpolator(-np.log1p(-self.knots_volf), self.knots_log_t1, extrapolate=False)
 
     @property
     def volf_range(self) -> tuple[float, float]:
@@ -565,7 +570,7 @@ def volf_t1_manifold(
     volf, t1 : array_like (n,)
         CMA-ES sweep optima (one per VOLF sub-range) and/or posterior samples.
     source : {"auto", "points", "samples"}
-        "points": sort by VOLF, average duplicates, natural cubic spline through them
+        "points": sort by VOLF, average duplicates, shape-preserving cubic spline through them
         (interpolating, as in the thesis; ``smooth=True`` uses a GCV smoothing spline
         instead).  "samples": split VOLF into ``n_bins`` equal-count bins, take the median
         VOLF and median log T1 of each bin (medians commute with the monotone VOLF ↦ T1 of a

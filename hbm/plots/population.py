@@ -50,7 +50,7 @@ def manifold_plot(manifolds: Mapping[str, dict], results=None, *, path=None):
     a1.set_xlabel("VOLF c (-)")
     a1.set_ylabel("T1 (MPa, log scale)")
     src = manifolds[ids[0]].get("source", "") if ids else ""
-    a1.set_title(f"VOLF–T1 manifolds (dots: {src}; lines: cubic smoothing spline)", fontsize=9)
+    a1.set_title(f"VOLF–T1 manifolds (dots: {src}; lines: shape-preserving cubic spline)", fontsize=9)
     a1.legend(fontsize=8)
     a2.set_yscale("log")
     a2.set_xlabel("VOLF c (-)")
