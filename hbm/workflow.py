@@ -611,6 +611,46 @@ def _refine_collapsed(cfg: RunConfig, h, collapsed: Sequence[str], datasets, mod
     return {sid: (job.result() if cl is not None else job) for sid, job in jobs.items()}
 
 
+def _fit_population(cfg: RunConfig, stage1: Mapping, names: Sequence[str], bounds, transforms: Mapping,
+                    pooled: Sequence[str], log_prior: Mapping | None = None):
+    """:func:`~hbm.samplers.hierarchical.hierarchical` with the run's settings and its own seed.
+
+    Returns the result and its warnings (raised and kept ones, without repeats).
+    """
+    from .samplers.hierarchical import hierarchical
+
+    # an int seed for the hierarchical layer, independent of the specimen streams
+    seed = int(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN,)).generate_state(1, np.uint64)[0] >> 1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        h = hierarchical(stage1, names, bounds, transforms=transforms, pooled=pooled,
+                         n_samples=int(cfg.hier_samples), seed=seed, progress=cfg.progress,
+                         sd_range=tuple(cfg.hier_sd_range), estimator=cfg.hier_estimator, log_prior=log_prior,
+                         # each ψ evaluation is a (n_ψ × 2d) @ (2d × Σ N_i) product: cap the MH steps per
+                         # stage so the layer stays at tens of seconds for six specimens
+                         tmcmc_options={"max_steps": int(cfg.hier_max_steps)})
+    return h, _unique([str(w.message) for w in caught] + list(h.warnings))
+
+
+def _write_population(cfg: RunConfig, h, out: Path, names: Sequence[str], updated: Mapping[str, np.ndarray],
+                      new_specimen: np.ndarray, pooled_names: Sequence[str], warn_msgs: Sequence[str],
+                      refined: Sequence[str], **attrs):
+    """``<out>/hierarchical.nc`` from a hierarchical result; ``attrs``: the pooling mode's own attributes."""
+    attrs.update({"estimator": cfg.hier_estimator, "log_evidence_parts": h.log_evidence_parts,
+                  "warnings": list(warn_msgs), "refined": list(refined), "ess_summary": h.ess_summary,
+                  "hyperprior": {"mu": "uniform on transformed box",
+                                 "sd": f"loguniform on {tuple(cfg.hier_sd_range)} x mu range"}})
+    hf = io.HierarchicalFile(param_names=list(names), hyper_names=list(h.hyper_names),
+                             hyper_samples=np.asarray(h.hyper_samples), specimen_ids=list(h.specimens),
+                             updated=np.stack([updated[s] for s in h.specimens], axis=1),
+                             new_specimen=np.asarray(new_specimen), log_evidence=float(h.log_evidence),
+                             log_evidence_se=float(h.log_evidence_se),
+                             stages=[dict(s) for s in getattr(h.sampler_result, "stages", [])],
+                             ess=np.array([float(h.ess_summary[s]["min"]) for s in h.specimens]), attrs=attrs,
+                             pooled_names=list(pooled_names))
+    return hf, io.write_hierarchical(hf, out / "hierarchical.nc")
+
+
 def _run_hierarchical_combinations(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], datasets, out: Path,
                                    model, names: list, model_names: list, transforms: dict, cl=None):
     """``--pool combinations``: a population over φ = (log G, log c·P1, log (1−c)·T1), T2, THETA
@@ -626,7 +666,7 @@ def _run_hierarchical_combinations(cfg: RunConfig, results: Mapping[str, io.Spec
     """
     from .combinations import (COMBINATION_PARAMS, combination_features, log_density, sample_conditional,
                                support_hull)
-    from .samplers.hierarchical import auto_pool, hierarchical
+    from .samplers.hierarchical import auto_pool
 
     first = next(iter(results.values()))
     bounds = np.asarray(first.bounds, float)
@@ -658,14 +698,7 @@ def _run_hierarchical_combinations(cfg: RunConfig, results: Mapping[str, io.Spec
     reasons["combinations"] = ("--pool combinations: population over log G, log VOLF*P1, log (1-VOLF)*T1 "
                                f"(exact stage-1 prior density) and {', '.join(extra)}")
     _log(f"pooled (combinations): {', '.join(pooled)}", cfg.progress)
-    seed = int(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN,)).generate_state(1, np.uint64)[0] >> 1)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        h = hierarchical(stage1, aug_names, aug_bounds, transforms=tr, pooled=pooled,
-                         n_samples=int(cfg.hier_samples), seed=seed, progress=cfg.progress,
-                         sd_range=tuple(cfg.hier_sd_range), estimator=cfg.hier_estimator, log_prior=log_prior,
-                         tmcmc_options={"max_steps": int(cfg.hier_max_steps)})
-    warn_msgs = _unique([str(w.message) for w in caught] + list(h.warnings))
+    h, warn_msgs = _fit_population(cfg, stage1, aug_names, aug_bounds, tr, pooled, log_prior)
     n_par = len(names)
     updated = {s: np.asarray(h.updated[s])[:, :n_par] for s in h.specimens}
     collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
@@ -694,29 +727,17 @@ def _run_hierarchical_combinations(cfg: RunConfig, results: Mapping[str, io.Spec
             derived_cols[n] = rng.uniform(lo, hi, pred.shape[0])
     derived = [n for n in model_names if n in derived_cols]
     new = np.column_stack([pred] + [derived_cols[n] for n in derived])
-    updated = np.stack([updated[s] for s in h.specimens], axis=1)
-    ess_min = np.array([float(h.ess_summary[s]["min"]) for s in h.specimens])
-    attrs = {"transforms": tr, "pooled": pooled, "pool_reasons": reasons, "estimator": cfg.hier_estimator,
-             "mode": COMBINATIONS, "derived": derived, "outside_support_fraction": outside_fraction,
-             "bounds": {n: list(map(float, aug_bounds[aug_names.index(n)])) for n in pooled},
-             "log_evidence_parts": h.log_evidence_parts, "warnings": warn_msgs, "refined": collapsed,
-             "ess_summary": h.ess_summary, "hyperprior": {"mu": "uniform on transformed box",
-                                                         "sd": f"loguniform on {tuple(cfg.hier_sd_range)} x mu range"}}
-    hf = io.HierarchicalFile(param_names=names, hyper_names=list(h.hyper_names),
-                             hyper_samples=np.asarray(h.hyper_samples), specimen_ids=list(h.specimens),
-                             updated=updated, new_specimen=new, log_evidence=float(h.log_evidence),
-                             log_evidence_se=float(h.log_evidence_se),
-                             stages=[dict(s) for s in getattr(h.sampler_result, "stages", [])],
-                             ess=ess_min, attrs=attrs, pooled_names=list(h.names) + derived)
-    path = io.write_hierarchical(hf, out / "hierarchical.nc")
-    return hf, path
+    return _write_population(cfg, h, out, names, updated, new, list(h.names) + derived, warn_msgs, collapsed,
+                             transforms=tr, pooled=pooled, pool_reasons=reasons, mode=COMBINATIONS,
+                             derived=derived, outside_support_fraction=outside_fraction,
+                             bounds={n: list(map(float, aug_bounds[aug_names.index(n)])) for n in pooled})
 
 
 def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], datasets, out: Path, model,
                       cl=None):
     """Hyper-posterior, ESS check (+ fresh TMCMC fallback), updated individuals -> hierarchical.nc."""
     from .model import spyrou_model
-    from .samplers.hierarchical import auto_pool, hierarchical
+    from .samplers.hierarchical import auto_pool
 
     model = spyrou_model() if model is None else model
     first = next(iter(results.values()))
@@ -752,35 +773,11 @@ def _run_hierarchical(cfg: RunConfig, results: Mapping[str, io.SpecimenResult], 
         model_names = [n for n in model_names if n in mode]
     transforms = {n: transforms[n] for n in model_names}
     stage1 = {sid: (r.samples, r.log_evidence, r.log_evidence_se) for sid, r in results.items()}
-    # an int seed for the hierarchical layer, independent of the specimen streams
-    seed = int(np.random.SeedSequence(int(cfg.seed), spawn_key=(_HIER_SPAWN,)).generate_state(1, np.uint64)[0] >> 1)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        h = hierarchical(stage1, names, first.bounds, transforms=transforms, pooled=model_names,
-                         n_samples=int(cfg.hier_samples), seed=seed, progress=cfg.progress,
-                         sd_range=tuple(cfg.hier_sd_range), estimator=cfg.hier_estimator,
-                         # each ψ evaluation is a (n_ψ × 2d) @ (2d × Σ N_i) product: cap the MH steps per
-                         # stage so the layer stays at tens of seconds for six specimens
-                         tmcmc_options={"max_steps": int(cfg.hier_max_steps)})
-    warn_msgs = _unique([str(w.message) for w in caught] + list(h.warnings))
+    h, warn_msgs = _fit_population(cfg, stage1, names, first.bounds, transforms, model_names)
     updated = {sid: np.asarray(h.updated[sid]) for sid in h.specimens}
     collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
     updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl))
-    refined = collapsed
-    ess_min = np.array([float(h.ess_summary[s]["min"]) for s in h.specimens])
-    attrs = {"transforms": transforms, "pooled": model_names, "pool_reasons": pool_reasons,
-             "mode": mode if isinstance(mode, str) else "list",
-             "estimator": cfg.hier_estimator,
-             "bounds": {n: list(map(float, first.bounds[names.index(n)])) for n in model_names},
-             "log_evidence_parts": h.log_evidence_parts, "warnings": warn_msgs, "refined": refined,
-             "ess_summary": h.ess_summary, "hyperprior": {"mu": "uniform on transformed box",
-                                                         "sd": f"loguniform on {tuple(cfg.hier_sd_range)} x mu range"}}
-    hf = io.HierarchicalFile(param_names=names, hyper_names=list(h.hyper_names),
-                             hyper_samples=np.asarray(h.hyper_samples), specimen_ids=list(h.specimens),
-                             updated=np.stack([updated[s] for s in h.specimens], axis=1),
-                             new_specimen=np.asarray(h.predictive), log_evidence=float(h.log_evidence),
-                             log_evidence_se=float(h.log_evidence_se),
-                             stages=[dict(s) for s in getattr(h.sampler_result, "stages", [])],
-                             ess=ess_min, attrs=attrs, pooled_names=list(h.names))
-    path = io.write_hierarchical(hf, out / "hierarchical.nc")
-    return hf, path
+    return _write_population(cfg, h, out, names, updated, h.predictive, h.names, warn_msgs, collapsed,
+                             transforms=transforms, pooled=model_names, pool_reasons=pool_reasons,
+                             mode=mode if isinstance(mode, str) else "list",
+                             bounds={n: list(map(float, first.bounds[names.index(n)])) for n in model_names})
