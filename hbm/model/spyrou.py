@@ -165,6 +165,18 @@ def spyrou_model(iso_factor: float = 1.0) -> Model:
     return Model(effects, parameters=BASE_PARAMETERS, name=name)
 
 
+#: Effect ids of the base model, in model order (the detective's removal test and the organ
+#: report ask for them by these names).
+BASE_EFFECTS: tuple[str, ...] = ("matrix", "fibers", "collagen")
+
+#: The combinations a uniaxial curve identifies (DESIGN.md §1): G = c·GF + (1−c)·GM, A_f = c·P1,
+#: A_m = (1−c)·T1 -- the names used in every table, figure and result file.
+COMBINATIONS: tuple[str, ...] = ("G", "VOLF*P1", "(1-VOLF)*T1")
+
+#: Shape parameters that a curve informs directly, reported beside the combinations.
+SHAPE_PARAMETERS: tuple[str, ...] = ("T2", "THETA", "EOPT")
+
+
 def identifiable_combinations(names, theta) -> dict[str, np.ndarray]:
     """G = c·GF + (1−c)·GM, A_f = c·P1 and A_m = (1−c)·T1 from a theta array (..., n_params)."""
     theta = np.asarray(theta, dtype=float)
