@@ -278,16 +278,6 @@ def _specimen_id(data) -> str:
     return str(getattr(data, "attrs", {}).get("id", "specimen"))
 
 
-def _stage_records(stages: Sequence[Mapping]) -> list[dict]:
-    recs = []
-    for s in stages:
-        r = {k: v for k, v in dict(s).items() if isinstance(v, (int, float, bool, np.integer, np.floating))}
-        if "cov" in r and "cov_weights" not in r:
-            r["cov_weights"] = r["cov"]
-        recs.append(r)
-    return recs
-
-
 def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", noise: str = "iid",
                  fix: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
                  seed: int | np.random.SeedSequence = 0, restarts: int = 4, sweep: str | tuple | None = None,
@@ -419,7 +409,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     res = SpecimenResult(
         specimen_id=sid, names=list(lik.names), samples=theta, log_likelihood=np.asarray(tr.log_likelihood, float),
         log_evidence=float(tr.log_evidence), log_evidence_se=float(tr.log_evidence_se),
-        bounds=np.asarray(lik.bounds, float), stages=_stage_records(tr.stages), strain=strain,
+        bounds=np.asarray(lik.bounds, float), stages=list(tr.stages), strain=strain,
         stress=np.asarray(data["stress"].values, float),
         time=np.asarray(data["time"].values, float) if "time" in data else None,
         test=np.asarray(data["test"].values) if "test" in data else None,

@@ -6,9 +6,11 @@ file with groups, written with :class:`xarray.DataTree`):
 ``posterior``             (chain, draw): one variable per free parameter, noise parameters
                           (``sigma`` ...) included.  TMCMC's final population is resampled to
                           equal weights, so it is stored as ONE chain of ``n`` draws.
-``sample_stats``          (chain, stage): ``beta``, ``log_evidence_increment``,
-                          ``acceptance_rate``, ``cov_weights`` (+ ``ess``, ``evaluations``,
-                          ``n_steps`` when the sampler reports them); (chain,):
+``sample_stats``          (chain, stage): one float64 variable per field of the sampler's
+                          :class:`~hbm.samplers.tmcmc.StageInfo` (``beta``,
+                          ``log_evidence_increment``, ``acceptance_rate``, ``cov_weights``,
+                          ``ess``, ``evaluations``, ``n_steps``, ``proposal_scale``, ...;
+                          NaN where a stage did not report it, ``capped`` as 0/1); (chain,):
                           ``log_marginal_likelihood`` and ``log_marginal_likelihood_se``;
                           (chain, draw): ``log_likelihood_sum`` (total log-likelihood per draw).
                           The stage axis never shares the ``draw`` dimension.
@@ -49,6 +51,7 @@ import xarray as xr
 
 from ._version import __version__
 from .errors import HbmError
+from .samplers.tmcmc import StageInfo
 from .utils import atomic_path
 
 __all__ = ["SpecimenResult", "HierarchicalFile", "write_specimen_result", "read_specimen_result",
@@ -70,8 +73,8 @@ G_DIAG = "diagnostics"
 G_MANIFOLD = "manifolds"
 G_COMBOS = "combinations"
 
-STAGE_KEYS = ("beta", "log_evidence_increment", "acceptance_rate", "cov_weights", "ess",
-              "evaluations", "n_steps", "proposal_scale")
+#: per-stage variables of ``sample_stats``: the sampler's stage record is the schema
+STAGE_KEYS = StageInfo._fields
 
 
 def json_default(obj: Any) -> Any:
@@ -110,8 +113,8 @@ class SpecimenResult:
     log_evidence, log_evidence_se : float
     bounds : ndarray (d, 2)
         Prior box of the free parameters.
-    stages : list of dict
-        Per TMCMC stage (keys from the sampler: beta, log_evidence_increment, ...).
+    stages : list of StageInfo (or mappings with a subset of its fields)
+        Per TMCMC stage, as returned by the sampler; read back as :class:`StageInfo`.
     strain, stress : ndarray (p,)
         Observed data; ``time``/``test`` optional.
     pointwise_log_likelihood, predictive, predictive_model : ndarray (n, p) or None
@@ -133,7 +136,7 @@ class SpecimenResult:
     log_evidence: float
     log_evidence_se: float
     bounds: np.ndarray
-    stages: list[dict] = field(default_factory=list)
+    stages: list[StageInfo | Mapping[str, Any]] = field(default_factory=list)
     strain: np.ndarray | None = None
     stress: np.ndarray | None = None
     time: np.ndarray | None = None
@@ -173,6 +176,38 @@ class SpecimenResult:
         return out
 
 
+# ----------------------------------------------------------------------------- stage records
+def _stage_row(s: StageInfo | Mapping[str, Any]) -> Mapping[str, Any]:
+    return s._asdict() if isinstance(s, StageInfo) else s
+
+
+def _add_stage_stats(stats: dict[str, Any], coords: dict[str, Any],
+                     stages: Sequence[StageInfo | Mapping[str, Any]]) -> None:
+    """One (chain, stage) float64 variable per :class:`StageInfo` field into ``stats``.
+
+    A field no stage reports (a mapping from a foreign sampler) is left out; a field some
+    stages lack is NaN there.  Booleans become 0/1.
+    """
+    if not stages:
+        return
+    rows = [_stage_row(s) for s in stages]
+    coords["stage"] = np.arange(len(rows))
+    for key in STAGE_KEYS:
+        vals = [row.get(key) for row in rows]
+        if all(v is None for v in vals):
+            continue
+        arr = np.array([np.nan if v is None else float(np.mean(v)) for v in vals], dtype=float)
+        stats[key] = (("chain", "stage"), arr[None, :])
+
+
+def _read_stage_stats(stats: xr.Dataset) -> list[StageInfo]:
+    """The per-stage variables of a ``sample_stats`` group back as :class:`StageInfo` records."""
+    if "stage" not in stats.dims:
+        return []
+    cols = {k: stats[k].values[0] for k in STAGE_KEYS if k in stats}
+    return [StageInfo.from_record({k: v[i] for k, v in cols.items()}) for i in range(stats.sizes["stage"])]
+
+
 # ----------------------------------------------------------------------------- writing
 def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
     n, d = r.samples.shape
@@ -187,14 +222,7 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
              "log_marginal_likelihood_se": (("chain",), [float(r.log_evidence_se)]),
              "log_likelihood_sum": (("chain", "draw"), np.asarray(r.log_likelihood, float)[None, :])}
     coords = dict(draws)
-    if r.stages:
-        coords["stage"] = np.arange(len(r.stages))
-        for key in STAGE_KEYS:
-            vals = [s.get(key) for s in r.stages]
-            if all(v is None for v in vals):
-                continue
-            arr = np.array([np.nan if v is None else float(np.mean(v)) for v in vals], dtype=float)
-            stats[key] = (("chain", "stage"), arr[None, :])
+    _add_stage_stats(stats, coords, r.stages)
     groups[G_STATS] = xr.Dataset(stats, coords=coords)
 
     if r.stress is not None:
@@ -366,13 +394,11 @@ def read_specimen_result(path: str | os.PathLike) -> SpecimenResult:
     names = [str(v) for v in post.data_vars]
     samples = np.stack([post[nm].values.reshape(-1) for nm in names], axis=1)
     stats = _ds(tree, G_STATS)
-    stages: list[dict] = []
+    stages: list[StageInfo] = []
     loglik = np.full(samples.shape[0], np.nan)
     lz, lz_se = np.nan, np.nan
     if stats is not None:
-        if "stage" in stats.dims:
-            keys = [k for k in STAGE_KEYS if k in stats]
-            stages = [{k: float(stats[k].values[0, i]) for k in keys} for i in range(stats.sizes["stage"])]
+        stages = _read_stage_stats(stats)
         if "log_likelihood_sum" in stats:
             loglik = stats["log_likelihood_sum"].values.reshape(-1)
         lz = float(stats["log_marginal_likelihood"].values[0])
@@ -467,7 +493,8 @@ class HierarchicalFile:
         Parameters with a population distribution (hyper-parameters ``mu_P``, ``sd_P``).
     log_evidence, log_evidence_se : float
         Hyper-evidence log p(all data | hyperprior family).
-    stages : list of dict
+    stages : list of StageInfo (or mappings with a subset of its fields)
+        Per stage of the hyper-level TMCMC; read back as :class:`StageInfo`.
     ess : ndarray (S,) or None
         Minimum per-specimen importance ESS over the hyper-posterior population.
     attrs : dict
@@ -482,7 +509,7 @@ class HierarchicalFile:
     new_specimen: np.ndarray | None = None
     log_evidence: float = float("nan")
     log_evidence_se: float = float("nan")
-    stages: list[dict] = field(default_factory=list)
+    stages: list[StageInfo | Mapping[str, Any]] = field(default_factory=list)
     ess: np.ndarray | None = None
     attrs: dict = field(default_factory=dict)
     complete: bool = True
@@ -503,14 +530,7 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
     stats: dict[str, Any] = {"log_marginal_likelihood": (("chain",), [float(h.log_evidence)]),
                              "log_marginal_likelihood_se": (("chain",), [float(h.log_evidence_se)])}
     coords: dict[str, Any] = {"chain": [0]}
-    if h.stages:
-        coords["stage"] = np.arange(len(h.stages))
-        for key in STAGE_KEYS:
-            vals = [s.get(key) for s in h.stages]
-            if all(v is None for v in vals):
-                continue
-            stats[key] = (("chain", "stage"),
-                          np.array([np.nan if v is None else float(np.mean(v)) for v in vals])[None])
+    _add_stage_stats(stats, coords, h.stages)
     groups[G_STATS] = xr.Dataset(stats, coords=coords)
     if h.updated is not None:
         m = h.updated.shape[0]
@@ -551,9 +571,7 @@ def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
     if stats is not None:
         h.log_evidence = float(stats["log_marginal_likelihood"].values[0])
         h.log_evidence_se = float(stats["log_marginal_likelihood_se"].values[0])
-        if "stage" in stats.dims:
-            keys = [k for k in STAGE_KEYS if k in stats]
-            h.stages = [{k: float(stats[k].values[0, i]) for k in keys} for i in range(stats.sizes["stage"])]
+        h.stages = _read_stage_stats(stats)
     up = _ds(tree, G_UPDATED)
     if up is not None:
         h.updated = np.stack([up[nm].values[0] for nm in params], axis=-1)

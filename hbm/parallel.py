@@ -21,12 +21,12 @@ import os
 import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
 from .errors import HbmError
+from .samplers.tmcmc import checkpoint_progress
 
 __all__ = ["BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
            "checkpoint_status"]
@@ -92,16 +92,11 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
 
 def checkpoint_status(path: str | os.PathLike) -> str | None:
     """``"stage k β=..."`` from a TMCMC checkpoint file, or None if absent/unreadable."""
-    path = Path(path)
-    if not path.is_file():
+    progress = checkpoint_progress(path)
+    if progress is None:
         return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            beta = float(z["scalars"][0])
-            stage = int(z["counters"][0])
-        return f"stage {stage} β={beta:.3g}"
-    except Exception:  # mid-replacement or foreign format: just show nothing
-        return None
+    stage, beta = progress
+    return f"stage {stage} β={beta:.3g}"
 
 
 @dataclass

@@ -645,7 +645,7 @@ def _write_population(cfg: RunConfig, h, out: Path, names: Sequence[str], update
                              updated=np.stack([updated[s] for s in h.specimens], axis=1),
                              new_specimen=np.asarray(new_specimen), log_evidence=float(h.log_evidence),
                              log_evidence_se=float(h.log_evidence_se),
-                             stages=[dict(s) for s in getattr(h.sampler_result, "stages", [])],
+                             stages=list(getattr(h.sampler_result, "stages", [])),
                              ess=np.array([float(h.ess_summary[s]["min"]) for s in h.specimens]), attrs=attrs,
                              pooled_names=list(pooled_names))
     return hf, io.write_hierarchical(hf, out / "hierarchical.nc")

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
 import pytest
+import xarray as xr
 
 from hbm import io
+from hbm.samplers import StageInfo, tmcmc
 
 
 def _result(n=200, p=15, seed=1, complete=True):
@@ -47,7 +50,14 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(back.bounds, r.bounds)
     np.testing.assert_array_equal(back.strain, r.strain)
     assert back.log_evidence == 12.5 and back.log_evidence_se == 0.3
-    assert [s["beta"] for s in back.stages] == [0.0, 0.1, 0.5, 1.0]
+    assert [s.beta for s in back.stages] == [0.0, 0.1, 0.5, 1.0]
+    assert [s.evaluations for s in back.stages] == [100, 200, 300, 400]
+    assert type(back.stages[0].evaluations) is int
+    # fields the stages did not report are NaN on reading and not stored at all
+    assert all(math.isnan(s.proposal_scale) and math.isnan(s.ess) for s in back.stages)
+    stored = xr.open_datatree(path)["sample_stats"].ds
+    assert {v for v in stored.data_vars if "stage" in stored[v].dims} == {
+        "beta", "log_evidence_increment", "acceptance_rate", "cov_weights", "evaluations"}
     assert back.optima[1]["params"]["VOLF"] == 0.8 and back.optima[1]["kind"] == "sweep"
     assert back.optima[1]["window_lower"] == 0.75 and "window_lower" not in back.optima[0]
     assert back.sobol["relevance"]["T1"] == "high" and back.sobol["ST"]["T1"] == 0.8
@@ -57,6 +67,41 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(back.column("EOPT"), 0.192)
     # no temp files left behind
     assert [p.name for p in (tmp_path / "specimens").iterdir()] == ["rat1.nc"]
+
+
+def _stage_columns(stages):
+    """(stage, field) float array of StageInfo records (bool -> 0/1); NaN compares equal below."""
+    return np.array([[float(v) for v in s] for s in stages])
+
+
+@pytest.mark.parametrize("kernel", ["rw", "manifold"])
+def test_sampler_stage_records_round_trip(tmp_path, kernel):
+    """Every StageInfo field the sampler produced is stored under its own name and read back equal."""
+    f = lambda x: -0.5 * x[:, 0] ** 2 - 0.5 * (x[:, 1] - 1.0) ** 2  # noqa: E731
+    gf = lambda x: (-(x - [0.0, 1.0]), np.broadcast_to(np.eye(2), (len(x), 2, 2)).copy())  # noqa: E731
+    res = tmcmc(f, [[-5, 5], [-5, 5]], 200, seed=3, kernel=kernel, gradient_fim=gf, progress=False)
+    assert len(res.stages) >= 2
+    r = _result()
+    r.stages = res.stages
+    path = io.write_specimen_result(r, tmp_path / "rat1.nc")
+    stored = xr.open_datatree(path)["sample_stats"].ds
+    for name in StageInfo._fields:
+        np.testing.assert_array_equal(stored[name].values[0], [float(getattr(s, name)) for s in res.stages],
+                                      err_msg=name)
+    # the proposal scale is stored and it is the adapted one (it moved off its initial 0.2)
+    scales = stored["proposal_scale"].values[0]
+    assert np.all(np.isfinite(scales) & (scales > 0))
+    if kernel == "rw":
+        assert np.any(scales != 0.2)
+    back = io.read_specimen_result(path)
+    assert all(type(s) is StageInfo for s in back.stages)
+    np.testing.assert_array_equal(_stage_columns(back.stages), _stage_columns(res.stages))
+    assert [type(v) for v in back.stages[0]] == [type(v) for v in res.stages[0]]
+    # the hierarchical file stores the same schema
+    h = io.HierarchicalFile(param_names=["a"], hyper_names=["mu_a"], hyper_samples=np.zeros((3, 1)),
+                            specimen_ids=["x"], stages=res.stages)
+    hback = io.read_hierarchical(io.write_hierarchical(h, tmp_path / "hierarchical.nc"))
+    np.testing.assert_array_equal(_stage_columns(hback.stages), _stage_columns(res.stages))
 
 
 def test_incomplete_and_garbage(tmp_path):
@@ -108,6 +153,7 @@ def test_hierarchical_round_trip(tmp_path):
     np.testing.assert_array_equal(back.new_specimen, h.new_specimen)
     assert back.hyper_names == h.hyper_names and back.specimen_ids == ["a", "b", "c"]
     assert back.log_evidence == -3.0 and back.attrs == {"transform": "log"} and back.complete
+    assert [s.beta for s in back.stages] == [0.0, 1.0]
     az = pytest.importorskip("arviz")
     idata = az.from_netcdf(str(path))
     assert "mu_T1" in idata.posterior and idata.updated.sizes["specimen"] == 3

@@ -10,6 +10,7 @@ Analytic truths (uniform prior on the box, likelihood mass entirely inside the b
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -17,7 +18,7 @@ import pytest
 from scipy.stats import norm
 
 from hbm.errors import HbmError
-from hbm.samplers import TMCMCConfig, init, step, tmcmc
+from hbm.samplers import StageInfo, TMCMCConfig, checkpoint_progress, init, step, tmcmc
 
 LOG2PI = math.log(2 * math.pi)
 
@@ -93,9 +94,9 @@ def test_gaussian_9d_evidence_and_moments():
     assert np.max(np.abs(res.samples.mean(axis=0))) < 0.2
     assert np.allclose(res.samples.std(axis=0), 1.0, atol=0.15)
     np.testing.assert_allclose(res.log_likelihood, f(res.samples))
-    assert res.stages[-1]["beta"] == 1.0
-    assert np.all(np.diff([s["beta"] for s in res.stages]) > 0)
-    assert res.n_evaluations == 1000 + sum(s["evaluations"] for s in res.stages)
+    assert res.stages[-1].beta == 1.0
+    assert np.all(np.diff([s.beta for s in res.stages]) > 0)
+    assert res.n_evaluations == 1000 + sum(s.evaluations for s in res.stages)
 
 
 def test_banana_evidence_and_moments():
@@ -134,8 +135,8 @@ def test_manifold_kernel_gaussian_and_banana():
     for (f, b, truth), gf in ((GAUSS9, gauss9_gf), (BANANA, banana_gf)):
         res = tmcmc(f, b, 1000, seed=6, kernel="manifold", gradient_fim=gf, progress=False)
         check_evidence(res, truth)
-        assert all(s["metric_ok"] == 1.0 for s in res.stages)
-        assert 0.2 < np.mean([s["acceptance_rate"] for s in res.stages]) < 0.95
+        assert all(s.metric_ok == 1.0 for s in res.stages)
+        assert 0.2 < np.mean([s.acceptance_rate for s in res.stages]) < 0.95
 
 
 def test_manifold_mh_uses_reverse_metric():
@@ -170,7 +171,7 @@ def test_manifold_falls_back_where_metric_fails():
     res = tmcmc(f, b, 1000, seed=8, kernel="manifold", gradient_fim=gf, progress=False, ridge=1e-3)
     check_evidence(res, truth)
     assert abs(res.samples.var() - 1.0) < 0.15
-    assert all(s["metric_ok"] < 1.0 for s in res.stages[-3:])
+    assert all(s.metric_ok < 1.0 for s in res.stages[-3:])
 
 
 def test_inf_and_nan_likelihood_do_not_break_the_run():
@@ -227,7 +228,9 @@ def test_resume_is_bitwise_identical(tmp_path):
     assert np.array_equal(res.samples, ref.samples)
     assert np.array_equal(res.log_likelihood, ref.log_likelihood)
     assert res.log_evidence == ref.log_evidence and res.log_evidence_se == ref.log_evidence_se
-    assert [s["beta"] for s in res.stages] == [s["beta"] for s in ref.stages]
+    # the stage records of the finished stages travel through the checkpoint with their types
+    np.testing.assert_array_equal(np.array(res.stages, float), np.array(ref.stages, float))
+    assert all(type(s) is StageInfo and type(s.n_steps) is int and type(s.capped) is bool for s in res.stages)
     # a finished checkpoint returns the same result without new evaluations
     again = tmcmc(f, b, 400, seed=21, progress=False, checkpoint=ck)
     assert np.array_equal(again.samples, ref.samples)
@@ -253,21 +256,74 @@ def test_pure_core_matches_driver():
     res = tmcmc(f, b, 200, seed=5, progress=False)
     assert np.array_equal(st.samples, res.samples)
     assert st.log_evidence == res.log_evidence
-    assert abs(sum(i["log_evidence_increment"] for i in infos) - st.log_evidence) < 1e-9
+    assert abs(sum(i.log_evidence_increment for i in infos) - st.log_evidence) < 1e-9
+    # the recorded proposal scale is the adapted scale the state carries into the next stage
+    assert all(type(i) is StageInfo for i in infos) and infos[-1].proposal_scale == st.scale
+    assert [i.proposal_scale for i in infos] == [s.proposal_scale for s in res.stages]
+
+
+def test_checkpoint_progress_mid_run(tmp_path):
+    """Interrupt a run inside stage k + 1; the checkpoint reports k stages and the β of stage k.
+
+    With fixed ``n_steps`` and the logit walk (no box rejections) the likelihood is called once
+    by :func:`init` and once per MH step, so call 1 + n_steps·k + 2 lies inside stage k + 1.
+    """
+    f, b, _ = MIXTURE
+    n_steps, k = 3, 4
+    counted = {"n": 0}
+
+    def counting(x):
+        counted["n"] += 1
+        return f(x)
+
+    ref = tmcmc(counting, b, 300, seed=4, progress=False, n_steps=n_steps)
+    assert counted["n"] == 1 + n_steps * len(ref.stages) and len(ref.stages) > k + 1
+    calls = {"n": 0}
+
+    def flaky(x):
+        calls["n"] += 1
+        if calls["n"] == 1 + n_steps * k + 2:
+            raise Boom("interrupted")
+        return f(x)
+
+    ck = tmp_path / "run.npz"
+    assert checkpoint_progress(ck) is None
+    with pytest.raises(Boom):
+        tmcmc(flaky, b, 300, seed=4, progress=False, n_steps=n_steps, checkpoint=ck)
+    assert checkpoint_progress(ck) == (k, ref.stages[k - 1].beta)
+    from hbm.parallel import checkpoint_status
+    assert checkpoint_status(ck) == f"stage {k} β={ref.stages[k - 1].beta:.3g}"
+    # a checkpoint from before StageInfo (keys "cov", "scale", "stage") still resumes
+    with np.load(ck) as z:
+        arrays = {name: z[name] for name in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    legacy = {"cov_weights": "cov", "proposal_scale": "scale"}
+    meta["stages"] = [{"stage": i + 1, **{legacy.get(key, key): v for key, v in rec.items()}}
+                      for i, rec in enumerate(meta["stages"])]
+    arrays["meta"] = np.array(json.dumps(meta))
+    with open(ck, "wb") as fh:
+        np.savez(fh, **arrays)
+    res = tmcmc(f, b, 300, seed=4, progress=False, n_steps=n_steps, checkpoint=ck)
+    assert res.resumed_from_stage == k and np.array_equal(res.samples, ref.samples)
+    np.testing.assert_array_equal(np.array(res.stages, float), np.array(ref.stages, float))
+    assert checkpoint_progress(ck) == (len(ref.stages), 1.0)
+    bad = tmp_path / "bad.npz"
+    bad.write_text("not a checkpoint")
+    assert checkpoint_progress(bad) is None and checkpoint_status(bad) is None
 
 
 def test_beta_schedule_min_step_and_cap():
     # an enormous likelihood range: must neither hang nor exceed the stage cap
     f = lambda x: -1e12 * np.sum(x * x, axis=1)  # noqa: E731
     res = tmcmc(f, [[-1, 1], [-1, 1]], 200, seed=0, progress=False, max_stages=6, n_steps=2)
-    assert len(res.stages) == 6 and res.stages[-1]["capped"] and res.stages[-1]["beta"] == 1.0
+    assert len(res.stages) == 6 and res.stages[-1].capped and res.stages[-1].beta == 1.0
     # a flat likelihood jumps to beta = 1 in one stage with evidence exactly 0 (+const)
     flat = tmcmc(lambda x: np.full(len(x), 3.0), [[0, 1]], 100, seed=0, progress=False)
     assert len(flat.stages) == 1 and abs(flat.log_evidence - 3.0) < 1e-12
     # the CoV of each regular stage hits the target
     g, b, _ = GAUSS9
     res = tmcmc(g, b, 500, seed=1, progress=False, cov_target=0.5, n_steps=3)
-    assert all(abs(s["cov"] - 0.5) < 1e-6 for s in res.stages[:-1])
+    assert all(abs(s.cov_weights - 0.5) < 1e-6 for s in res.stages[:-1])
 
 
 def test_progress_bar_on_stderr(capsys):
@@ -305,7 +361,7 @@ def test_differential_evolution_kernel_correlated_gaussian(transform):
     np.testing.assert_allclose(np.sqrt(np.diag(c)), sd, rtol=0.08)
     assert abs(c[0, 1] / np.sqrt(c[0, 0] * c[1, 1]) - 0.95) < 0.02
     # DE proposals were made and accepted at a useful rate (γ = 2.38/√(2d) on a Gaussian ≈ 0.3–0.5)
-    acc = np.array([s["de_acceptance"] for s in res.stages])
+    acc = np.array([s.de_acceptance for s in res.stages])
     assert np.all(np.isfinite(acc)) and 0.15 < acc.mean() < 0.8
 
 
@@ -316,9 +372,9 @@ def test_cov_target_default_per_kernel():
     f, b, _ = GAUSS9
     res = tmcmc(f, b, 300, seed=2, progress=False, n_steps=2, cov_target=1.5)
     assert res.config.cov_target == 1.5
-    assert all(abs(s["cov"] - 1.5) < 1e-6 for s in res.stages[:-1])
+    assert all(abs(s.cov_weights - 1.5) < 1e-6 for s in res.stages[:-1])
     old = tmcmc(f, b, 300, seed=2, progress=False, n_steps=2)
-    assert old.config.cov_target == 1.0 and all(abs(s["cov"] - 1.0) < 1e-6 for s in old.stages[:-1])
+    assert old.config.cov_target == 1.0 and all(abs(s.cov_weights - 1.0) < 1e-6 for s in old.stages[:-1])
     assert len(old.stages) > len(res.stages)  # smaller CoV target: more, gentler stages
 
 
@@ -328,7 +384,7 @@ def test_de_fraction_zero_is_the_plain_random_walk():
     a = tmcmc(f, b, 300, seed=3, progress=False)
     c = tmcmc(f, b, 300, seed=3, progress=False, de_fraction=0.0, de_jump=0.5)
     assert np.array_equal(a.samples, c.samples)
-    assert all(math.isnan(s["de_acceptance"]) for s in a.stages)
+    assert all(math.isnan(s.de_acceptance) for s in a.stages)
 
 
 def test_de_pairs_exclude_self_and_are_uniform():
@@ -352,8 +408,8 @@ def test_mixing_criteria_give_correct_evidence(mixing):
     f, b, truth = BANANA
     res = tmcmc(f, b, 1000, seed=13, progress=False, mixing=mixing, mixing_every=2)
     check_evidence(res, truth)
-    assert all(s["n_steps"] >= 2 for s in res.stages)
-    assert all(s["mixing"] <= 0.1 or s["n_steps"] == 100 for s in res.stages)
+    assert all(s.n_steps >= 2 for s in res.stages)
+    assert all(s.mixing <= 0.1 or s.n_steps == 100 for s in res.stages)
 
 
 def test_logit_prior_density_matches_jacobian():

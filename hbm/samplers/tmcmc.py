@@ -5,9 +5,11 @@ The sampler is split blackjax-style into a pure core and a driver:
 * :func:`init` draws the stage-0 population from the uniform prior on a box and evaluates it;
 * :func:`step` performs one tempering stage (choose the next β by a bracketed root find on the
   coefficient of variation of the incremental weights, accumulate the log-evidence, resample,
-  move the population with vectorised Metropolis–Hastings) and returns ``(state, info)``;
+  move the population with vectorised Metropolis–Hastings) and returns ``(state, info)`` with
+  ``info`` a :class:`StageInfo` (whose fields are also the stored per-stage schema of :mod:`hbm.io`);
 * :func:`tmcmc` loops over stages with a tqdm progress bar and an atomic checkpoint after
-  every stage, and returns a :class:`TMCMCResult`.
+  every stage, and returns a :class:`TMCMCResult`; :func:`checkpoint_progress` reads the
+  stage and β of such a checkpoint (progress display of running fits).
 
 Every random number comes from a numpy ``Generator`` whose ``bit_generator.state`` is part of the
 :class:`TMCMCState`, so a run resumed from a checkpoint is bitwise identical to an uninterrupted one.
@@ -27,7 +29,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, Callable, Mapping, NamedTuple, Optional, get_type_hints
 
 import numpy as np
 from scipy.optimize import brentq
@@ -234,6 +236,86 @@ class TMCMCState(NamedTuple):
     rng_state: dict
 
 
+class StageInfo(NamedTuple):
+    """Diagnostics of one tempering stage, as returned by :func:`step`.
+
+    The fields are also the per-stage storage schema: :mod:`hbm.io` writes one
+    ``(chain, stage)`` variable per field, named after it, so a field added here is stored
+    without touching the writer.
+
+    Attributes
+    ----------
+    beta : float
+        Tempering exponent reached by the stage.
+    dbeta : float
+        β increment of the stage.
+    log_evidence_increment : float
+        log mean of the incremental weights (pooled over the islands).
+    log_evidence_increment_var : float
+        Delta-method variance CoV²/N of the increment.
+    cov_weights : float
+        Coefficient of variation of the incremental weights (the quantity the β root find targets).
+    ess : float
+        Effective sample size of the incremental weights.
+    acceptance_rate : float
+        Mean MH acceptance over the stage's steps.
+    de_acceptance : float
+        Acceptance of the differential-evolution proposals (NaN without DE moves).
+    proposal_scale : float
+        Random-walk scale (relative to the population covariance) after the stage's adaptation.
+    epsilon : float
+        Manifold step size after adaptation (NaN for the random walk).
+    n_steps : int
+        MH steps taken.
+    evaluations : int
+        Log-likelihood evaluations (particles) of the MH steps.
+    mixing : float
+        Final value of the decorrelation measure (``TMCMCConfig.mixing``).
+    metric_ok : float
+        Manifold kernel: share of particles whose metric was positive definite (NaN for the
+        random walk).
+    capped : bool
+        The stage cap forced the jump to β = 1.
+    """
+
+    beta: float
+    dbeta: float
+    log_evidence_increment: float
+    log_evidence_increment_var: float
+    cov_weights: float
+    ess: float
+    acceptance_rate: float
+    de_acceptance: float
+    proposal_scale: float
+    epsilon: float
+    n_steps: int
+    evaluations: int
+    mixing: float
+    metric_ok: float
+    capped: bool
+
+    @classmethod
+    def from_record(cls, record: Mapping[str, Any]) -> StageInfo:
+        """Rebuild from a stored row of numbers (netCDF floats, checkpoint JSON).
+
+        Fields missing from ``record`` are NaN (files written before the field existed); int
+        and bool fields get their type back where the stored value is finite.  Keys that are
+        not fields are ignored.
+        """
+        vals = {}
+        for name, typ in _STAGE_TYPES.items():
+            v = float(record.get(name, math.nan))
+            vals[name] = typ(v) if typ in (int, bool) and math.isfinite(v) else v
+        return cls(**vals)
+
+
+#: field -> type of :class:`StageInfo` (resolved once; annotations are strings under PEP 563)
+_STAGE_TYPES = get_type_hints(StageInfo)
+
+#: stage keys of checkpoints written before :class:`StageInfo` (renamed fields)
+_LEGACY_STAGE_KEYS = {"cov": "cov_weights", "scale": "proposal_scale"}
+
+
 @dataclass
 class TMCMCResult:
     """Outcome of :func:`tmcmc`.
@@ -245,9 +327,8 @@ class TMCMCResult:
     log_likelihood : ndarray (n,)
     log_evidence, log_evidence_se : float
         log p(data) under the uniform prior on the box, and its within-run standard error.
-    stages : list of dict
-        Per stage: stage, beta, dbeta, cov, ess, acceptance_rate, log_evidence_increment,
-        log_evidence_increment_var, evaluations, n_steps, scale, epsilon, mixing, capped.
+    stages : list of StageInfo
+        Per-stage diagnostics, one per completed stage.
     n_evaluations : int
         Total log-likelihood evaluations (particles).
     wall_time : float
@@ -261,7 +342,7 @@ class TMCMCResult:
     log_likelihood: np.ndarray
     log_evidence: float
     log_evidence_se: float
-    stages: list
+    stages: list[StageInfo]
     n_evaluations: int
     wall_time: float
     likelihood_time: float
@@ -274,7 +355,7 @@ class TMCMCResult:
 
     @property
     def beta(self) -> np.ndarray:
-        return np.array([s["beta"] for s in self.stages])
+        return np.array([s.beta for s in self.stages])
 
 
 # ----------------------------------------------------------------------------------------
@@ -682,7 +763,7 @@ def init(log_likelihood: LogLikelihood, bounds, config: TMCMCConfig, seed) -> TM
 
 
 def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMCConfig,
-         gradient_fim: Optional[GradientFIM] = None) -> tuple[TMCMCState, dict]:
+         gradient_fim: Optional[GradientFIM] = None) -> tuple[TMCMCState, StageInfo]:
     """One TMCMC stage: next β, evidence increment, resampling, MH moves.
 
     Parameters
@@ -699,8 +780,8 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     Returns
     -------
     state : TMCMCState
-    info : dict
-        Per-stage diagnostics (see :class:`TMCMCResult`).
+    info : StageInfo
+        Per-stage diagnostics.
     """
     bounds = _check_bounds(bounds)
     if state.beta >= 1.0:
@@ -831,14 +912,13 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     new = TMCMCState(x, ll, island_new, beta, log_z_new,
                      state.log_evidence_var + var_inc, state.stage + 1, scale, eps,
                      state.n_evaluations + n_eval, rng.bit_generator.state)
-    info = {
-        "stage": state.stage + 1, "beta": beta, "dbeta": dbeta, "cov": cov, "ess": ess,
-        "acceptance_rate": acc_total / max(n_done, 1), "log_evidence_increment": log_mean_w,
-        "log_evidence_increment_var": var_inc, "evaluations": n_eval, "n_steps": n_done,
-        "scale": scale, "epsilon": eps if config.kernel == "manifold" else float("nan"),
-        "mixing": mix, "metric_ok": metric_ok,
-        "de_acceptance": float(np.mean(acc_de)) if acc_de else float("nan"), "capped": bool(capped),
-    }
+    info = StageInfo(
+        beta=float(beta), dbeta=float(dbeta), log_evidence_increment=float(log_mean_w),
+        log_evidence_increment_var=float(var_inc), cov_weights=float(cov), ess=float(ess),
+        acceptance_rate=acc_total / max(n_done, 1),
+        de_acceptance=float(np.mean(acc_de)) if acc_de else float("nan"), proposal_scale=scale,
+        epsilon=eps if config.kernel == "manifold" else float("nan"), n_steps=n_done,
+        evaluations=int(n_eval), mixing=float(mix), metric_ok=metric_ok, capped=bool(capped))
     return new, info
 
 
@@ -880,7 +960,7 @@ def _fingerprint(config: TMCMCConfig, bounds: np.ndarray, seed) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
-def _save_checkpoint(path: Path, state: TMCMCState, stages: list, fingerprint: str,
+def _save_checkpoint(path: Path, state: TMCMCState, stages: list[StageInfo], fingerprint: str,
                      settings: dict) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:  # file handle: np.savez would append ".npz" to a name
@@ -889,11 +969,12 @@ def _save_checkpoint(path: Path, state: TMCMCState, stages: list, fingerprint: s
                      scalars=np.array([state.beta, state.log_evidence, state.log_evidence_var,
                                        state.scale, state.epsilon]),
                      counters=np.array([state.stage, state.n_evaluations], dtype=np.int64),
-                     meta=np.array(json.dumps({"rng_state": state.rng_state, "stages": stages,
+                     meta=np.array(json.dumps({"rng_state": state.rng_state,
+                                               "stages": [s._asdict() for s in stages],
                                                "fingerprint": fingerprint, "settings": settings})))
 
 
-def _load_checkpoint(path: Path, fingerprint: str) -> tuple[TMCMCState, list]:
+def _load_checkpoint(path: Path, fingerprint: str) -> tuple[TMCMCState, list[StageInfo]]:
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
@@ -906,7 +987,30 @@ def _load_checkpoint(path: Path, fingerprint: str) -> tuple[TMCMCState, list]:
     if meta.get("fingerprint") != fingerprint:
         raise HbmError(f"tmcmc: checkpoint {path} was made with different settings "
                        f"({meta.get('settings')}); delete it or use another path")
-    return state, meta["stages"]
+    stages = [StageInfo.from_record({_LEGACY_STAGE_KEYS.get(k, k): v for k, v in rec.items()})
+              for rec in meta["stages"]]
+    return state, stages
+
+
+def checkpoint_progress(path: str | os.PathLike) -> Optional[tuple[int, float]]:
+    """Progress recorded in a checkpoint written by :func:`tmcmc`.
+
+    Parameters
+    ----------
+    path : path
+        The ``checkpoint`` file of a (possibly running) :func:`tmcmc` call.
+
+    Returns
+    -------
+    (stage, beta) or None
+        Completed stages and the tempering exponent reached; None if the file is absent or
+        unreadable (e.g. being replaced at this moment, or not a checkpoint).
+    """
+    try:
+        with np.load(Path(path), allow_pickle=False) as z:
+            return int(z["counters"][0]), float(z["scalars"][0])
+    except Exception:  # absent, mid-replacement or foreign: no progress to report
+        return None
 
 
 # ----------------------------------------------------------------------------------------
@@ -994,7 +1098,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: int = DEFAULT_N_SAMP
     fp = _fingerprint(config, b, seed)
     settings = {"n_samples": config.n_samples, "kernel": kernel, "seed": repr(seed), "d": len(b)}
     path = Path(checkpoint) if checkpoint is not None else None
-    stages: list = []
+    stages: list[StageInfo] = []
     resumed = 0
     if path is not None and path.exists():
         state, stages = _load_checkpoint(path, fp)
@@ -1022,8 +1126,8 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: int = DEFAULT_N_SAMP
             if bar is not None:
                 bar.update(int(1000 * state.beta) - bar.n)
                 bar.set_postfix_str(f"stage {state.stage} β={state.beta:.3g} "
-                                    f"logZ={state.log_evidence:.2f} acc={info['acceptance_rate']:.2f} "
-                                    f"steps={info['n_steps']}")
+                                    f"logZ={state.log_evidence:.2f} acc={info.acceptance_rate:.2f} "
+                                    f"steps={info.n_steps}")
     finally:
         if bar is not None:
             bar.close()

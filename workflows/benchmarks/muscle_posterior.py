@@ -142,8 +142,8 @@ def run_one(lik, gold, name, kwargs, seed, n_override=None) -> dict:
             "log_evidence_se": res.log_evidence_se,
             "abs_error": abs(res.log_evidence - gold["log_evidence"]),
             "max_mean_err_sd": max(errs.values()), "mean_err_sd": errs,
-            "steps_per_stage": [s["n_steps"] for s in res.stages],
-            "acceptance": [round(s["acceptance_rate"], 3) for s in res.stages]}
+            "steps_per_stage": [s.n_steps for s in res.stages],
+            "acceptance": [round(s.acceptance_rate, 3) for s in res.stages]}
 
 
 def table(rows: list[dict], gold_logz: float) -> str:
