@@ -25,20 +25,15 @@ import numpy as np
 
 from ._version import __version__
 from .errors import HbmError
+from . import seeds
 from .io import SpecimenResult, write_specimen_result
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
-           "posterior_predictive", "parse_sweep", "spawn_seeds", "COMBINATIONS"]
+           "posterior_predictive", "parse_sweep", "COMBINATIONS"]
 
 #: identifiable combinations reported next to the parameters (hbm.model.identifiable_combinations)
 COMBINATIONS = ("G", "VOLF*P1", "(1-VOLF)*T1")
 _LOG2PI = math.log(2 * math.pi)
-
-
-def spawn_seeds(seed: int | np.random.SeedSequence, n: int = 4) -> list[int]:
-    """``n`` independent 63-bit integer seeds spawned from ``SeedSequence(seed)``."""
-    ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(int(seed))
-    return [int(c.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1)) for c in ss.spawn(n)]
 
 
 def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
@@ -349,7 +344,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         raise HbmError(f"samples must be >= 4, got {samples}")
     sid = _specimen_id(data)
     lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds)
-    s_opt, s_tm, s_pred, s_sob = spawn_seeds(seed, 4)
+    s_opt, s_tm, s_pred, s_sob = seeds.child_ints(seed, len(seeds.PHASES))  # the phase streams of hbm.seeds
     sweep_t = parse_sweep(sweep)
     timings: dict[str, float] = {}
     phase = on_phase or (lambda name: None)

@@ -37,7 +37,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from . import io
+from . import io, seeds
 from .errors import HbmError
 from .model.core import Model
 from .organ import (FusiformGeometry, OrganResponse, extrapolation_mask, force_levels, load_geometry,
@@ -50,7 +50,6 @@ __all__ = ["OrganPrediction", "predict_organ", "predict_organ_results", "model_f
 #: quantiles stored for every band (90 % interval and median)
 PROBS = (0.05, 0.5, 0.95)
 _BASE_EFFECTS = ("matrix", "fibers", "collagen")
-_POP_SPAWN = 10_000
 
 
 @dataclass
@@ -325,7 +324,7 @@ def predict_organ_results(specimens: Mapping[str, io.SpecimenResult], geometry: 
     forces : int
         Force levels of the common grid per specimen.
     seed : int
-        Root seed of the subsampling (specimen k in sorted id order uses spawn key (k,)).
+        Root seed of the subsampling (streams ``organ_*`` of :mod:`hbm.seeds`).
     extrapolate : float
         The force grid ends at ``extrapolate`` × the force at which the median posterior draw's
         thinnest section reaches the largest tested strain (>= 1; 1 = no extrapolation).
@@ -374,14 +373,13 @@ def predict_organ_results(specimens: Mapping[str, io.SpecimenResult], geometry: 
         tested = float(np.max(r.strain))
         if not tested > 0:
             raise HbmError(f"specimen {sid}: largest tested strain is {tested:g}; expected > 0")
-        rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(k,)))
+        rng = seeds.rng(int(seed), "organ_posterior", k)
         idx = _subsample(r.n_samples, int(samples), rng)
         theta = theta_from_samples(model, r.names, r.samples[idx], r.fixed)
         d = {"tested": tested, "theta": theta, "f_ext": force_at_tested_strain(model, theta, geometry, tested)}
         if hierarchical is not None and hierarchical.updated is not None and sid in hierarchical.specimen_ids:
             up = hierarchical.updated[:, hierarchical.specimen_ids.index(sid), :]
-            iu = _subsample(up.shape[0], int(samples), np.random.default_rng(
-                np.random.SeedSequence(int(seed), spawn_key=(k, 1))))
+            iu = _subsample(up.shape[0], int(samples), seeds.rng(int(seed), "organ_updated", k))
             d["theta_up"] = theta_from_samples(model, hierarchical.param_names, up[iu], r.fixed)
         if r.optima:
             best = min(float(o["objective"]) for o in r.optima)
@@ -439,8 +437,7 @@ def predict_organ_results(specimens: Mapping[str, io.SpecimenResult], geometry: 
             notes.append("population predictive skipped: the hierarchical layer pooled only "
                          f"{', '.join(hierarchical.pooled_names)}, so a new specimen's other parameters are unknown")
         else:
-            ip = _subsample(th.shape[0], int(samples), np.random.default_rng(
-                np.random.SeedSequence(int(seed), spawn_key=(_POP_SPAWN,))))
+            ip = _subsample(th.shape[0], int(samples), seeds.rng(int(seed), "organ_new_specimen"))
             th = th[ip]
             # a new specimen was never tested: its tested range is the widest of the specimens'
             tested = max(d["tested"] for d in prep.values())

@@ -25,6 +25,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
+from . import seeds
 from .errors import HbmError
 from .samplers.tmcmc import checkpoint_progress
 
@@ -37,10 +38,8 @@ BLAS_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREAD
 
 
 def spawn_specimen_seeds(seed: int, ids) -> dict[str, np.random.SeedSequence]:
-    """One child ``SeedSequence`` per specimen, spawned in sorted-id order."""
-    ids = sorted(ids)
-    children = np.random.SeedSequence(int(seed)).spawn(len(ids))
-    return dict(zip(ids, children))
+    """The ``specimen`` stream of :mod:`hbm.seeds` for each id, numbered in sorted-id order."""
+    return {sid: seeds.stream(int(seed), "specimen", k) for k, sid in enumerate(sorted(ids))}
 
 
 @contextlib.contextmanager

@@ -10,7 +10,8 @@ from conftest import cli_error
 from hbm import io
 from hbm.data import synthetic_specimen
 from hbm.errors import HbmError
-from hbm.fit import fit_specimen, pointwise_log_likelihood, posterior_predictive, spawn_seeds, summarize
+from hbm.fit import fit_specimen, pointwise_log_likelihood, posterior_predictive, summarize
+from hbm.seeds import child_ints
 from hbm.likelihood import make_likelihood
 from hbm.model import identifiable_combinations, spyrou_model
 
@@ -24,10 +25,10 @@ def _specimen(seed=1, n=30, noise="iid", rho=0.0, sid="syn"):
                               attrs={"id": sid})
 
 
-def test_spawn_seeds_deterministic_and_distinct():
-    a, b = spawn_seeds(5), spawn_seeds(5)
+def test_phase_seeds_deterministic_and_distinct():
+    a, b = child_ints(5, 4), child_ints(5, 4)
     assert a == b and len(set(a)) == 4 and all(0 <= x < 2 ** 63 for x in a)
-    assert spawn_seeds(6) != a
+    assert child_ints(6, 4) != a
 
 
 @pytest.mark.parametrize("noise", ["iid", "weighted", "proportional", "ar1"])
