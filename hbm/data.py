@@ -50,6 +50,7 @@ import xarray as xr
 from ._version import __version__
 from .errors import DataError, HbmError
 from .model.core import Loading, Model
+from .noise import make_noise
 from .utils import atomic_path, as_generator
 
 __all__ = [
@@ -540,20 +541,6 @@ def _theta_array(model: Model, theta) -> np.ndarray:
     return arr
 
 
-def _ar1(z: np.ndarray, rho: float, starts: np.ndarray) -> np.ndarray:
-    """AR(1) with unit marginal variance from iid N(0,1) ``z``, restarting where ``starts``."""
-    from scipy.signal import lfilter
-
-    out = np.empty_like(z)
-    idx = np.flatnonzero(starts).tolist() + [z.size]
-    scale = math.sqrt(1.0 - rho * rho)
-    for a, b in zip(idx[:-1], idx[1:]):
-        seg = z[a:b].copy()
-        seg[1:] *= scale  # stationary start: e_0 ~ N(0,1), innovations sd sqrt(1-rho^2)
-        out[a:b] = lfilter([1.0], [1.0, -rho], seg)
-    return out
-
-
 def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float, seed, *,
                        noise: str = "iid", rho: float = 0.0, relative: bool = False,
                        attrs: Mapping[str, Any] | None = None) -> xr.Dataset:
@@ -606,10 +593,9 @@ def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float,
         raise HbmError("synthetic_specimen: the model stress is not finite for these parameters")
     sd = float(noise_sd) * (float(np.max(np.abs(clean))) if relative else 1.0)
     rng = as_generator(seed if not isinstance(seed, (int, np.integer)) else int(seed))
-    z = rng.standard_normal(loading.n_points)
-    if noise == "ar1" and rho != 0.0:
-        z = _ar1(z, float(rho), loading.history_starts)
-    stress = clean + sd * z
+    noise_model = make_noise(noise, history_starts=loading.history_starts)
+    q = np.array([[sd, float(rho)]] if noise == "ar1" else [[sd]])
+    stress = clean + noise_model.simulate(rng, q)[0]
 
     data = {"strain": loading.strain.copy(), "stress": stress}
     if loading.time is not None:

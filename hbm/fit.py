@@ -14,7 +14,6 @@ child 3    Sobol sampling (hbm.sensitivity)
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -33,7 +32,6 @@ __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise
 
 #: identifiable combinations reported next to the parameters (hbm.model.identifiable_combinations)
 COMBINATIONS = ("G", "VOLF*P1", "(1-VOLF)*T1")
-_LOG2PI = math.log(2 * math.pi)
 
 
 def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
@@ -59,53 +57,25 @@ def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
 def pointwise_log_likelihood(likelihood, theta: np.ndarray, model_stress: np.ndarray | None = None) -> np.ndarray:
     """Pointwise log-likelihood (n, p) whose row sums equal ``likelihood(theta)``.
 
-    For AR(1) noise the pointwise terms are the conditional densities of the innovations
-    p(r_t | r_{t-1}) (the exact factorisation of the joint Gaussian), as PSIS-LOO expects.
+    Delegates to the noise model (:meth:`hbm.noise.NoiseModel.pointwise`): for AR(1) noise the
+    pointwise terms are the conditional densities of the innovations p(r_t | r_{t-1}) (the exact
+    factorisation of the joint Gaussian), as PSIS-LOO expects.
     """
     m = likelihood.predict(theta) if model_stress is None else model_stress
-    r = likelihood.observed - m
-    names = list(likelihood.names)
-    if getattr(likelihood, "noise", "iid") == "ar1":
-        s = theta[:, names.index("sigma")][:, None]
-        rho = theta[:, names.index("rho")][:, None]
-        a = (~likelihood.loading.history_starts).astype(float)
-        rprev = np.zeros_like(r)
-        rprev[:, 1:] = r[:, :-1]
-        u = r - rho * a * rprev
-        v = s * s * (1.0 - rho * rho * a)
-        return -0.5 * (_LOG2PI + np.log(v) + u * u / v)
-    sd = likelihood.noise_sd(theta, m) if _accepts_model_stress(likelihood) else likelihood.noise_sd(theta)
-    out = -0.5 * (_LOG2PI + 2 * np.log(sd) + (r / sd) ** 2)
-    if getattr(likelihood, "noise", "") == "weighted":
-        pass  # the weights enter through noise_sd = scale * w_i: already in the density
-    return out
-
-
-def _accepts_model_stress(likelihood) -> bool:
-    import inspect
-
-    try:
-        return "model_stress" in inspect.signature(likelihood.noise_sd).parameters
-    except (TypeError, ValueError):  # pragma: no cover
-        return False
+    return likelihood.noise_model.pointwise(np.asarray(theta, float)[:, likelihood.n_model:], m)
 
 
 def posterior_predictive(likelihood, theta: np.ndarray, seed, model_stress: np.ndarray | None = None
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """(noise-free prediction, noisy replicate), both (n, p), one replicate per posterior draw."""
+    """(noise-free prediction, noisy replicate), both (n, p), one replicate per posterior draw.
+
+    The noise is drawn by the noise model (:meth:`hbm.noise.NoiseModel.simulate`, AR(1)
+    correlation included) from ``numpy.random.default_rng(seed)``; ``model_stress`` must be the
+    prediction at ``theta`` when given.
+    """
     rng = np.random.default_rng(seed)
     m = likelihood.predict(theta) if model_stress is None else model_stress
-    sd = likelihood.noise_sd(theta)
-    z = rng.standard_normal(m.shape)
-    if getattr(likelihood, "noise", "iid") == "ar1":
-        rho = theta[:, list(likelihood.names).index("rho")]
-        starts = likelihood.loading.history_starts
-        innov = np.sqrt(1.0 - rho * rho)
-        # loop over points (not samples): the recursion is sequential along the curve
-        for t in range(1, m.shape[1]):
-            if not starts[t]:
-                z[:, t] = rho * z[:, t - 1] + innov * z[:, t]
-    return m, m + sd * z
+    return m, m + likelihood.noise_model.simulate(rng, np.asarray(theta, float)[:, likelihood.n_model:], m)
 
 
 def _normalise_optima(res: Any, names: Sequence[str], kind: str) -> list[dict]:

@@ -5,30 +5,18 @@ parameters (model order) followed by the noise parameters -- to ``n`` log-likeli
 one call of the model.  Points outside the box, or whose evaluation is not finite, get
 ``-inf`` (never NaN, never an exception), so samplers and optimisers can use it blindly.
 
-Noise models (``r = data − model``)
------------------------------------
-``"iid"``
-    r_i ~ N(0, sigma²) independent (thesis eq. 1.23).  Noise parameter ``sigma`` (MPa).
-``"weighted"``
-    r_i ~ N(0, (scale·σ_e,i)²) with the thesis's weights σ_e,i = max(max|σ_exp|/10, |σ_exp,i|)
-    (eqs. 1.19–1.20).  Noise parameter ``scale`` (dimensionless); its MAP is the weighted
-    least-squares optimum of eq. 1.19.
-``"proportional"``
-    r_i ~ N(0, sigma² + (sigma_rel·|model_i|)²).  Noise parameters ``sigma``, ``sigma_rel``.
-``"ar1"``
-    r follows a stationary AR(1) process along the point order, restarted at the start of each
-    loading history: r_1 ~ N(0, sigma²), r_t = rho·r_{t−1} + u_t, u_t ~ N(0, sigma²(1−rho²)).
-    ``sigma`` is the marginal sd, ``rho`` in [0, 0.99].  The exact likelihood is evaluated
-    through the innovations u_t (vectorised over points and particles).
+Noise models
+------------
+The noise model (``r = data − model``) is an object from :mod:`hbm.noise` (``"iid"``,
+``"weighted"``, ``"proportional"``, ``"ar1"`` or any registered one): it owns the noise
+parameters' box, the marginal sd, the log-likelihood, the simulation and the noise part of the
+gradient/Fisher information.  :class:`Likelihood` handles the parameters and the model calls.
 
 Gradients and Fisher information
 --------------------------------
 :meth:`Likelihood.gradient_fim` returns the exact gradient of the log-likelihood and the
 expected Fisher information of the Gaussian noise model, built from the model Jacobian
-(``model.stress_jacobian``, analytic for the base model).  For a Gaussian with mean m(θ) and
-diagonal variance v(θ): F = Jmᵀ V⁻¹ Jm + ½ Σ_i ∇v_i ∇v_iᵀ / v_i².  For AR(1) the mean part uses
-the whitened Jacobian K_t = J_t − rho·J_{t−1} and the (sigma, rho) block is
-F_σσ = 2n/σ², F_σρ = −2ρ(n−h)/(σ(1−ρ²)), F_ρρ = (n−h)(1+ρ²)/(1−ρ²)² (h = number of histories).
+(``model.stress_jacobian``, analytic for the base model) by the noise model's ``grad_fim``.
 """
 
 from __future__ import annotations
@@ -39,9 +27,14 @@ import numpy as np
 
 from .errors import DataError, HbmError
 from .model.core import Loading, Model
+from .noise import NoiseModel, eq120_weights, get_noise, noise_model_names
 
-NOISE_MODELS = ("iid", "weighted", "proportional", "ar1")
-_LOG2PI = float(np.log(2.0 * np.pi))
+
+def __getattr__(name: str):
+    # NOISE_MODELS is computed on access so that noise models registered later are listed
+    if name == "NOISE_MODELS":
+        return noise_model_names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _dataset_arrays(data) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None, str]:
@@ -80,6 +73,9 @@ class Likelihood:
     model : Model
     data : xarray.Dataset
     noise : str
+        Name of the noise model.
+    noise_model : NoiseModel
+        The noise model bound to this curve (:mod:`hbm.noise`).
     fixed : dict
         Fixed model parameters and their values.
     loading : Loading
@@ -95,8 +91,7 @@ class Likelihood:
                  fix: Mapping[str, float] | None = None,
                  bounds: Mapping[str, tuple[float, float]] | None = None,
                  sigma_bounds: tuple[float, float] | None = None) -> None:
-        if noise not in NOISE_MODELS:
-            raise HbmError(f"noise model must be one of {', '.join(NOISE_MODELS)}, got {noise!r}")
+        noise_cls = get_noise(noise)
         strain, stress, time, test, label = _dataset_arrays(data)
         try:
             self.loading = Loading(strain, time, test)
@@ -104,16 +99,14 @@ class Likelihood:
             raise DataError(f"{label}: {exc}") from None
         self.model = model
         self.data = data
-        self.noise = noise
+        self.noise = noise_cls.name
         self.label = label
         self.observed = stress
         self.n_points = stress.size
-        smax = float(np.max(np.abs(stress)))
-        self.weights = np.maximum(smax / 10.0, np.abs(stress))
+        self.weights = eq120_weights(stress)
         if not np.all(self.weights > 0):
             raise DataError(f"{label}: stress is identically zero; the weights of eq. 1.20 are undefined")
-        self._inv_weights = 1.0 / self.weights
-        self._log_weights_sum = float(np.log(self.weights).sum())
+        self.noise_model: NoiseModel = noise_cls(observed=stress, history_starts=self.loading.history_starts)
 
         names = model.parameter_names
         box = model.bounds.copy()
@@ -146,29 +139,15 @@ class Likelihood:
         self._fixed_row = np.array([fix.get(n, np.nan) for n in names], dtype=float)
         self._model_box = box  # all model parameters (fixed ones keep their box)
 
-        # noise parameters and their boxes
-        hi_sigma = max(0.05, 0.5 * smax)
-        if noise == "iid":
-            nb = {"sigma": (1e-4, hi_sigma)}
-        elif noise == "weighted":
-            nb = {"scale": (1e-4, 10.0)}
-        elif noise == "proportional":
-            nb = {"sigma": (1e-4, hi_sigma), "sigma_rel": (0.0, 0.5)}
-        else:
-            nb = {"sigma": (1e-4, hi_sigma), "rho": (0.0, 0.99)}
-        first = next(iter(nb))
-        if sigma_bounds is not None:
-            lo, hi = map(float, sigma_bounds)
-            if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
-                raise HbmError(f"sigma_bounds: need 0 < LO < HI, got {lo}:{hi}")
-            nb[first] = (lo, hi)
+        nb = self.noise_model.box(sigma_bounds)
+        clash = [p for p in nb if p in names]
+        if clash:
+            raise HbmError(f"noise model {self.noise!r}: parameter(s) {', '.join(clash)} "
+                           "clash with model parameters")
         self.noise_names = tuple(nb)
         self.names = self.model_names + self.noise_names
         self.bounds = np.vstack([box[self.free_index].reshape(-1, 2), np.array(list(nb.values()), float)])
         self.d = len(self.names)
-        starts = self.loading.history_starts
-        self._cont = (~starts).astype(float)  # a_t: 1 where the AR(1) continues from t−1
-        self._n_hist = int(starts.sum())
 
     # -- parameter handling ----------------------------------------------------------------
     def __repr__(self) -> str:
@@ -219,16 +198,16 @@ class Likelihood:
         return ((theta >= self.bounds[:, 0]) & (theta <= self.bounds[:, 1])).all(axis=1)
 
     def noise_sd(self, theta, model_stress: np.ndarray | None = None) -> np.ndarray:
-        """Marginal noise sd per point, (n, n_points)."""
+        """Marginal noise sd per point, (n, n_points).
+
+        ``model_stress`` (the prediction at ``theta``) is used by noise models whose sd depends
+        on it; it is computed when needed and not given.
+        """
         theta, _ = self._as2d(theta)
-        q = theta[:, self.n_model:]
-        n = theta.shape[0]
-        if self.noise in ("iid", "ar1"):
-            return np.broadcast_to(q[:, :1], (n, self.n_points)).copy()
-        if self.noise == "weighted":
-            return q[:, :1] * self.weights
-        m = self.predict(theta) if model_stress is None else model_stress
-        return np.sqrt(q[:, :1] ** 2 + (q[:, 1:2] * m) ** 2)
+        m = model_stress
+        if m is None and self.noise_model.needs_model_stress:
+            m = self.predict(theta)
+        return self.noise_model.sd(theta[:, self.n_model:], m)
 
     # -- log-likelihood ----------------------------------------------------------------------
     def __call__(self, theta) -> np.ndarray:
@@ -244,54 +223,14 @@ class Likelihood:
             return out[0] if single else out
         with np.errstate(all="ignore"):
             m = self.model.stress(self.loading, self.model_theta(sub))
-            val = self._loglik(sub, m)
+            # overwrite: m is a temporary of ours, the residual may reuse its memory
+            val = self.noise_model.loglik(sub[:, self.n_model:], m, overwrite=True)
         val = np.where(np.isfinite(val), val, -np.inf)  # NaN/inf from the model -> -inf
         if sub is theta:
             out = val
         else:
             out[ok] = val
         return out[0] if single else out
-
-    def _loglik(self, theta: np.ndarray, m: np.ndarray) -> np.ndarray:
-        npt = self.n_points
-        q = theta[:, self.n_model:]
-        if self.noise == "iid":
-            r = np.subtract(self.observed, m, out=m)  # in place: m is a temporary of ours
-            s = q[:, 0]
-            ssr = np.einsum("ij,ij->i", r, r)
-            return -0.5 * npt * _LOG2PI - npt * np.log(s) - 0.5 * ssr / (s * s)
-        if self.noise == "weighted":
-            s = q[:, 0]
-            z = np.subtract(self.observed, m, out=m)
-            z *= self._inv_weights
-            ssr = np.einsum("ij,ij->i", z, z)
-            return (-0.5 * npt * _LOG2PI - npt * np.log(s) - self._log_weights_sum
-                    - 0.5 * ssr / (s * s))
-        r = self.observed - m
-        if self.noise == "proportional":
-            v = q[:, :1] ** 2 + (q[:, 1:2] * m) ** 2
-            return -0.5 * (npt * _LOG2PI + np.log(v).sum(axis=1) + (r * r / v).sum(axis=1))
-        # ar1: innovations u_t = r_t − rho·a_t·r_{t−1}, var_t = sigma²(1 − rho²·a_t); the sums
-        # over t split into history starts (a=0) and continued points (a=1), so only (n,) work
-        # remains after one pass over u
-        s, rho = q[:, 0], q[:, 1]
-        u = r.copy()
-        u[:, 1:] -= (rho[:, None] * self._cont[1:]) * r[:, :-1]
-        u2 = u * u
-        start_ss = u2 @ (1.0 - self._cont)
-        cont_ss = u2.sum(axis=1) - start_ss
-        w = 1.0 - rho * rho
-        nc = npt - self._n_hist
-        return -0.5 * (npt * _LOG2PI + 2.0 * npt * np.log(s) + nc * np.log(w)
-                       + (start_ss + cont_ss / w) / (s * s))
-
-    def _ar1_innovations(self, r, s, rho):
-        a = self._cont
-        rprev = np.zeros_like(r)
-        rprev[:, 1:] = r[:, :-1]
-        u = r - rho * a * rprev
-        v = s * s * (1.0 - rho * rho * a)
-        return u, v
 
     def log_density(self, theta) -> np.ndarray:
         """Alias of ``__call__`` (the uniform prior adds only a constant on the box)."""
@@ -339,74 +278,12 @@ class Likelihood:
         with np.errstate(all="ignore"):
             m = self.model.stress(self.loading, full)
             jac = self.model.stress_jacobian(self.loading, full)[..., self.free_index]  # (n, P, k)
-            g, f = self._grad_fim(t, m, jac)
+            g, f = self.noise_model.grad_fim(t[:, self.n_model:], m, jac)
         bad = ~(np.isfinite(g).all(1) & np.isfinite(f).all((1, 2)))
         g[bad] = np.nan
         f[bad] = np.nan
         grad[ok], fim[ok] = g, f
         return grad, fim
-
-    def _grad_fim(self, t, m, jac):
-        n, d, k, P = t.shape[0], self.d, self.n_model, self.n_points
-        r = self.observed - m
-        q = t[:, k:]
-        g = np.zeros((n, d))
-        f = np.zeros((n, d, d))
-        if self.noise == "ar1":
-            s, rho = q[:, :1], q[:, 1:2]
-            a = self._cont
-            u, v = self._ar1_innovations(r, s, rho)
-            jprev = np.zeros_like(jac)
-            jprev[:, 1:] = jac[:, :-1]
-            kk = jac - (rho * a)[..., None] * jprev  # whitened Jacobian K_t
-            w = u / v
-            g[:, :k] = np.einsum("np,npk->nk", w, kk)
-            rprev = np.zeros_like(r)
-            rprev[:, 1:] = r[:, :-1]
-            z = u * u / v
-            g[:, k] = ((z - 1.0).sum(axis=1)) / s[:, 0]
-            g[:, k + 1] = (w * a * rprev).sum(axis=1) + ((z - 1.0) / v * (-rho * a * s * s)).sum(axis=1)
-            a = kk / np.sqrt(v)[..., None]
-            f[:, :k, :k] = np.matmul(np.swapaxes(a, 1, 2), a)
-            nc = P - self._n_hist  # number of continued (t ≥ 2) points
-            s0, r0 = s[:, 0], rho[:, 0]
-            f[:, k, k] = 2.0 * P / (s0 * s0)
-            f[:, k, k + 1] = f[:, k + 1, k] = -2.0 * r0 * nc / (s0 * (1.0 - r0 * r0))
-            f[:, k + 1, k + 1] = nc * (1.0 + r0 * r0) / (1.0 - r0 * r0) ** 2
-            return g, f
-        # diagonal Gaussian: mean m (depends on the k model parameters only) and variance v
-        # (depends on the noise parameters, and for "proportional" on the model parameters too)
-        if self.noise == "iid":
-            v = np.broadcast_to(q[:, :1] ** 2, (n, P))
-        elif self.noise == "weighted":
-            v = q[:, :1] ** 2 * self.weights ** 2
-        else:
-            s, sr = q[:, :1], q[:, 1:2]
-            v = s * s + (sr * m) ** 2
-        iv = 1.0 / v
-        # mean part: Jᵀ V⁻¹ r and Jᵀ V⁻¹ J as batched matmuls (einsum with three operands is slow)
-        g[:, :k] = np.matmul((r * iv)[:, None, :], jac)[:, 0, :]
-        a = jac * np.sqrt(iv)[..., None]
-        f[:, :k, :k] = np.matmul(np.swapaxes(a, 1, 2), a)
-        # variance part: ½ Σ (r²/v² − 1/v) ∇v and ½ Σ ∇v ∇vᵀ / v²
-        c = 0.5 * (r * r * iv * iv - iv)
-        if self.noise == "iid":
-            sg = q[:, 0]
-            g[:, k] = (c * 2.0 * sg[:, None]).sum(axis=1)
-            f[:, k, k] = 2.0 * P / (sg * sg)
-        elif self.noise == "weighted":
-            sg = q[:, 0]
-            g[:, k] = (c * 2.0 * sg[:, None] * self.weights ** 2).sum(axis=1)
-            f[:, k, k] = 2.0 * P / (sg * sg)
-        else:
-            jv = np.empty((n, P, d))
-            jv[..., :k] = (2.0 * sr * sr * m)[..., None] * jac
-            jv[..., k] = 2.0 * s
-            jv[..., k + 1] = 2.0 * sr * m * m
-            g += np.matmul(c[:, None, :], jv)[:, 0, :]
-            b = jv * (iv / np.sqrt(2.0))[..., None]
-            f += np.matmul(np.swapaxes(b, 1, 2), b)
-        return g, f
 
     # -- unit-box transforms (optimisers) ----------------------------------------------------
     def to_unit(self, theta) -> np.ndarray:
@@ -437,8 +314,9 @@ def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str,
         Constitutive model (``model.stress`` receives the specimen's :class:`Loading`).
     data : xarray.Dataset
         Variables ``strain``, ``stress`` (MPa) along dim ``point``; optional ``time``, ``test``.
-    noise : {"iid", "weighted", "proportional", "ar1"}
-        Noise model (see the module docstring).
+    noise : str
+        Name of a registered noise model: "iid", "weighted", "proportional", "ar1" (see
+        :mod:`hbm.noise`) or one added with :func:`hbm.noise.register_noise`.
     fix : dict, optional
         ``{name: value}`` model parameters held fixed (removed from the free set).
     bounds : dict, optional

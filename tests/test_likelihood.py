@@ -262,3 +262,39 @@ def test_history_effects_see_the_loading_path_and_fd_jacobian_fallback():
     g, _ = lik.gradient_fim(row[None])
     fd = _fd_grad(lik, row, rel=1e-5)
     np.testing.assert_allclose(g[0], fd, rtol=2e-3, atol=1e-4 * np.abs(fd).max())
+
+
+def test_noise_model_object_names_and_sd():
+    from hbm.likelihood import NOISE_MODELS
+    from hbm.noise import AR1Noise
+
+    assert NOISE_MODELS[:4] == ("iid", "weighted", "proportional", "ar1")
+    ds = _dataset()
+    lik = make_likelihood(MODEL, ds, noise="ar1")
+    assert lik.noise == "ar1" and isinstance(lik.noise_model, AR1Noise)
+    assert lik.noise_names == ("sigma", "rho") and lik.names[-2:] == ("sigma", "rho")
+    # the proportional sd needs the model stress: computed when not given
+    prop = make_likelihood(MODEL, ds, noise="proportional")
+    row = _row("proportional")
+    m = MODEL.stress(STRAIN, TRUTH)
+    expect = np.sqrt(0.003 ** 2 + (0.05 * m) ** 2)
+    np.testing.assert_allclose(prop.noise_sd(row[None])[0], expect, rtol=1e-13)
+    np.testing.assert_allclose(prop.noise_sd(row[None], m[None])[0], expect, rtol=1e-13)
+
+
+def test_noise_parameter_names_must_not_clash_with_model_parameters():
+    from hbm.noise import NOISE_REGISTRY, IidNoise, register_noise
+
+    class Clash(IidNoise):
+        name = "test_clash"
+        names = ("VOLF",)
+
+        def default_box(self):
+            return {"VOLF": (1e-4, 1.0)}
+
+    register_noise(Clash)
+    try:
+        with pytest.raises(HbmError, match="VOLF.*clash"):
+            make_likelihood(MODEL, _dataset(), noise="test_clash")
+    finally:
+        NOISE_REGISTRY.pop("test_clash")
