@@ -23,9 +23,9 @@ from .fit import FitResult, fit_specimen
 from .workflow import RunConfig, run_workflow
 from .organ_report import predict_organ
 from . import data, effects, io, organ
-# Bound last on purpose: these functions shadow their same-named submodules as attributes of
-# the package (``hbm.optimize`` is the function); ``from hbm.optimize import ...`` still works.
-from .optimize import OptimizeResult, optimize
+from .optimization import OptimizeResult, optimize
+# Bound last on purpose: ``diagnose`` shadows its same-named submodule as an attribute of the
+# package (``hbm.diagnose`` is the function); ``from hbm.diagnose import ...`` still works.
 from .diagnose import Diagnosis, diagnose, extend
 
 __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "spyrou_model",

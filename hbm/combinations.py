@@ -47,6 +47,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .errors import HbmError
+from .model import COMBINATIONS
+from .utils import as_generator
 
 __all__ = ["COMBINATION_PARAMS", "FEATURES", "combination_box", "combination_features", "log_density",
            "support_hull", "sample_conditional", "to_features"]
@@ -55,7 +57,7 @@ __all__ = ["COMBINATION_PARAMS", "FEATURES", "combination_box", "combination_fea
 COMBINATION_PARAMS = ("VOLF", "P1", "T1", "GF", "GM")
 #: names of the combinations (natural units; the features φ are their logs), as in
 #: :func:`hbm.model.spyrou.identifiable_combinations`
-FEATURES = ("G", "VOLF*P1", "(1-VOLF)*T1")
+FEATURES = COMBINATIONS
 
 
 # --------------------------------------------------------------------------------------
@@ -271,8 +273,6 @@ def sample_conditional(phi, bounds, rng, names: Sequence[str] | None = None, *, 
     ndarray (n, 5)
         Columns :data:`COMBINATION_PARAMS`; their combinations reproduce φ to rounding.
     """
-    from .utils import as_generator
-
     rng = as_generator(rng)
     phi = _check_phi(phi)
     box = combination_box(bounds, names)

@@ -523,7 +523,7 @@ def _cma(lik, x0s: Sequence[np.ndarray], sigma0: float, seed: int, maxfevals: in
 def _global_fit(lik, seed: int, restarts: int) -> tuple[np.ndarray, float]:
     """Global fit of a fresh likelihood: hbm.optimize if available, else our CMA restarts."""
     try:
-        from .optimize import optimize as _opt
+        from .optimization import optimize as _opt
     except ImportError:
         _opt = None
     if _opt is not None:

@@ -22,16 +22,19 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from . import sensitivity as _sens
 from ._version import __version__
 from .errors import HbmError
 from . import seeds
 from .io import SpecimenResult, write_specimen_result
+from .likelihood import make_likelihood
+from .model import COMBINATIONS, identifiable_combinations, spyrou_model
+from .optimization import optimize as _cma
+from .samplers import tmcmc as _tmcmc
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "COMBINATIONS"]
 
-#: identifiable combinations reported next to the parameters (hbm.model.identifiable_combinations)
-COMBINATIONS = ("G", "VOLF*P1", "(1-VOLF)*T1")
 
 
 def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
@@ -110,9 +113,7 @@ def _normalise_optima(res: Any, names: Sequence[str], kind: str) -> list[dict]:
 
 
 def run_optima(likelihood, *, restarts: int, seed: int, sweep: tuple[str, float] | None, **options) -> list[dict]:
-    """CMA-ES restarts (+ an optional bound sweep) through :func:`hbm.optimize.optimize`."""
-    from .optimize import optimize as _cma
-
+    """CMA-ES restarts (+ an optional bound sweep) through :func:`hbm.optimization.optimize`."""
     names = list(likelihood.names)
     optima = _normalise_optima(_cma(likelihood, restarts=restarts, seed=seed, **options), names, "restart")
     if sweep is not None:
@@ -127,8 +128,6 @@ def run_sobol(model, data, *, n: int, seed: int, fix=None, bounds=None, qoi: str
     The QoI is log W (the energy on a log scale): its estimator is stable at N = 1024 where the
     raw energy's is not (see :mod:`hbm.sensitivity`).
     """
-    from . import sensitivity as _sens
-
     res = _sens.sobol(model, data=data, n=n, seed=seed, fix=fix, bounds=bounds, qoi=qoi, per_point=True)
     out: dict[str, Any] = {k: {str(a): float(b) for a, b in getattr(res, k).items()}
                            for k in ("S1", "ST", "S1_conf", "ST_conf")}
@@ -153,8 +152,6 @@ def summarize(result: SpecimenResult, *, prob: float = 0.9) -> dict[str, dict[st
         ``{name: {"mean", "sd", "lower", "upper", "median"}}``; parameters first, then the
         identifiable combinations (when the model has VOLF, P1, T1, GF, GM).
     """
-    from .model import identifiable_combinations
-
     cols = result.as_dict()
     q = [(1 - prob) / 2, 0.5, (1 + prob) / 2]
     out: dict[str, dict[str, float]] = {}
@@ -287,7 +284,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     tmcmc_options : dict, optional
         Extra keyword arguments for :func:`hbm.samplers.tmcmc` (n_steps, max_stages, ...).
     optimize_options : dict, optional
-        Extra keyword arguments for :func:`hbm.optimize.optimize`; default
+        Extra keyword arguments for :func:`hbm.optimization.optimize`; default
         ``{"maxfevals": 5000}`` per CMA-ES run (the optima only seed figures and the manifold;
         an unlimited budget costs minutes per specimen for no visible gain).
     sigma_bounds : (lo, hi), optional
@@ -302,10 +299,6 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     -------
     FitResult
     """
-    from .likelihood import make_likelihood
-    from .model import spyrou_model
-    from .samplers import tmcmc as _tmcmc
-
     t_start = time.perf_counter()
     model = spyrou_model() if model is None else model
     if kernel not in ("rw", "manifold"):

@@ -63,6 +63,7 @@ from scipy.interpolate import PchipInterpolator, make_smoothing_spline
 from scipy.linalg import eigh
 
 from .errors import HbmError
+from .model import COMBINATIONS
 
 __all__ = [
     "IdentifiabilityReport",
@@ -78,10 +79,11 @@ __all__ = [
 # (a) identifiable directions
 # --------------------------------------------------------------------------------------
 def _default_candidates() -> dict[str, tuple[tuple[str, ...], Callable[[Mapping[str, np.ndarray]], np.ndarray]]]:
+    _, fibers, collagen = COMBINATIONS  # "VOLF*P1", "(1-VOLF)*T1"
     return {
-        "(1-VOLF)*T1": (("VOLF", "T1"), lambda c: (1.0 - c["VOLF"]) * c["T1"]),
-        "(1-VOLF)*T1*T2": (("VOLF", "T1", "T2"), lambda c: (1.0 - c["VOLF"]) * c["T1"] * c["T2"]),
-        "VOLF*P1": (("VOLF", "P1"), lambda c: c["VOLF"] * c["P1"]),
+        collagen: (("VOLF", "T1"), lambda c: (1.0 - c["VOLF"]) * c["T1"]),
+        f"{collagen}*T2": (("VOLF", "T1", "T2"), lambda c: (1.0 - c["VOLF"]) * c["T1"] * c["T2"]),
+        fibers: (("VOLF", "P1"), lambda c: c["VOLF"] * c["P1"]),
         "VOLF*GF+(1-VOLF)*GM": (("VOLF", "GF", "GM"), lambda c: c["VOLF"] * c["GF"] + (1.0 - c["VOLF"]) * c["GM"]),
     }
 

@@ -38,7 +38,9 @@ import numpy as np
 import xarray as xr
 
 from . import io, seeds
+from .effects import REGISTRY, make_effect
 from .errors import HbmError
+from .model import BASE_EFFECTS, spyrou_model
 from .model.core import Model
 from .organ import (FusiformGeometry, OrganResponse, extrapolation_mask, force_levels, load_geometry,
                     nominal_stress, organ_response, theta_from_samples)
@@ -49,7 +51,6 @@ __all__ = ["OrganPrediction", "predict_organ", "predict_organ_results", "model_f
 
 #: quantiles stored for every band (90 % interval and median)
 PROBS = (0.05, 0.5, 0.95)
-_BASE_EFFECTS = ("matrix", "fibers", "collagen")
 
 
 @dataclass
@@ -97,17 +98,13 @@ def model_for_results(results: Mapping[str, io.SpecimenResult], model: Model | N
     """
     if model is not None:
         return model
-    from .model import spyrou_model
-
     sets = {sid: tuple(r.effects) for sid, r in results.items()}
     if len(set(sets.values())) > 1:
         raise HbmError("specimens were fitted with different models: "
                        + "; ".join(f"{k}: {', '.join(v)}" for k, v in sorted(sets.items())))
-    extra = [e for e in next(iter(sets.values()), ()) if e not in _BASE_EFFECTS]
+    extra = [e for e in next(iter(sets.values()), ()) if e not in BASE_EFFECTS]
     if not extra:
         return spyrou_model()
-    from .effects import REGISTRY, make_effect
-
     unknown = [e for e in extra if e not in REGISTRY]
     if unknown:
         raise HbmError(f"the specimens were fitted with effect(s) {', '.join(unknown)} that are not in the "
@@ -458,9 +455,12 @@ def predict_organ_results(specimens: Mapping[str, io.SpecimenResult], geometry: 
         out = Path(out)
         if figures:
             t = time.perf_counter()
-            from .plots.organ import organ_figures
+            from .plots.organ import organ_figures  # matplotlib: loaded only when figures are drawn
 
-            pred.figures = organ_figures(organ, out / "figures", optima_specimen=optima_specimen)
+            comparison = {sid: (optima_difference(c["optima"])[0], optima_spread(c["optima"]))
+                          for sid, c in organ.curves.items() if "optima" in c and c["optima"].sizes["optimum"] >= 1}
+            pred.figures = organ_figures(organ, out / "figures", optima_specimen=optima_specimen,
+                                         optima_comparison=comparison)
             timings["figures"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
         organ.attrs["timings"] = timings

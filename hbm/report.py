@@ -1,9 +1,13 @@
 """Markdown report of a workflow run (``<out>/report.md``).
 
-Sections: run settings, timings, one table per specimen (posterior mean, sd, 90 % interval,
-log-evidence ± SE, automatically detected identified directions, manifold), identifiable
-combinations across specimens, population estimates (hierarchical layer), specimen variability,
-then any ``extra_sections`` (hooks ``f(workflow_result) -> markdown``, e.g. organ predictions).
+The report is :data:`SECTIONS`, one function per heading, each ``f(workflow_result, base) ->
+markdown`` ("" leaves the section out): title, run settings, timings, one subsection per
+specimen (posterior mean, sd, 90 % interval, log-evidence ± SE, automatically detected
+identified directions, manifold, Sobol), identifiable combinations across specimens, VOLF–T1
+manifolds compared, population estimates (hierarchical layer), specimen variability, figures
+across specimens; then any ``extra_sections`` (hooks ``f(workflow_result) -> markdown``, e.g.
+organ predictions).  Numbers come from :mod:`hbm.views` and :func:`hbm.fit.summarize`; the
+report draws nothing.
 """
 
 from __future__ import annotations
@@ -11,14 +15,18 @@ from __future__ import annotations
 import datetime as _dt
 import os
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ._version import __version__
+from .fit import summarize
+from .identify import compare_manifolds
+from .model import COMBINATIONS, SHAPE_PARAMETERS
 from .utils import atomic_write_text
+from .views import population_table, quantity_samples, specimen_variability
 
-__all__ = ["render_report", "write_report", "fmt"]
+__all__ = ["render_report", "write_report", "fmt", "SECTIONS"]
 
 
 def fmt(x: float, digits: int = 4) -> str:
@@ -41,25 +49,21 @@ def _rel(path: Path, base: Path) -> str:
         return str(path)
 
 
-def render_report(wres, *, base: Path | None = None,
-                  extra_sections: Sequence[Callable] | None = None) -> str:
-    """The Markdown text for a :class:`hbm.workflow.WorkflowResult`."""
-    from .fit import COMBINATIONS, summarize
-    from .workflow import population_table, quantity_samples, specimen_variability
-
-    cfg = wres.config
-    base = Path(base or wres.out)
-    results = wres.results
-    ids = sorted(results)
-    t = wres.timings
-    parts = [f"# hbm run report\n\nGenerated {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M UTC} by hbm "
-             f"{__version__}. {len(ids)} specimens from `{cfg.data}`"
-             + (f"; {len(wres.skipped)} reused from a previous run ({', '.join(wres.skipped)})" if wres.skipped else "")
-             + "."]
+def _header(wres, base: Path) -> str:
+    """Title line: date, version, specimens, reused ones; the failed specimens."""
+    ids = sorted(wres.results)
+    txt = (f"# hbm run report\n\nGenerated {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M UTC} by hbm "
+           f"{__version__}. {len(ids)} specimens from `{wres.config.data}`"
+           + (f"; {len(wres.skipped)} reused from a previous run ({', '.join(wres.skipped)})" if wres.skipped else "")
+           + ".")
     if wres.errors:
-        parts.append("**Failed specimens:**\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in sorted(wres.errors.items())))
+        txt += "\n\n**Failed specimens:**\n\n" + "\n".join(f"- `{k}`: {v}" for k, v in sorted(wres.errors.items()))
+    return txt
 
-    # ---- settings
+
+def _settings(wres, base: Path) -> str:
+    """## Run settings: the RunConfig options that shape the results."""
+    cfg = wres.config
     rows = [("samples (TMCMC N)", cfg.samples), ("kernel", cfg.kernel), ("noise model", cfg.noise),
             ("seed", cfg.seed), ("workers", cfg.workers if cfg.workers is not None else "all cores"),
             ("scheduler", cfg.scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS") or "embedded LocalCluster"),
@@ -68,178 +72,222 @@ def render_report(wres, *, base: Path | None = None,
             ("fixed", cfg.fix or "none"), ("narrowed bounds", cfg.bounds or "none"),
             ("hierarchical samples", cfg.hier_samples if cfg.hierarchical else "off"),
             ("quick", "yes" if cfg.quick else "no")]
-    parts.append("## Run settings\n\n" + _table(["setting", "value"], rows))
+    return "## Run settings\n\n" + _table(["setting", "value"], rows)
 
-    # ---- timings
+
+def _timings(wres, base: Path) -> str:
+    """## Timings: wall time of each phase, CPU sums over the specimen tasks."""
+    t = wres.timings
     reused = list(getattr(wres, "skipped", []) or [])
     fit_label = "specimen fits (parallel phase, wall)"
     if reused:  # a resumed/re-run workflow: the fits' own times come from their stored results
-        fit_label += f"; {len(reused)} of {len(ids)} reused from an earlier run"
+        fit_label += f"; {len(reused)} of {len(wres.results)} reused from an earlier run"
     trow = [(fit_label, t.get("specimens_wall"))]
     for ph, lab in (("cmaes", "CMA-ES"), ("tmcmc", "TMCMC"), ("predictive", "posterior predictive"),
                     ("sobol", "Sobol")):
         trow.append((f"{lab} (sum over specimens, in tasks{', as stored' if reused else ''})", t.get(f"{ph}_cpu")))
     trow += [("hierarchical layer", t.get("hierarchical")), ("identifiability + manifolds", t.get("identify")),
              ("figures", t.get("figures")), ("total before report", t.get("total_before_report"))]
-    parts.append("## Timings (seconds)\n\n" + _table(["phase", "s"], [(a, fmt(b, 3)) for a, b in trow]))
+    return "## Timings (seconds)\n\n" + _table(["phase", "s"], [(a, fmt(b, 3)) for a, b in trow])
 
-    # ---- per specimen
-    sec = ["## Specimens"]
-    for sid in ids:
-        r = results[sid]
-        s = summarize(r)
-        rows = [(k, fmt(v["mean"]), fmt(v["sd"], 3), f"[{fmt(v['lower'])}, {fmt(v['upper'])}]")
-                for k, v in s.items()]
-        st = len(r.stages)
-        txt = [f"### {sid}\n",
-               f"log-evidence **{r.log_evidence:.3f} ± {r.log_evidence_se:.3f}** ({st} TMCMC stages, "
-               f"{r.n_samples} samples" + (f", fixed {r.fixed}" if r.fixed else "") + ")\n",
-               _table(["quantity", "mean", "sd", "90% interval"], rows)]
-        dirs = wres.directions.get(sid)
-        if dirs is not None:
-            lead = ("\nIdentified combinations, found from the samples (a sparse basis of the directions in log "
-                    "space whose posterior sd is below 10% of the prior's; products of powers): ")
-            txt.append(lead + ("; ".join(f"`{d['expression']}`"
-                                         + (f" = {fmt(d['median'])} [{fmt(d['lo'])}, {fmt(d['hi'])}]"
-                                            if np.isfinite(d.get("median", np.nan)) else "")
-                                         + f" (sd ratio {d['ratio']:.2g})" for d in dirs[:6])
-                               or "none (no combination of up to three parameters is pinned that tightly)"))
-        m = wres.manifolds.get(sid)
-        if m is not None:
-            txt.append(f"\nVOLF–T1 manifold from {m['source']}: VOLF ∈ [{fmt(min(m['points_x']), 3)}, "
-                       f"{fmt(max(m['points_x']), 3)}], variation of (1−VOLF)·T1 along it ((max−min)/median) "
-                       f"{m['combination_rel_spread']:.1%}"
-                       + (f"; level (1−VOLF)·T1 = {fmt(m['level'][0])} [{fmt(m['level'][1])}, {fmt(m['level'][2])}]"
-                          if "level" in m else "") + ".")
-        if r.sobol:
-            order = sorted(r.sobol["ST"], key=lambda k: -np.nan_to_num(r.sobol["ST"][k], nan=-1))
-            txt.append("\nSobol (ST, " + str(r.sobol.get("qoi", "")) + "): "
-                       + ", ".join(f"{k} {fmt(r.sobol['ST'][k], 2)} ({r.sobol['relevance'].get(k, '')})"
-                                   for k in order))
-        figs = [f for f in wres.figures if Path(f).name.startswith(sid + "_")]
-        if figs:
-            txt.append("\nFigures: " + ", ".join(f"[{Path(f).stem.split('_')[-1]}]({_rel(Path(f), base)})"
-                                                 for f in figs))
-        sec.append("\n".join(txt))
-    parts.append("\n\n".join(sec))
 
-    # ---- identifiable combinations across specimens
+def _specimen(wres, sid: str, base: Path) -> str:
+    """### <id>: evidence, posterior table, identified directions, manifold, Sobol, figures."""
+    r = wres.results[sid]
+    rows = [(k, fmt(v["mean"]), fmt(v["sd"], 3), f"[{fmt(v['lower'])}, {fmt(v['upper'])}]")
+            for k, v in summarize(r).items()]
+    txt = [f"### {sid}\n",
+           f"log-evidence **{r.log_evidence:.3f} ± {r.log_evidence_se:.3f}** ({len(r.stages)} TMCMC stages, "
+           f"{r.n_samples} samples" + (f", fixed {r.fixed}" if r.fixed else "") + ")\n",
+           _table(["quantity", "mean", "sd", "90% interval"], rows)]
+    dirs = wres.directions.get(sid)
+    if dirs is not None:
+        lead = ("\nIdentified combinations, found from the samples (a sparse basis of the directions in log "
+                "space whose posterior sd is below 10% of the prior's; products of powers): ")
+        txt.append(lead + ("; ".join(f"`{d['expression']}`"
+                                     + (f" = {fmt(d['median'])} [{fmt(d['lo'])}, {fmt(d['hi'])}]"
+                                        if np.isfinite(d.get("median", np.nan)) else "")
+                                     + f" (sd ratio {d['ratio']:.2g})" for d in dirs[:6])
+                           or "none (no combination of up to three parameters is pinned that tightly)"))
+    m = wres.manifolds.get(sid)
+    if m is not None:
+        txt.append(f"\nVOLF–T1 manifold from {m['source']}: VOLF ∈ [{fmt(min(m['points_x']), 3)}, "
+                   f"{fmt(max(m['points_x']), 3)}], variation of (1−VOLF)·T1 along it ((max−min)/median) "
+                   f"{m['combination_rel_spread']:.1%}"
+                   + (f"; level (1−VOLF)·T1 = {fmt(m['level'][0])} [{fmt(m['level'][1])}, {fmt(m['level'][2])}]"
+                      if "level" in m else "") + ".")
+    if r.sobol:
+        order = sorted(r.sobol["ST"], key=lambda k: -np.nan_to_num(r.sobol["ST"][k], nan=-1))
+        txt.append("\nSobol (ST, " + str(r.sobol.get("qoi", "")) + "): "
+                   + ", ".join(f"{k} {fmt(r.sobol['ST'][k], 2)} ({r.sobol['relevance'].get(k, '')})"
+                               for k in order))
+    figs = [f for f in wres.figures if Path(f).name.startswith(sid + "_")]
+    if figs:
+        txt.append("\nFigures: " + ", ".join(f"[{Path(f).stem.split('_')[-1]}]({_rel(Path(f), base)})"
+                                             for f in figs))
+    return "\n".join(txt)
+
+
+def _specimens(wres, base: Path) -> str:
+    """## Specimens: one subsection per specimen (:func:`_specimen`)."""
+    return "\n\n".join(["## Specimens"] + [_specimen(wres, sid, base) for sid in sorted(wres.results)])
+
+
+def _combinations(wres, base: Path) -> str:
+    """## Identifiable combinations: posterior mean and 90 % interval of each, per specimen."""
+    results = wres.results
+    ids = sorted(results)
     combos = [c for c in COMBINATIONS if all(c in summarize(results[s]) for s in ids)] if ids else []
-    if combos:
-        rows = []
-        for sid in ids:
-            s = summarize(results[sid])
-            rows.append([sid] + [f"{fmt(s[c]['mean'])} [{fmt(s[c]['lower'])}, {fmt(s[c]['upper'])}]" for c in combos])
-        parts.append("## Identifiable combinations (posterior mean [90% interval], MPa)\n\n"
-                     "Uniaxial data can at best identify G = c·GF + (1−c)·GM, c·P1 and (1−c)·T1 (c = VOLF); "
-                     "the individual parameters slide along manifolds. When the collagen works in its "
-                     "near-linear range (small T2·(λH − 1) over the tested strains) only (1−c)·T1·T2 is "
-                     "learnt and (1−c)·T1 trades off against T2: see each specimen's identified "
-                     "combinations above.\n\n"
-                     + _table(["specimen"] + combos, rows))
+    if not combos:
+        return ""
+    rows = []
+    for sid in ids:
+        s = summarize(results[sid])
+        rows.append([sid] + [f"{fmt(s[c]['mean'])} [{fmt(s[c]['lower'])}, {fmt(s[c]['upper'])}]" for c in combos])
+    return ("## Identifiable combinations (posterior mean [90% interval], MPa)\n\n"
+            "Uniaxial data can at best identify G = c·GF + (1−c)·GM, c·P1 and (1−c)·T1 (c = VOLF); "
+            "the individual parameters slide along manifolds. When the collagen works in its "
+            "near-linear range (small T2·(λH − 1) over the tested strains) only (1−c)·T1·T2 is "
+            "learnt and (1−c)·T1 trades off against T2: see each specimen's identified "
+            "combinations above.\n\n"
+            + _table(["specimen"] + combos, rows))
 
-    # ---- manifolds compared
+
+def _manifolds(wres, base: Path) -> str:
+    """## VOLF–T1 manifolds across specimens: level and flatness of (1−VOLF)·T1 per specimen."""
     objs = {k: m["object"] for k, m in wres.manifolds.items() if "object" in m}
-    if len(objs) >= 2:
-        try:
-            from .identify import compare_manifolds
+    if len(objs) < 2:
+        return ""
+    try:
+        cmp = compare_manifolds(objs)
+        return ("## VOLF–T1 manifolds across specimens\n\nLevel of (1−VOLF)·T1 along each "
+                "specimen's manifold (flatness: (max−min)/median along the spline; ≈ 0 means the "
+                "manifold is the hyperbola (1−VOLF)·T1 = const).\n\n" + cmp.table()
+                + f"\n\nSpread of the levels (max/min): {cmp.spread:.3g}.")
+    except Exception as exc:  # comparison is a bonus; never lose the report over it
+        return f"## VOLF–T1 manifolds across specimens\n\n(comparison failed: {exc})"
 
-            cmp = compare_manifolds(objs)
-            parts.append("## VOLF–T1 manifolds across specimens\n\nLevel of (1−VOLF)·T1 along each "
-                         "specimen's manifold (flatness: (max−min)/median along the spline; ≈ 0 means the "
-                         "manifold is the hyperbola (1−VOLF)·T1 = const).\n\n" + cmp.table()
-                         + f"\n\nSpread of the levels (max/min): {cmp.spread:.3g}.")
-        except Exception as exc:  # comparison is a bonus; never lose the report over it
-            parts.append(f"## VOLF–T1 manifolds across specimens\n\n(comparison failed: {exc})")
 
-    # ---- population
+def _population(wres, base: Path) -> str:
+    """## Population estimates: hyperparameters, pooling, a new specimen, importance ESS, warnings."""
     h = wres.hierarchical
-    if h is not None:
-        pt = population_table(h)
-        rows = [(k, v["transform"], f"{fmt(v['median'])} [{fmt(v['median_lower'])}, {fmt(v['median_upper'])}]",
-                 f"[{fmt(v.get('new_lower'))}, {fmt(v.get('new_upper'))}]", fmt(v["sd_transformed"], 3))
-                for k, v in pt.items()]
-        txt = ["## Population estimates (hierarchical layer)\n",
-               f"Each parameter θ_k ~ Normal(mu_k, sd_k) in a transformed space (column 'transform': log for "
-               f"positive moduli spanning decades, logit on the prior box for bounded quantities, identity "
-               f"(truncated to the box) for THETA whose posteriors pile up at 60°); uniform hyperprior on mu, "
-               f"{h.attrs.get('hyperprior', {}).get('sd', 'log-uniform sd')}; hyper-posterior by TMCMC "
-               f"reusing the stage-1 samples. Hyper-evidence "
-               f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**.\n",
-               _table(["quantity", "transform", "population median [90%]", "new specimen 90%",
-                       "population sd (transformed units)"], rows)]
-        reasons = dict(h.attrs.get("pool_reasons") or {})
-        if h.attrs.get("mode") == "combinations":
-            reasons.pop("combinations", None)
-            pooled = list(h.attrs.get("pooled", []))
-            txt.append(
-                f"\nPooled (`--pool combinations`, the default for the base model): {', '.join(pooled)}. A uniaxial "
-                "curve identifies G = VOLF·GF + (1−VOLF)·GM, VOLF·P1 and (1−VOLF)·T1, not VOLF, P1, T1, GF, GM "
-                "one by one, so the population is put on the logs of the combinations (a log-normal population "
-                "of each) together with T2 and THETA; the exact density that the uniform stage-1 prior induces "
-                "on the combinations is divided out of the importance ratios. Given its combinations, a "
-                "specimen's VOLF, P1, T1, GF, GM keep their stage-1 prior"
-                + (", and so does EOPT (not pooled)" if "EOPT" not in pooled else "")
-                + ". Fraction of new-specimen draws outside the support of the combinations (rejected): "
-                f"{fmt(h.attrs.get('outside_support_fraction'), 2)}.")
-            if "EOPT" in reasons:
-                txt.append(f"\nEOPT is pooled only when the posteriors inform it: {reasons['EOPT']}")
-        elif reasons:
-            # why each parameter is (not) pooled: a population over parameters the curves do not
-            # inform makes the reused-sample importance weights degenerate
-            txt.append("\nPooled parameters (`--pool informed`: posterior sd in the transformed space below 2/3 "
-                       "of the prior's in at least half of the specimens; the others keep their own prior):\n")
-            txt.extend(f"- {v}" if str(v).startswith(f"{k}:") else f"- {k}: {v}" for k, v in reasons.items())
-        pop = quantity_samples(h.pooled_names, h.new_specimen) if h.new_specimen is not None else {}
-        if pop:
-            med = {}
-            if h.updated is not None:
-                med = {c: np.median(quantity_samples(h.param_names, h.updated.reshape(-1, h.updated.shape[-1]))[c])
-                       for c in pop}
-            rows = [(c, f"[{fmt(np.quantile(v, 0.05))}, {fmt(np.quantile(v, 0.95))}]", fmt(np.median(v)),
-                     fmt(med.get(c)))
-                    for c, v in pop.items()]
-            txt.append("\nIdentifiable quantities of a new specimen (population predictive):\n\n"
-                       + _table(["quantity", "90% interval", "median", "median over updated individuals"], rows))
-        ess = h.attrs.get("ess_summary", {})
-        if ess:
-            low = {k: v for k, v in ess.items() if v.get("q10", np.inf) < 50}
-            txt.append("\nImportance ESS per specimen (min / 10% quantile over hyper-posterior draws): "
-                       + ", ".join(f"{k} {fmt(v.get('min'), 3)}/{fmt(v.get('q10'), 3)}" for k, v in ess.items())
-                       + (f". **ESS collapsed for {', '.join(sorted(low))}**: their updated posteriors come from "
-                          f"a fresh TMCMC run (done for: {', '.join(h.attrs.get('refined') or []) or 'none'}), but "
-                          f"the hyper-posterior itself rests on importance estimates with few effective samples "
-                          f"for them: read the population estimates with care, increase --samples, or pool "
-                          f"fewer quantities (`--pool informed` or a list)." if low else "."))
-        if h.attrs.get("warnings"):
-            txt.append("\nWarnings: " + "; ".join(map(str, h.attrs["warnings"][:5])))
-        parts.append("\n".join(txt))
+    if h is None:
+        return ""
+    pt = population_table(h)
+    rows = [(k, v["transform"], f"{fmt(v['median'])} [{fmt(v['median_lower'])}, {fmt(v['median_upper'])}]",
+             f"[{fmt(v.get('new_lower'))}, {fmt(v.get('new_upper'))}]", fmt(v["sd_transformed"], 3))
+            for k, v in pt.items()]
+    txt = ["## Population estimates (hierarchical layer)\n",
+           f"Each parameter θ_k ~ Normal(mu_k, sd_k) in a transformed space (column 'transform': log for "
+           f"positive moduli spanning decades, logit on the prior box for bounded quantities, identity "
+           f"(truncated to the box) for THETA whose posteriors pile up at 60°); uniform hyperprior on mu, "
+           f"{h.attrs.get('hyperprior', {}).get('sd', 'log-uniform sd')}; hyper-posterior by TMCMC "
+           f"reusing the stage-1 samples. Hyper-evidence "
+           f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**.\n",
+           _table(["quantity", "transform", "population median [90%]", "new specimen 90%",
+                   "population sd (transformed units)"], rows)]
+    reasons = dict(h.attrs.get("pool_reasons") or {})
+    if h.attrs.get("mode") == "combinations":
+        reasons.pop("combinations", None)
+        pooled = list(h.attrs.get("pooled", []))
+        txt.append(
+            f"\nPooled (`--pool combinations`, the default for the base model): {', '.join(pooled)}. A uniaxial "
+            "curve identifies G = VOLF·GF + (1−VOLF)·GM, VOLF·P1 and (1−VOLF)·T1, not VOLF, P1, T1, GF, GM "
+            "one by one, so the population is put on the logs of the combinations (a log-normal population "
+            "of each) together with T2 and THETA; the exact density that the uniform stage-1 prior induces "
+            "on the combinations is divided out of the importance ratios. Given its combinations, a "
+            "specimen's VOLF, P1, T1, GF, GM keep their stage-1 prior"
+            + (", and so does EOPT (not pooled)" if "EOPT" not in pooled else "")
+            + ". Fraction of new-specimen draws outside the support of the combinations (rejected): "
+            f"{fmt(h.attrs.get('outside_support_fraction'), 2)}.")
+        if "EOPT" in reasons:
+            txt.append(f"\nEOPT is pooled only when the posteriors inform it: {reasons['EOPT']}")
+    elif reasons:
+        # why each parameter is (not) pooled: a population over parameters the curves do not
+        # inform makes the reused-sample importance weights degenerate
+        txt.append("\nPooled parameters (`--pool informed`: posterior sd in the transformed space below 2/3 "
+                   "of the prior's in at least half of the specimens; the others keep their own prior):\n")
+        txt.extend(f"- {v}" if str(v).startswith(f"{k}:") else f"- {k}: {v}" for k, v in reasons.items())
+    pop = quantity_samples(h.pooled_names, h.new_specimen) if h.new_specimen is not None else {}
+    if pop:
+        med = {}
+        if h.updated is not None:
+            med = {c: np.median(quantity_samples(h.param_names, h.updated.reshape(-1, h.updated.shape[-1]))[c])
+                   for c in pop}
+        rows = [(c, f"[{fmt(np.quantile(v, 0.05))}, {fmt(np.quantile(v, 0.95))}]", fmt(np.median(v)),
+                 fmt(med.get(c)))
+                for c, v in pop.items()]
+        txt.append("\nIdentifiable quantities of a new specimen (population predictive):\n\n"
+                   + _table(["quantity", "90% interval", "median", "median over updated individuals"], rows))
+    ess = h.attrs.get("ess_summary", {})
+    if ess:
+        low = {k: v for k, v in ess.items() if v.get("q10", np.inf) < 50}
+        txt.append("\nImportance ESS per specimen (min / 10% quantile over hyper-posterior draws): "
+                   + ", ".join(f"{k} {fmt(v.get('min'), 3)}/{fmt(v.get('q10'), 3)}" for k, v in ess.items())
+                   + (f". **ESS collapsed for {', '.join(sorted(low))}**: their updated posteriors come from "
+                      f"a fresh TMCMC run (done for: {', '.join(h.attrs.get('refined') or []) or 'none'}), but "
+                      f"the hyper-posterior itself rests on importance estimates with few effective samples "
+                      f"for them: read the population estimates with care, increase --samples, or pool "
+                      f"fewer quantities (`--pool informed` or a list)." if low else "."))
+    if h.attrs.get("warnings"):
+        txt.append("\nWarnings: " + "; ".join(map(str, h.attrs["warnings"][:5])))
+    return "\n".join(txt)
 
-    # ---- variability
-    if len(ids) >= 2:
-        rows = []
-        keys = [k for k in ("G", "VOLF*P1", "(1-VOLF)*T1", "T2", "THETA", "EOPT")]
-        qs = {sid: quantity_samples(list(results[sid].as_dict()),
-                                    np.column_stack(list(results[sid].as_dict().values()))) for sid in ids}
-        for k in keys:
-            if not all(k in qs[s] for s in ids):
-                continue
-            v = specimen_variability({s: qs[s][k] for s in ids})
-            verdict = "differ" if v["p_value"] < 0.01 else "compatible with one common value"
-            pairs = ", ".join(f"{a}≠{b}" for a, b in v["separated_pairs"][:6])
-            more = f" (+{len(v['separated_pairs']) - 6} more)" if len(v["separated_pairs"]) > 6 else ""
-            rows.append((k, f"{v['Q']:.1f}", v["df"], f"{v['p_value']:.2g}", verdict,
-                         f"{len(v['separated_pairs'])}/{v['n_pairs']}: {pairs}{more}"))
-        parts.append("## Specimen variability\n\nDo rats differ beyond their posterior uncertainty? Cochran's Q "
-                     "of the posterior means (log scale for positive quantities) against χ²(S−1), and the "
-                     "pairs whose posterior difference excludes 0 with 95% probability.\n\n"
-                     + _table(["quantity", "Q", "df", "p", "verdict", "separated pairs"], rows))
 
-    # ---- across-specimen figures
+def _variability(wres, base: Path) -> str:
+    """## Specimen variability: Cochran's Q and separated pairs per identifiable quantity."""
+    results = wres.results
+    ids = sorted(results)
+    if len(ids) < 2:
+        return ""
+    rows = []
+    qs = {sid: quantity_samples(list(results[sid].as_dict()),
+                                np.column_stack(list(results[sid].as_dict().values()))) for sid in ids}
+    for k in COMBINATIONS + SHAPE_PARAMETERS:
+        if not all(k in qs[s] for s in ids):
+            continue
+        v = specimen_variability({s: qs[s][k] for s in ids})
+        verdict = "differ" if v["p_value"] < 0.01 else "compatible with one common value"
+        pairs = ", ".join(f"{a}≠{b}" for a, b in v["separated_pairs"][:6])
+        more = f" (+{len(v['separated_pairs']) - 6} more)" if len(v["separated_pairs"]) > 6 else ""
+        rows.append((k, f"{v['Q']:.1f}", v["df"], f"{v['p_value']:.2g}", verdict,
+                     f"{len(v['separated_pairs'])}/{v['n_pairs']}: {pairs}{more}"))
+    return ("## Specimen variability\n\nDo rats differ beyond their posterior uncertainty? Cochran's Q "
+            "of the posterior means (log scale for positive quantities) against χ²(S−1), and the "
+            "pairs whose posterior difference excludes 0 with 95% probability.\n\n"
+            + _table(["quantity", "Q", "df", "p", "verdict", "separated pairs"], rows))
+
+
+def _population_figures(wres, base: Path) -> str:
+    """## Figures across specimens: every figure not named after a specimen."""
+    ids = sorted(wres.results)
     pop_figs = [f for f in wres.figures if not any(Path(f).name.startswith(s + "_") for s in ids)]
-    if pop_figs:
-        parts.append("## Figures across specimens\n\n" + "\n".join(f"![{Path(f).stem}]({_rel(Path(f), base)})"
-                                                                  for f in pop_figs))
+    if not pop_figs:
+        return ""
+    return "## Figures across specimens\n\n" + "\n".join(f"![{Path(f).stem}]({_rel(Path(f), base)})"
+                                                        for f in pop_figs)
+
+
+#: the report's sections in order: ``f(workflow_result, base) -> markdown`` ("" leaves it out)
+SECTIONS: tuple[Callable[[Any, Path], str], ...] = (_header, _settings, _timings, _specimens, _combinations,
+                                                    _manifolds, _population, _variability, _population_figures)
+
+
+def render_report(wres, *, base: Path | None = None,
+                  extra_sections: Sequence[Callable] | None = None) -> str:
+    """The Markdown text for a :class:`hbm.workflow.WorkflowResult`.
+
+    Parameters
+    ----------
+    wres : WorkflowResult
+    base : Path, optional
+        Folder the figure links are relative to (default ``wres.out``).
+    extra_sections : sequence of callables, optional
+        Hooks ``f(wres) -> markdown`` appended after :data:`SECTIONS`; a failing hook becomes a
+        short "(failed: ...)" section.
+    """
+    base = Path(base or wres.out)
+    parts = [txt for txt in (section(wres, base) for section in SECTIONS) if txt]
     for hook in extra_sections or ():
         try:
             txt = hook(wres)

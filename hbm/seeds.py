@@ -13,7 +13,8 @@ stream                     spawn key                 draws
                                                      predictive, 3 Sobol (:data:`PHASES`)
 ``hierarchical``           ``(10000,)``              the population sampler (TMCMC over ψ,
                                                      updated individuals, new-specimen predictive)
-``hier_subsample``         ``(10000, 0)``            which stage-1 draws enter the population layer
+``new_specimen``           ``(10000, 0)``            a new specimen's non-pooled parameters (drawn
+                                                     given the population-predictive pooled ones)
 ``refine`` k               ``(10000, 1 + k)``        fresh TMCMC of specimen k under the population
 ``organ_posterior`` k      ``(20000, 0, k)``         organ bands: subsample of specimen k's posterior
 ``organ_updated`` k        ``(20000, 1, k)``         organ bands: subsample of k's updated draws
@@ -52,7 +53,7 @@ def _specimen_key(k: int) -> tuple[int, ...]:
 STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "specimen": _specimen_key,
     "hierarchical": lambda: (_HIER,),
-    "hier_subsample": lambda: (_HIER, 0),
+    "new_specimen": lambda: (_HIER, 0),
     "refine": lambda k: (_HIER, 1 + int(k)),
     "organ_posterior": lambda k: (_ORGAN, 0, int(k)),
     "organ_updated": lambda k: (_ORGAN, 1, int(k)),
@@ -124,7 +125,7 @@ def run_keys(n_specimens: int) -> dict[tuple[int, ...], str]:
         named.append((f"refine {k}", STREAMS["refine"](k)))
         named.append((f"organ_posterior {k}", STREAMS["organ_posterior"](k)))
         named.append((f"organ_updated {k}", STREAMS["organ_updated"](k)))
-    for name in ("hierarchical", "hier_subsample", "organ_new_specimen"):
+    for name in ("hierarchical", "new_specimen", "organ_new_specimen"):
         named.append((name, STREAMS[name]()))
     out: dict[tuple[int, ...], str] = {}
     for name, key in named:

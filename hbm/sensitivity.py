@@ -39,6 +39,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .errors import HbmError
+from .likelihood import _dataset_arrays
 from .model.core import Loading, Model
 
 QOIS = ("integrated_stress", "log_integrated_stress", "misfit")
@@ -183,7 +184,6 @@ def sobol(model: Model, strain=None, *, bounds: Mapping[str, tuple[float, float]
         raise HbmError(f"n must be a power of 2 (Sobol' sequence), got {n}")
     observed = None
     if data is not None:
-        from .likelihood import _dataset_arrays
         e, observed, time, test, _ = _dataset_arrays(data)
         if strain is None:
             strain = Loading(e, time, test)

@@ -1,9 +1,10 @@
-"""Small shared helpers: atomic file writes, seeds."""
+"""Small shared helpers: atomic file writes, seeds, progress lines."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
@@ -48,3 +49,9 @@ def as_generator(seed) -> np.random.Generator:
     if isinstance(seed, np.random.Generator):
         return seed
     return np.random.default_rng(seed)
+
+
+def log_progress(msg: str, progress: bool, prefix: str = "hbm run") -> None:
+    """Print ``[prefix] msg`` to stderr when ``progress`` (the progress lines of a run)."""
+    if progress:
+        print(f"[{prefix}] {msg}", file=sys.stderr, flush=True)

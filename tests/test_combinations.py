@@ -135,14 +135,16 @@ def _sir_specimen(model, centre, seed, n_prior=200_000, n=1500):
 
 def test_workflow_pool_combinations(tmp_path):
     from hbm.organ import theta_from_samples
-    from hbm.workflow import COMBINATION_COLUMNS, RunConfig, _run_hierarchical, population_table
+    from hbm.population import COMBINATION_COLUMNS, run_population
+    from hbm.views import population_table
 
     model = spyrou_model()
     centres = [np.array([-3.8, -3.0, -2.0]), np.array([-3.5, -2.7, -2.3]), np.array([-4.0, -3.2, -1.8]),
                np.array([-3.7, -2.9, -2.1])]
     results = {f"s{k}": _sir_specimen(model, c, seed=k) for k, c in enumerate(centres)}
-    cfg = RunConfig(hier_pooled=["combinations"], hier_samples=400, progress=False)  # as the CLI passes it
-    hf, path = _run_hierarchical(cfg, results, None, tmp_path, model)
+    # pooled as the CLI passes it; no datasets, no dask
+    hf, path = run_population(results, None, model, out=tmp_path, pooled=["combinations"], samples=400,
+                              progress=False)
     from hbm import io
 
     h = io.read_hierarchical(path)

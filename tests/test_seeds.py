@@ -13,7 +13,7 @@ def test_no_two_streams_share_a_key():
 
 
 def test_run_keys_detects_a_collision(monkeypatch):
-    monkeypatch.setitem(seeds.STREAMS, "hier_subsample", lambda: (3,))  # = specimen 3's key
+    monkeypatch.setitem(seeds.STREAMS, "new_specimen", lambda: (3,))  # = specimen 3's key
     with pytest.raises(ValueError, match="share spawn key"):
         seeds.run_keys(5)
 

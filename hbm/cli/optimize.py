@@ -53,7 +53,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the optimisation and print the optima."""
     from ..likelihood import make_likelihood
-    from ..optimize import optimize
+    from ..optimization import optimize
 
     if args.restarts < 1:
         raise HbmError(f"--restarts {args.restarts}: expected an integer >= 1")

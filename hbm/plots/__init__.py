@@ -15,6 +15,8 @@ import matplotlib
 matplotlib.use("Agg")  # headless: figures are files, never windows
 import matplotlib.pyplot as plt  # noqa: E402
 
+from ..utils import atomic_path  # noqa: E402
+
 __all__ = ["plt", "save", "RELEVANCE_COLORS"]
 
 #: colours of the thesis's relevance classes (Table 2.1)
@@ -24,8 +26,6 @@ RELEVANCE_COLORS = {"very important": "#b2182b", "important": "#ef8a62", "unimpo
 
 def save(fig, path: str | os.PathLike, dpi: int = 110, tight: bool = True) -> Path:
     """Save ``fig`` atomically (format from the suffix, PNG by default) and close it."""
-    from ..utils import atomic_path
-
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight" if tight else None, format=path.suffix.lstrip(".") or "png")

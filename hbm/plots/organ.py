@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
@@ -153,12 +154,16 @@ def overlay_plot(curves: dict, population=None, *, extrapolate: float | None = N
     return save(fig, path) if path is not None else fig
 
 
-def optima_plot(sid: str, optima, posterior=None, *, path=None):
+def optima_plot(sid: str, optima, posterior=None, *, difference, spread, path=None):
     """Near-optimal CMA-ES sets of one specimen pushed through the organ model (thesis Fig. 3.65).
 
     Left: each set's force–elongation curve (distinct styles, widest first so coinciding curves
     stay visible), on the posterior band; legend with VOLF, T1 and Δ(−log L).  Right: relative
     difference of each curve from the best set's, in %.
+
+    ``difference`` (optimum × force) and ``spread`` ``(within, beyond)`` are the relative differences
+    from the best set and their largest magnitudes inside/beyond the tested range
+    (:func:`hbm.organ_report.optima_difference`, :func:`hbm.organ_report.optima_spread`).
     """
     F = optima["force"].values
     E = optima["elongation"].values
@@ -176,9 +181,7 @@ def optima_plot(sid: str, optima, posterior=None, *, path=None):
     widths = np.linspace(4.0, 1.0, n) if n > 1 else [2.0]
     volf = P[:, pn.index("VOLF")] if "VOLF" in pn else None
     t1 = P[:, pn.index("T1")] if "T1" in pn else None
-    from ..organ_report import optima_difference, optima_spread
-
-    rel = 100.0 * optima_difference(optima)[0]
+    rel = 100.0 * np.asarray(difference, float)
     for i in range(n):
         col = cmap(i / max(n - 1, 1) * 0.9)
         lab = ", ".join(x for x in (f"VOLF={volf[i]:.3f}" if volf is not None else "",
@@ -202,7 +205,7 @@ def optima_plot(sid: str, optima, posterior=None, *, path=None):
     a1.set_ylim(0, F[-1])
     a1.legend(fontsize=7, loc="upper left", title=f"{n} near-optimal sets (best: Δ=0)", title_fontsize=7.5)
     a1.set_title(f"{sid}: organ curves of near-optimal CMA-ES parameter sets", fontsize=10)
-    within, beyond = optima_spread(optima)
+    within, beyond = spread
     a2.axhline(0, color="k", lw=0.6)
     if ext_any.any():
         a2.axvspan(F[kf], F[-1], color=_EXT_COLOR, alpha=0.35, lw=0, zorder=0)
@@ -223,11 +226,13 @@ def optima_plot(sid: str, optima, posterior=None, *, path=None):
     return save(fig, path) if path is not None else fig
 
 
-def organ_figures(organ, fig_dir: str | os.PathLike, *, optima_specimen: str | None = None) -> list[Path]:
+def organ_figures(organ, fig_dir: str | os.PathLike, *, optima_specimen: str | None = None,
+                  optima_comparison: Mapping[str, tuple] | None = None) -> list[Path]:
     """All organ figures of an :class:`hbm.io.OrganFile` into ``fig_dir``; returns their paths.
 
     ``organ_overlay.png``, ``organ_optima_<id>.png`` (the specimen with most near-optimal sets,
-    or ``optima_specimen``) and ``organ_<id>.png`` per specimen.
+    or ``optima_specimen``; drawn when ``optima_comparison`` maps it to its ``(difference,
+    spread)``, see :func:`optima_plot`) and ``organ_<id>.png`` per specimen.
     """
     fig_dir = Path(fig_dir)
     name = organ.attrs.get("geometry", {}).get("name", "") if isinstance(organ.attrs.get("geometry"), dict) else ""
@@ -238,9 +243,11 @@ def organ_figures(organ, fig_dir: str | os.PathLike, *, optima_specimen: str | N
     if with_opt:
         if optima_specimen is None or optima_specimen not in with_opt:
             optima_specimen = max(sorted(with_opt), key=lambda s: with_opt[s].sizes["optimum"])
-        out.append(optima_plot(optima_specimen, with_opt[optima_specimen],
-                               organ.curves[optima_specimen].get("posterior"),
-                               path=fig_dir / f"organ_optima_{optima_specimen}.png"))
+        if optima_specimen in (optima_comparison or {}):
+            difference, spread = optima_comparison[optima_specimen]
+            out.append(optima_plot(optima_specimen, with_opt[optima_specimen],
+                                   organ.curves[optima_specimen].get("posterior"), difference=difference,
+                                   spread=spread, path=fig_dir / f"organ_optima_{optima_specimen}.png"))
     for sid in sorted(organ.curves):
         out.append(specimen_organ_plot(sid, organ.curves[sid], geometry_name=name, path=fig_dir / f"organ_{sid}.png"))
     return out

@@ -7,17 +7,19 @@ from pathlib import Path
 from typing import Mapping
 
 import numpy as np
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 
-from ..workflow import pooled_view, quantity_samples
+from ..model import COMBINATIONS, SHAPE_PARAMETERS
+from ..views import pooled_view, quantity_samples
 from . import plt, save
 
-__all__ = ["manifold_plot", "forest_plot", "hyper_plot", "population_figures", "quantity_samples"]
+__all__ = ["manifold_plot", "forest_plot", "hyper_plot", "population_figures", "FOREST_QUANTITIES"]
 
-_COMBOS = ("G", "VOLF*P1", "(1-VOLF)*T1")
-_LABELS = {"G": "G = c·GF + (1−c)·GM (MPa)", "VOLF*P1": "c·P1 (MPa)", "(1-VOLF)*T1": "(1−c)·T1 (MPa)",
-           "T2": "T2 (-)", "THETA": "THETA (deg)", "EOPT": "EOPT (-)"}
 #: quantities shown in the forest plot (identified ones first)
-FOREST_QUANTITIES = ("G", "VOLF*P1", "(1-VOLF)*T1", "T2", "THETA", "EOPT")
+FOREST_QUANTITIES = COMBINATIONS + SHAPE_PARAMETERS
+_LABELS = dict(zip(FOREST_QUANTITIES, ("G = c·GF + (1−c)·GM (MPa)", "c·P1 (MPa)", "(1−c)·T1 (MPa)", "T2 (-)",
+                                       "THETA (deg)", "EOPT (-)")))
 
 
 def _colors(n):
@@ -101,8 +103,6 @@ def forest_plot(results: Mapping, hier=None, *, prob: float = 0.9, path=None):
         ax.grid(axis="x", alpha=0.3)
     for ax in axes.ravel()[len(quantities):]:
         ax.axis("off")
-    from matplotlib.lines import Line2D
-
     handles = [Line2D([], [], color="#636363", marker="o", lw=2, label="individual posterior (own data)"),
                Line2D([], [], color="#d95f02", marker="s", lw=2, label="updated (hierarchical, all data)"),
                Line2D([], [], color="#1b9e77", marker="D", lw=3, label="population: new specimen")]
@@ -145,9 +145,6 @@ def hyper_plot(hier, results=None, *, path=None):
         ax.set_yticks([])
     for ax in axes.ravel()[len(view):]:
         ax.axis("off")
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
-
     handles = [Patch(color="#1b9e77", alpha=0.7, label="hyper-posterior of the population median g⁻¹(mu)"),
                Line2D([], [], color="k", label="predictive of a new specimen"),
                Line2D([], [], color="#d95f02", label="specimens' posterior means")]

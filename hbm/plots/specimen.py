@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ..model import spyrou_model
 from . import RELEVANCE_COLORS, plt, save
 
 __all__ = ["corner_plot", "predictive_plot", "sobol_plot", "specimen_figures", "model_theta"]
@@ -96,8 +97,6 @@ def model_theta(result, model) -> np.ndarray:
 def predictive_plot(result, *, model=None, extrapolate: float = 1.5, max_draws: int = 2000, path=None):
     """Data with posterior-predictive bands (model-only and with noise), and the prediction beyond
     the tested strain up to ``extrapolate`` × the maximum."""
-    from ..model import spyrou_model
-
     model = spyrou_model() if model is None else model
     strain, stress = np.asarray(result.strain), np.asarray(result.stress)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.6))

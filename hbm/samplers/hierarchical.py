@@ -141,6 +141,7 @@ import numpy as np
 from scipy.special import log_ndtr, ndtri
 
 from ..errors import HbmError
+from .tmcmc import tmcmc as _tmcmc
 
 __all__ = [
     "HierarchicalResult",
@@ -1018,7 +1019,7 @@ def hierarchical(
         return np.where(np.isfinite(out), out, -np.inf)
 
     if sampler is None:
-        from .tmcmc import tmcmc as sampler  # sampler-layer sibling; imported lazily
+        sampler = _tmcmc
     opts = dict(tmcmc_options or {})
     t1 = time.perf_counter()
     res = sampler(target, model.box, int(n_samples), seed=int(s_tmcmc.generate_state(1)[0]), progress=progress, **opts)
@@ -1248,7 +1249,7 @@ def refine_individual(
         return np.where(ok & np.isfinite(out), out, -np.inf)
 
     if sampler is None:
-        from .tmcmc import tmcmc as sampler
+        sampler = _tmcmc
     box = result.bounds if bounds is None else np.asarray(bounds, float)
     return sampler(target, box, int(n_samples), seed=int(s_run.generate_state(1)[0]), progress=progress,
                    **tmcmc_options)

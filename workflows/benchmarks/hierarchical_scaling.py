@@ -6,7 +6,7 @@ hyperparameters ψ at once, Σ_i log mean_j r_ij(ψ) as one matrix product per s
 (coef(ψ) (n_ψ × K) @ F(θ_i)ᵀ (K × N_i)) with a chunked log-sum-exp, so one likelihood call should
 cost ∝ n_ψ · Σ_i N_i and the whole layer ∝ N at a fixed number of calls.
 
-Setup, as ``hbm run --pool all`` calls the layer (hbm/workflow.py ``_run_hierarchical``; the
+Setup, as ``hbm run --pool all`` calls the layer (hbm/population.py ``_run_hierarchical``; the
 heaviest case: 8 pooled columns, where the default ``--pool combinations`` pools 5): the six shipped
 specimens (``data/specimens``), stage-1 = default TMCMC of the base model with iid noise and the
 workflow's common sigma box, pooled = the 8 model parameters with the workflow's transforms
@@ -55,7 +55,8 @@ from hbm.model import spyrou_model  # noqa: E402
 from hbm.samplers import tmcmc  # noqa: E402
 from hbm.samplers.hierarchical import HierarchicalModel, hierarchical  # noqa: E402
 from hbm.utils import atomic_write_text  # noqa: E402
-from hbm.workflow import DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, RunConfig, _common_sigma_box  # noqa: E402
+from hbm.population import DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS  # noqa: E402
+from hbm.workflow import RunConfig, _common_sigma_box  # noqa: E402
 
 
 def stage1_samples(n_max: int, seed: int, cache: Path, progress: bool = True) -> tuple[dict, list, np.ndarray]:

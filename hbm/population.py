@@ -1,0 +1,396 @@
+"""The population layer of a multi-specimen fit: the hierarchical model over fitted specimens.
+
+:func:`run_population` takes the specimens' stage-1 results (:class:`hbm.io.SpecimenResult`,
+from :func:`hbm.fit.fit_specimen` or ``<out>/specimens/*.nc``), their datasets and the model,
+and fits :func:`hbm.samplers.hierarchical.hierarchical` on the model parameters, reusing the
+stage-1 samples; the result goes to ``<out>/hierarchical.nc``.  It is phase 2 of ``hbm run``
+(:mod:`hbm.workflow`) and runs without dask; a dask client, when given, only runs the fresh
+TMCMC refinements of collapsed specimens in parallel.
+
+Pooling (``PopulationConfig.pooled``): "combinations" (a population over log G, log c·P1,
+log (1−c)·T1, T2, THETA — what a uniaxial curve identifies — with the exact stage-1 prior
+density of the combinations, :mod:`hbm.combinations`), "informed" (the model parameters that
+the posteriors inform, :func:`~hbm.samplers.hierarchical.auto_pool`), "all", a list of names,
+or "auto" (default: "combinations" when VOLF, P1, T1, GF, GM, T2, THETA are free, otherwise
+"informed").
+
+Seeds: the streams ``hierarchical``, ``new_specimen`` and ``refine`` k of :mod:`hbm.seeds`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from . import io, seeds
+from .combinations import (COMBINATION_PARAMS, combination_features, log_density, sample_conditional,
+                           support_hull, to_features)
+from .errors import HbmError
+from .likelihood import make_likelihood
+from .model import COMBINATIONS, spyrou_model
+from .samplers.hierarchical import auto_pool, hierarchical, refine_individual
+from .utils import log_progress as _log
+
+__all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS",
+           "POOL_INFORMED", "COMBINATION_COLUMNS", "COMBINATION_NEEDS"]
+
+#: transform of each base-model parameter in the population model (see hbm.samplers.hierarchical):
+#: log for strictly positive moduli spanning decades (P1, GF, GM: a log-normal population, sd
+#: reads as a relative spread); logit on the box for bounded fractions/scales (VOLF, EOPT, T1,
+#: T2: no truncation needed); identity (truncated normal) for THETA, whose posteriors pile up
+#: against the 60° edge: logit would stretch that pile-up into a tail many units wide, far wider
+#: than the population, and the importance ESS collapses (measured: 10% ESS 2-3 of 500 vs 9-190).
+DEFAULT_TRANSFORMS = {"VOLF": "logit", "EOPT": "logit", "P1": "log", "T1": "logit", "T2": "logit",
+                      "THETA": "identity", "GF": "log", "GM": "log"}
+#: sd_k in [0.05, 1] x the width of mu_k's range.  The lower end keeps the unidentified directions
+#: (VOLF, P1, T1, GF, GM individually) from drawing populations far narrower than every
+#: individual posterior -- the log-uniform sd prior would otherwise put mass there, where the
+#: stage-1 samples cannot represent the population (importance ESS ~ 1).
+DEFAULT_SD_RANGE = (0.05, 1.0)
+
+#: ``--pool combinations``: pool the identifiable combinations instead of the raw parameters
+POOL_COMBINATIONS = "combinations"
+#: ``--pool informed``: pool the model parameters that the posteriors inform (auto_pool)
+POOL_INFORMED = "informed"
+#: pooled coordinates of ``--pool combinations`` (identity transform: they are logs already)
+COMBINATION_COLUMNS = tuple(f"log_{c}" for c in COMBINATIONS)
+#: model parameters ``--pool combinations`` needs free
+COMBINATION_NEEDS = COMBINATION_PARAMS + ("T2", "THETA")
+
+
+@dataclass
+class PopulationConfig:
+    """Settings of the population layer (``hbm run``: ``--hier-*``, ``--pool`` and the stage-1
+    settings that a fresh TMCMC run of a collapsed specimen repeats).
+
+    Attributes
+    ----------
+    seed : int
+        Run seed; the layer's streams are spawned from it (module docstring).
+    pooled : str, list of str or None
+        "auto", "combinations", "informed", "all" or parameter names (module docstring).
+    samples : int
+        Hyper-posterior draws (TMCMC population of the layer).
+    max_steps : int
+        MH steps per TMCMC stage of the layer and of the refinements.
+    estimator : str
+        Importance estimator of :func:`~hbm.samplers.hierarchical.hierarchical`.
+    transforms : dict, optional
+        Per-parameter transforms overriding :data:`DEFAULT_TRANSFORMS`.
+    sd_range : tuple of float
+        Population sd range as a fraction of mu's range.
+    stage1_samples : int
+        The specimens' TMCMC N (caps a refinement's N).
+    noise, fix, bounds
+        Stage-1 likelihood settings (:func:`hbm.likelihood.make_likelihood`), for refinements.
+    retries : int
+        dask retries of a refinement task.
+    progress : bool
+        Progress lines and bars on stderr.
+    """
+
+    seed: int = 0
+    pooled: list | str | None = "auto"
+    samples: int = 1000
+    max_steps: int = 25
+    estimator: str = "raw"
+    transforms: dict | None = None
+    sd_range: tuple = DEFAULT_SD_RANGE
+    stage1_samples: int = 2000
+    noise: str = "iid"
+    fix: dict | None = None
+    bounds: dict | None = None
+    retries: int = 1
+    progress: bool = True
+
+
+def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping | None = None, model=None, *,
+                   config: PopulationConfig | None = None, out: str | Path | None = None, client=None,
+                   **kwargs) -> tuple[io.HierarchicalFile, Path | None]:
+    """Hierarchical layer over fitted specimens: hyper-posterior, updated individuals, a new specimen.
+
+    Parameters
+    ----------
+    results : mapping of specimen id -> SpecimenResult
+        Stage-1 results, all fitted with the same parameters and prior boxes.
+    datasets : mapping of specimen id -> xarray.Dataset, optional
+        The specimens' data; needed only when a specimen's importance ESS collapses (its updated
+        posterior then comes from a fresh TMCMC run of p(θ_i | all data)).
+    model : Model, optional
+        The stage-1 model; default :func:`hbm.spyrou_model`.
+    config : PopulationConfig, optional
+        Settings; keyword arguments override/construct it.
+    out : path, optional
+        Folder of ``hierarchical.nc``; None: nothing is written.
+    client : distributed.Client, optional
+        Run the refinements of collapsed specimens as dask tasks; None: in this process.
+
+    Returns
+    -------
+    (HierarchicalFile, Path or None)
+        The result and the path of ``hierarchical.nc``.
+
+    Raises
+    ------
+    HbmError
+        Fewer than two specimens, specimens fitted with different parameters/boxes, a bad
+        ``pooled``, or refinements needed without ``datasets``.
+    """
+    cfg = dataclasses.replace(config, **kwargs) if config is not None else PopulationConfig(**kwargs)
+    if len(results) < 2:
+        raise HbmError(f"the population layer needs at least two specimens, got {len(results)}")
+    return _run_hierarchical(cfg, results, datasets, None if out is None else Path(out), model, client)
+
+
+def _refine_task(h, sid: str, lik, n_samples: int, seed: int, n_out: int, max_steps: int = 25,
+                 n_hyper: int = 200, augment=None) -> np.ndarray:
+    """Fresh TMCMC of one specimen's updated posterior; returns ``n_out`` equal-weight draws.
+
+    The population prior is a mixture over ``n_hyper`` hyper-posterior draws (its cost is linear
+    in n_hyper per particle); ``max_steps`` caps the MH steps per stage.  ``augment``: the map
+    to pooled derived columns (``--pool combinations``), run over the likelihood's own box.
+    """
+    extra = {} if augment is None else {"augment": augment, "bounds": lik.bounds}
+    tr = refine_individual(h, sid, lik, n_samples=n_samples, seed=seed, progress=False, n_hyper=n_hyper,
+                           max_steps=max_steps, **extra)
+    rng = np.random.default_rng(seed)
+    sel = rng.choice(tr.samples.shape[0], n_out, replace=tr.samples.shape[0] < n_out)
+    return np.asarray(tr.samples)[sel]
+
+
+def _pool_mode(pooled, model_names: Sequence[str]):
+    """Resolve ``PopulationConfig.pooled`` to "combinations", "informed", "all" or a list of names."""
+    if (isinstance(pooled, (list, tuple)) and len(pooled) == 1
+            and pooled[0] in ("auto", POOL_COMBINATIONS, POOL_INFORMED, "all")):
+        pooled = pooled[0]  # the CLI splits --pool on commas
+    if pooled in (None, "auto"):
+        return POOL_COMBINATIONS if all(n in model_names for n in COMBINATION_NEEDS) else POOL_INFORMED
+    return pooled
+
+
+class _CombinationAugment:
+    """θ (stage-1 columns) -> (θ + φ columns, stage-1 prior log density of the pooled columns).
+
+    The map behind ``--pool combinations``, for the fresh-TMCMC fallback of collapsed specimens
+    (:func:`hbm.samplers.hierarchical.refine_individual`); a class so that dask can ship it.
+    """
+
+    def __init__(self, names: Sequence[str], bounds: np.ndarray, log_u: float) -> None:
+        self.names, self.bounds, self.log_u = list(names), np.asarray(bounds, float), float(log_u)
+
+    def __call__(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        f = to_features(self.names, theta)
+        ok = np.all(f > 0, axis=1)  # T1 = 0 exactly has no log feature (prior mass 0)
+        phi = np.log(np.where(ok[:, None], f, 1.0))
+        lp = np.full(theta.shape[0], -np.inf)
+        if ok.any():
+            lp[ok] = log_density(phi[ok], self.bounds, self.names) + self.log_u
+        return np.hstack([theta, phi]), lp
+
+
+def _unique(msgs: Sequence[str]) -> list[str]:
+    """Messages in order without repeats (a warning is both raised and kept in the result)."""
+    return list(dict.fromkeys(msgs))
+
+
+def _refine_collapsed(cfg: PopulationConfig, h, collapsed: Sequence[str], datasets, model,
+                      results: Mapping[str, io.SpecimenResult], cl=None, augment=None) -> dict[str, np.ndarray]:
+    """Fresh TMCMC of p(θ_i | all data) for every specimen whose importance ESS collapsed.
+
+    One dask task per specimen when a client is given; seeds spawned per specimen from the run
+    seed, so the draws do not depend on the number of workers.
+    """
+    if not collapsed:
+        return {}
+    if datasets is None or any(sid not in datasets for sid in collapsed):
+        raise HbmError(f"importance ESS collapsed for {', '.join(collapsed)}: their fresh TMCMC runs need "
+                       "their datasets (pass datasets=...)")
+    _log(f"WARNING: importance ESS collapsed for {', '.join(collapsed)}: fresh TMCMC runs of their "
+         "updated posteriors p(θ_i | all data)" + (" on dask" if cl is not None else ""), True)
+    first = next(iter(results.values()))
+    names = list(first.names)
+    noise_col = len([n for n in names if n in model.parameter_names])  # first noise column (common box)
+    sigma_bounds = tuple(first.bounds[noise_col]) if noise_col < len(names) else None
+    n_up = next(iter(h.updated.values())).shape[0]
+    jobs = {}
+    h_ref = cl.scatter(h) if cl is not None else h
+    for k, sid in enumerate(h.specimens):
+        if sid not in collapsed:
+            continue
+        lik = make_likelihood(model, datasets[sid], noise=cfg.noise, fix=cfg.fix, bounds=cfg.bounds,
+                              sigma_bounds=sigma_bounds)
+        rs = seeds.seed_int(seeds.stream(int(cfg.seed), "refine", k))
+        args = (h_ref, sid, lik, min(int(cfg.samples), int(cfg.stage1_samples)), rs, n_up, int(cfg.max_steps))
+        kw = {"augment": augment} if augment is not None else {}
+        jobs[sid] = (cl.submit(_refine_task, *args, key=f"refine-{sid}", pure=False, retries=cfg.retries, **kw)
+                     if cl is not None else _refine_task(*args, **kw))
+    return {sid: (job.result() if cl is not None else job) for sid, job in jobs.items()}
+
+
+def _fit_population(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str], bounds, transforms: Mapping,
+                    pooled: Sequence[str], log_prior: Mapping | None = None):
+    """:func:`~hbm.samplers.hierarchical.hierarchical` with the run's settings and its own seed.
+
+    Returns the result and its warnings (raised and kept ones, without repeats).
+    """
+    # an int seed for the hierarchical layer, independent of the specimen streams
+    seed = seeds.seed_int(seeds.stream(int(cfg.seed), "hierarchical"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        h = hierarchical(stage1, names, bounds, transforms=transforms, pooled=pooled,
+                         n_samples=int(cfg.samples), seed=seed, progress=cfg.progress,
+                         sd_range=tuple(cfg.sd_range), estimator=cfg.estimator, log_prior=log_prior,
+                         # each ψ evaluation is a (n_ψ × 2d) @ (2d × Σ N_i) product: cap the MH steps per
+                         # stage so the layer stays at tens of seconds for six specimens
+                         tmcmc_options={"max_steps": int(cfg.max_steps)})
+    return h, _unique([str(w.message) for w in caught] + list(h.warnings))
+
+
+def _write_population(cfg: PopulationConfig, h, out: Path | None, names: Sequence[str],
+                      updated: Mapping[str, np.ndarray], new_specimen: np.ndarray, pooled_names: Sequence[str],
+                      warn_msgs: Sequence[str], refined: Sequence[str], **attrs):
+    """The HierarchicalFile of a hierarchical result, written to ``<out>/hierarchical.nc`` unless ``out`` is
+    None; ``attrs``: the pooling mode's own attributes."""
+    attrs.update({"estimator": cfg.estimator, "log_evidence_parts": h.log_evidence_parts,
+                  "warnings": list(warn_msgs), "refined": list(refined), "ess_summary": h.ess_summary,
+                  "hyperprior": {"mu": "uniform on transformed box",
+                                 "sd": f"loguniform on {tuple(cfg.sd_range)} x mu range"}})
+    hf = io.HierarchicalFile(param_names=list(names), hyper_names=list(h.hyper_names),
+                             hyper_samples=np.asarray(h.hyper_samples), specimen_ids=list(h.specimens),
+                             updated=np.stack([updated[s] for s in h.specimens], axis=1),
+                             new_specimen=np.asarray(new_specimen), log_evidence=float(h.log_evidence),
+                             log_evidence_se=float(h.log_evidence_se),
+                             stages=list(getattr(h.sampler_result, "stages", [])),
+                             ess=np.array([float(h.ess_summary[s]["min"]) for s in h.specimens]), attrs=attrs,
+                             pooled_names=list(pooled_names))
+    return hf, (io.write_hierarchical(hf, out / "hierarchical.nc") if out is not None else None)
+
+
+def _run_hierarchical_combinations(cfg: PopulationConfig, results: Mapping[str, io.SpecimenResult], datasets,
+                                   out: Path | None, model, names: list, model_names: list, transforms: dict, cl=None):
+    """``--pool combinations``: a population over φ = (log G, log c·P1, log (1−c)·T1), T2, THETA
+    (+ EOPT when ``auto_pool`` would pool it), with the exact stage-1 prior density of φ.
+
+    The φ columns are appended to the stage-1 samples (the other columns ride along), their
+    stage-1 prior log density goes in as ``log_prior`` (see :mod:`hbm.combinations`), and a new
+    specimen's (VOLF, P1, T1, GF, GM) are drawn from the box prior conditioned on its φ; its
+    unpooled model parameters (EOPT if not pooled) from their stage-1 (uniform) prior, as the
+    population model leaves them.  A specimen whose importance ESS collapses gets a fresh TMCMC
+    run of p(θ_i | all data) over its own parameters, with the population density of φ(θ)
+    divided by the stage-1 prior density of φ (:class:`_CombinationAugment`).
+    """
+    first = next(iter(results.values()))
+    bounds = np.asarray(first.bounds, float)
+    missing = [p for p in COMBINATION_NEEDS if p not in model_names]
+    if missing:
+        raise HbmError(f"--pool combinations needs free parameters {', '.join(missing)} (fixed or absent); "
+                       f"use --pool informed")
+    choice = auto_pool({sid: r.samples for sid, r in results.items()}, names, bounds, transforms,
+                       candidates=model_names)
+    extra = [n for n in model_names if n in ("EOPT", "T2", "THETA")
+             and (n != "EOPT" or n in choice.pooled)]
+    feats = {sid: combination_features(names, r.samples, bounds) for sid, r in results.items()}
+    # box of the φ columns: the support hull of the combinations (a zero lower end, T1 from 0, is
+    # floored; widened if a sample lies below the floor so every sample is inside)
+    hull = np.log(support_hull(bounds, names))
+    allphi = np.concatenate([f[0] for f in feats.values()])
+    hull[:, 0] = np.minimum(hull[:, 0], allphi.min(axis=0) - 1e-9)
+    hull[:, 1] = np.maximum(hull[:, 1], allphi.max(axis=0) + 1e-9)
+    aug_names = list(names) + list(COMBINATION_COLUMNS)
+    aug_bounds = np.vstack([bounds, hull])
+    pooled = list(COMBINATION_COLUMNS) + extra
+    tr = {**{c: "identity" for c in COMBINATION_COLUMNS}, **{n: transforms[n] for n in extra}}
+    # stage-1 prior of the pooled columns: p0(φ) × uniform densities of the other pooled columns
+    log_u = -float(sum(np.log(np.ptp(bounds[names.index(n)])) for n in extra))
+    stage1 = {sid: (np.hstack([r.samples, feats[sid][0]]), r.log_evidence, r.log_evidence_se)
+              for sid, r in results.items()}
+    log_prior = {sid: feats[sid][1] + log_u for sid in results}
+    reasons = {k: v["reason"] for k, v in choice.reasons.items()}
+    reasons["combinations"] = ("--pool combinations: population over " + ", ".join(f"log {c}" for c in COMBINATIONS)
+                               + f" (exact stage-1 prior density) and {', '.join(extra)}")
+    _log(f"pooled (combinations): {', '.join(pooled)}", cfg.progress)
+    h, warn_msgs = _fit_population(cfg, stage1, aug_names, aug_bounds, tr, pooled, log_prior)
+    n_par = len(names)
+    updated = {s: np.asarray(h.updated[s])[:, :n_par] for s in h.specimens}
+    collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
+    augment = _CombinationAugment(names, bounds, log_u)
+    updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl, augment=augment))
+    # new specimen: pooled columns from the predictive, (VOLF, P1, T1, GF, GM) | φ from the box
+    # prior, unpooled model parameters from their uniform stage-1 prior
+    rng = seeds.rng(int(cfg.seed), "new_specimen")
+    pred = np.asarray(h.predictive)
+    # The normal population lives on the hull box of φ, but p0 (hence a real specimen) lives on a
+    # smaller region (e.g. c·P1/P1_hi + (1−c)·T1/T1_hi ≤ 1): predictive draws outside it have no
+    # parameters and are rejected (rejection sampling of the population restricted to the support).
+    # The likelihood ignores that truncation mass Z_S(ψ); the rejected fraction, E_ψ[1 − Z_S(ψ)],
+    # bounds its effect and goes into the attributes.
+    inside = np.isfinite(log_density(pred[:, : len(COMBINATION_COLUMNS)], bounds, names))
+    outside_fraction = float(1.0 - inside.mean())
+    if not inside.any():
+        raise HbmError("--pool combinations: every new-specimen draw lies outside the prior support of the "
+                       "combinations; the population is not usable")
+    pred = pred[inside]
+    parts = sample_conditional(pred[:, : len(COMBINATION_COLUMNS)], bounds, rng, names)
+    derived_cols = {p: parts[:, k] for k, p in enumerate(COMBINATION_PARAMS)}
+    for n in model_names:
+        if n not in derived_cols and n not in extra:
+            lo, hi = bounds[names.index(n)]
+            derived_cols[n] = rng.uniform(lo, hi, pred.shape[0])
+    derived = [n for n in model_names if n in derived_cols]
+    new = np.column_stack([pred] + [derived_cols[n] for n in derived])
+    return _write_population(cfg, h, out, names, updated, new, list(h.names) + derived, warn_msgs, collapsed,
+                             transforms=tr, pooled=pooled, pool_reasons=reasons, mode=POOL_COMBINATIONS,
+                             derived=derived, outside_support_fraction=outside_fraction,
+                             bounds={n: list(map(float, aug_bounds[aug_names.index(n)])) for n in pooled})
+
+
+def _run_hierarchical(cfg: PopulationConfig, results: Mapping[str, io.SpecimenResult], datasets,
+                      out: Path | None, model, cl=None):
+    """Hyper-posterior, ESS check (+ fresh TMCMC fallback), updated individuals -> hierarchical.nc."""
+    model = spyrou_model() if model is None else model
+    first = next(iter(results.values()))
+    names = list(first.names)
+    for sid, r in results.items():
+        if list(r.names) != names or not np.allclose(r.bounds, first.bounds):
+            raise HbmError(f"hierarchical: specimen {sid} was fitted with other parameters/boxes than "
+                           f"{first.specimen_id}; re-run all specimens with the same settings")
+    model_names = [n for n in names if n in model.parameter_names]
+    transforms = {n: DEFAULT_TRANSFORMS.get(n, "logit") for n in model_names}
+    transforms.update({k: v for k, v in dict(cfg.transforms or {}).items() if k in model_names})
+    for n in model_names:  # log needs a positive box
+        if transforms[n] == "log" and first.bounds[names.index(n), 0] <= 0:
+            transforms[n] = "logit"
+    pool_reasons = None
+    mode = _pool_mode(cfg.pooled, model_names)
+    if mode == POOL_COMBINATIONS:
+        return _run_hierarchical_combinations(cfg, results, datasets, out, model, names, model_names, transforms,
+                                              cl=cl)
+    if mode == POOL_INFORMED:  # parameters informed in at least half of the specimens
+        choice = auto_pool({sid: r.samples for sid, r in results.items()}, names, first.bounds, transforms,
+                           candidates=model_names)
+        pool_reasons = {k: v["reason"] for k, v in choice.reasons.items()}
+        model_names = choice.pooled
+        _log(f"pooled (informed): {', '.join(model_names)}", cfg.progress)
+    elif mode and mode != "all":
+        if isinstance(mode, str):
+            mode = [mode]
+        bad = [p for p in mode if p not in model_names]
+        if bad:
+            raise HbmError(f"--pool: {', '.join(bad)} not among the free model parameters {', '.join(model_names)} "
+                           f"(or auto, combinations, informed, all)")
+        model_names = [n for n in model_names if n in mode]
+    transforms = {n: transforms[n] for n in model_names}
+    stage1 = {sid: (r.samples, r.log_evidence, r.log_evidence_se) for sid, r in results.items()}
+    h, warn_msgs = _fit_population(cfg, stage1, names, first.bounds, transforms, model_names)
+    updated = {sid: np.asarray(h.updated[sid]) for sid in h.specimens}
+    collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
+    updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl))
+    return _write_population(cfg, h, out, names, updated, h.predictive, h.names, warn_msgs, collapsed,
+                             transforms=transforms, pooled=model_names, pool_reasons=pool_reasons,
+                             mode=mode if isinstance(mode, str) else "list",
+                             bounds={n: list(map(float, first.bounds[names.index(n)])) for n in model_names})
