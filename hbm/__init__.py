@@ -23,10 +23,10 @@ from .fit import FitResult, fit_specimen
 from .workflow import RunConfig, run_workflow
 from .organ_report import predict_organ
 from . import data, effects, io, organ
-# Bound last on purpose: these functions shadow their same-named submodules as attributes of
+from .detective import Diagnosis, diagnose, extend
+# Bound last on purpose: this function shadows its same-named submodule as an attribute of
 # the package (``hbm.optimize`` is the function); ``from hbm.optimize import ...`` still works.
 from .optimize import OptimizeResult, optimize
-from .diagnose import Diagnosis, diagnose, extend
 
 __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "spyrou_model",
            "load_specimen", "load_specimens", "save_specimen", "synthetic_specimen",
