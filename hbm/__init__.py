@@ -23,10 +23,8 @@ from .fit import FitResult, fit_specimen
 from .workflow import RunConfig, run_workflow
 from .organ_report import predict_organ
 from . import data, effects, io, organ
+from .detective import Diagnosis, diagnose, extend
 from .optimization import OptimizeResult, optimize
-# Bound last on purpose: ``diagnose`` shadows its same-named submodule as an attribute of the
-# package (``hbm.diagnose`` is the function); ``from hbm.diagnose import ...`` still works.
-from .diagnose import Diagnosis, diagnose, extend
 
 __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "spyrou_model",
            "load_specimen", "load_specimens", "save_specimen", "synthetic_specimen",

@@ -120,7 +120,7 @@ class SpecimenResult:
     pointwise_log_likelihood, predictive, predictive_model : ndarray (n, p) or None
         Pointwise log-likelihood, noisy posterior-predictive replicate, noise-free prediction.
     optima : list of dict or None
-        ``{"params": {name: value}, "objective": f, ...}`` as from :mod:`hbm.optimize`.
+        ``{"params": {name: value}, "objective": f, ...}`` as from :mod:`hbm.optimization`.
     sobol : dict or None
         ``{"S1": {name: v}, "ST": ..., "S1_conf": ..., "ST_conf": ..., "relevance": {name: str}}``
         and optionally ``"S1_point"``/``"ST_point"`` as ``{name: array (p,)}`` and ``"qoi"``.

@@ -50,7 +50,7 @@ class LoadCellDrift(hbm.Effect):
 
 def main() -> int:
     from hbm.data import protocol, ramp, save_specimen, synthetic_specimen
-    from hbm.diagnose import diagnose, extend
+    from hbm.detective import diagnose, extend
 
     base = hbm.spyrou_model()
     truth = dict(VOLF=0.88, EOPT=0.12, P1=0.1, T1=1.0, T2=11.0, THETA=59.3, GF=0.01, GM=0.012, DRIFT=2.5e-5)

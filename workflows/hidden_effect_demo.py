@@ -25,7 +25,7 @@ import numpy as np
 
 import hbm  # noqa: F401  (package import check)
 from hbm.data import cycle, protocol, ramp, synthetic_specimen
-from hbm.diagnose import diagnose, extend
+from hbm.detective import diagnose, extend
 from hbm.effects import make_effect
 from hbm.model.core import Effect, Parameter
 from hbm.model.spyrou import spyrou_model
@@ -33,7 +33,7 @@ from hbm.utils import atomic_write_text
 
 OUT = Path("results/hidden_effect")
 
-# Calvo-1-like base parameters (DESIGN.md §1), not those of tests/test_diagnose.py
+# Calvo-1-like base parameters (DESIGN.md §1), not those of tests/test_detective.py
 THETA = dict(VOLF=0.9, EOPT=0.14, P1=0.13, T1=1.5, T2=9.3, THETA=59.6, GF=0.012, GM=0.009)
 
 

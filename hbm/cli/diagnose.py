@@ -99,7 +99,7 @@ def _kw(args) -> dict:
 
 
 def run_diagnose(args) -> int:
-    from ..diagnose import diagnose
+    from ..detective import diagnose
 
     if args.top < 0:
         raise HbmError(f"--top {args.top}: expected an integer >= 0")
@@ -117,7 +117,7 @@ def run_diagnose(args) -> int:
 
 
 def run_extend(args) -> int:
-    from ..diagnose import extend
+    from ..detective import extend
 
     adds = _split(args.add)
     if not adds and not args.auto:

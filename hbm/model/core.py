@@ -156,6 +156,16 @@ class Effect:
         One of ``"kinematics"``, ``"elastic"``, ``"history"``, ``"output"``.
     description : str
         One line for tables and reports.
+    strength : str, tuple of str or None
+        The parameter(s) whose null value switches the effect off (amplitude-like), as
+        opposed to parameters that only shape it (time constants, centres, widths).  The
+        missing-physics detective (:mod:`hbm.detective`) names an effect only when these
+        parameters move away from their null, and quotes their intervals.  ``None``: the
+        detective takes the parameters whose null sits on a bound or at zero.
+
+    The detective also needs a ``null`` on every parameter of a candidate effect: the
+    candidate is screened and refitted starting from the base model with the effect at its
+    nulls (``Model.null_theta``).
 
     Examples
     --------
@@ -176,6 +186,7 @@ class Effect:
     uses: tuple[str, ...] = ()
     stage: str = "elastic"
     description: str = ""
+    strength: str | tuple[str, ...] | None = None
 
     # -- hooks (override the one of your stage) ---------------------------------------
     def strain(self, state: State, p: Mapping[str, np.ndarray],

@@ -1,4 +1,8 @@
-"""Figures of the detective: where the model fails (diagnosis) and the error fall (extend)."""
+"""Figures of the detective: where the model fails (diagnosis) and the error fall (extend).
+
+The functions take the detective's results duck-typed (their attributes are read, nothing is
+imported from :mod:`hbm.detective`), so the detective never depends on matplotlib.
+"""
 
 from __future__ import annotations
 
@@ -18,14 +22,18 @@ def _tests(d):
     return d.test if d.test is not None else np.zeros(d.stress.size, int)
 
 
-def plot_diagnosis(dg, path: str | os.PathLike) -> Path:
+def plot_diagnosis(dg, path: str | os.PathLike, *, evidence_threshold: float) -> Path:
     """Data, fit and predictive band; standardised residuals with the misfit windows shaded;
     candidate evidence gains.
 
     Parameters
     ----------
-    dg : hbm.diagnose.Diagnosis
+    dg : hbm.detective.Diagnosis
+        Read: ``data`` (strain, stress, test, name), ``residual_curve``, ``base``, ``coverage``,
+        ``window_detail``, ``candidates``, ``selected``, ``group``, ``verdict``, ``message``.
     path : path of the image (format from the suffix)
+    evidence_threshold : float
+        Δlog Z needed to name an effect (a dashed line on the evidence bars).
     """
     d = dg.data
     rc = dg.residual_curve
@@ -73,8 +81,7 @@ def plot_diagnosis(dg, path: str | os.PathLike) -> Path:
     colors = ["#1b7837" if c.effect in dg.selected else ("#762a83" if c.effect in dg.group else "#2166ac")
               for c in cands]
     ax.barh(y + 0.2, np.nan_to_num(dz, nan=0.0), xerr=se, height=0.38, color=colors, label="Δlog Z (refit)")
-    from ..diagnose import DELTA_LOGZ_MIN
-    ax.axvline(DELTA_LOGZ_MIN, color="k", ls="--", lw=0.8)
+    ax.axvline(evidence_threshold, color="k", ls="--", lw=0.8)
     ax.axvline(0, color="k", lw=0.6)
     ax.set_yticks(y)
     ax.set_yticklabels(names, fontsize=8)
@@ -85,13 +92,17 @@ def plot_diagnosis(dg, path: str | os.PathLike) -> Path:
     return save(fig, path)
 
 
-def plot_extension(ext, path: str | os.PathLike) -> Path:
+def plot_extension(ext, path: str | os.PathLike, *, noise_sd: float | None = None) -> Path:
     """Error fall: fits of each step over the data; RMSE, log-evidence ± SE and coverage per step.
 
     Parameters
     ----------
-    ext : hbm.diagnose.Extension
+    ext : hbm.detective.Extension
+        Read: ``data`` (strain, stress, test, name) and ``steps`` (effects, likelihood,
+        theta_max, rmse, log_evidence, log_evidence_se, coverage).
     path : path of the image
+    noise_sd : float, optional
+        Noise sd of the data, drawn as the level the RMSE should fall to.
     """
     d = ext.data
     steps = ext.steps
@@ -115,14 +126,8 @@ def plot_extension(ext, path: str | os.PathLike) -> Path:
     x = np.arange(len(steps))
     ax = fig.add_subplot(gs[1, 0])
     ax.plot(x, [s.rmse for s in steps], "o-", color="#b2182b")
-    sig = None
-    try:
-        from ..diagnose import model_free_noise
-        sig = model_free_noise(d.stress, d.segment)["sigma"]
-    except Exception:  # pragma: no cover - figure still useful without the reference line
-        pass
-    if sig is not None and np.isfinite(sig):
-        ax.axhline(sig, color="grey", ls="--", lw=0.8, label="model-free noise sd")
+    if noise_sd is not None and np.isfinite(noise_sd):
+        ax.axhline(noise_sd, color="grey", ls="--", lw=0.8, label="model-free noise sd")
         ax.legend(fontsize=7)
     ax.set_xticks(x)
     ax.set_xticklabels(labels, rotation=30, fontsize=7)

@@ -1,9 +1,10 @@
-"""Tests of the detective (hbm.diagnose): noise estimate, misfit windows, screens, verdicts on
-data with a hidden effect, extend, the CLI and user-written candidates.
+"""Tests of the detective (hbm.detective): the control, the screens, verdicts on data with a
+hidden effect, extend, the CLI and user-written candidates.  The noise estimate, whitening and
+misfit windows are tested in test_detective_noise_check.py.
 
 Default selection: building blocks against known generators plus one seed of the cheap
 end-to-end cases.  The multi-seed validations (false-alarm rate with iid and AR(1) noise,
-every hidden effect over several seeds) are marked slow: ``pytest -m slow tests/test_diagnose.py``.
+every hidden effect over several seeds) are marked slow: ``pytest -m slow tests/test_detective.py``.
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ import numpy as np
 import pytest
 
 from hbm.data import cycle, protocol, ramp, synthetic_specimen
-from hbm.diagnose import (LocalMisfit, _as_data, _whitener, diagnose, extend, local_refit_screen,
-                          misfit_windows, model_free_noise, score_screen)
+from hbm.detective import LocalMisfit, diagnose, extend, local_refit_screen, score_screen
+from hbm.detective.inputs import as_data
+from hbm.detective.noise_check import whitener
 from hbm.effects import make_effect
 from hbm.model.core import Effect, Parameter
 from hbm.model.spyrou import spyrou_model
@@ -75,22 +77,6 @@ def hidden(kind: str, seed: int, noise: str = "iid", rho: float = 0.5, n: int = 
 # ------------------------------------------------------------------------------------------
 # building blocks against known generators
 # ------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("rho", [0.0, 0.6])
-def test_model_free_noise_recovers_sigma_and_rho(rho):
-    """Smooth exponential curve + AR(1) noise: the difference estimator recovers (σ, ρ)."""
-    rng = np.random.default_rng(3)
-    n, sig = 2000, 0.01
-    e = rng.standard_normal(n)
-    x = np.empty(n)
-    x[0] = e[0]
-    for t in range(1, n):  # test-only generator loop (reference implementation)
-        x[t] = rho * x[t - 1] + np.sqrt(1 - rho ** 2) * e[t]
-    y = 0.05 * np.expm1(4 * np.linspace(0, 1, n)) + sig * x
-    est = model_free_noise(y)
-    assert est["sigma"] == pytest.approx(sig, rel=0.1)
-    assert est["rho"] == pytest.approx(rho, abs=0.1)
-
-
 def test_local_misfit_is_a_gaussian_bump():
     ctl = LocalMisfit(0.2, (0.0, 0.4))
     m = spyrou_model() + ctl
@@ -103,36 +89,15 @@ def test_local_misfit_is_a_gaussian_bump():
     np.testing.assert_allclose(m.stress(eps, th0), spyrou_model().stress(eps, th0[:8]), atol=1e-15)
 
 
-@pytest.mark.parametrize("rho", [0.0, 0.7])
-def test_misfit_windows_family_wise_rate_and_power(rho):
-    """Pure AR(1) noise: the scan raises a window in ≈5 % of series (not the ~100 % a naive
-    iid threshold gives at rho 0.7); a bump of 1.2 sd over 30 points is found with its sign
-    and location."""
-    rng = np.random.default_rng(11)
-    n, reps = 150, 120
-    strain = np.linspace(0, 0.3, n)
-    seg = np.zeros(n, int)
-    from scipy.signal import lfilter
-    e = rng.standard_normal((reps, n))
-    e[:, 1:] *= np.sqrt(1 - rho ** 2)
-    z = lfilter([1.0], [1.0, -rho], e, axis=-1)
-    alarms = sum(bool(misfit_windows(z[i], strain, seg, rho, seed=i)[0]) for i in range(reps))
-    assert alarms / reps <= 0.12
-    bump = np.where((strain > 0.1) & (strain < 0.16), 1.2 if rho == 0 else 2.5, 0.0)
-    found = misfit_windows(z[0] + bump, strain, seg, rho, seed=0)[0]
-    assert found and found[0]["sign"] == 1
-    assert found[0]["eps_lo"] < 0.16 and found[0]["eps_hi"] > 0.1
-
-
 def test_screens_rank_the_hidden_offset_first():
     """Residual = offset signature (exact truth as 'fit'): both screens flag offset, and
     an effect the base model absorbs (series compliance) scores low."""
     ds, _, sd = hidden("offset", 0)
-    d = _as_data(ds)
+    d = as_data(ds)
     m = spyrou_model()
     theta = np.array([TH[k] for k in m.parameter_names])
     resid = np.asarray(ds.stress) - m.stress(d.loading, theta)
-    w = _whitener(np.full(resid.size, sd), 0.0, d.ar_first)
+    w = whitener(np.full(resid.size, sd), 0.0, d.ar_first)
     free = list(m.parameter_names)
     off = score_screen(m, theta, free, make_effect("offset"), resid, w, d)
     sc = score_screen(m, theta, free, make_effect("series_compliance"), resid, w, d)
@@ -153,6 +118,9 @@ def test_diagnose_names_offset_on_a_single_ramp():
     assert c.delta_log_evidence > 5 and c.excludes_null
     lo, hi, null = c.intervals["S0"]
     assert lo < 0.0065 < hi
+    assert c.effect_instance.name == "offset" and c.score_start["S0"] > 0
+    with pytest.raises(AttributeError):  # results declare every field: nothing is attached at run time
+        c._effect = c.effect_instance
     assert c.rmse_after < c.rmse_before and c.rmse_after < 1.25 * sd
     assert any(w[2] == 1 and w[0] < 0.05 for w in dg.misfit_windows)
     out = dg.to_dict()

@@ -1,0 +1,305 @@
+"""Fitting a model at its best noise model: CMA-ES optimum, BIC choice of the noise, TMCMC
+evidence and posterior-predictive coverage (used by every step that fits: the base model,
+the candidate refits, each step of :func:`hbm.extend`).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time as _time
+from typing import Mapping, Sequence
+
+import cma
+import numpy as np
+
+from ..errors import HbmError
+from ..likelihood import make_likelihood
+from ..model.core import Model
+from ..optimization import optimize
+from ..samplers.tmcmc import tmcmc
+from .inputs import SpecimenData, added_effects
+from .results import FitSummary
+from .rules import BAND, TMCMC_BUDGET, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES
+
+__all__ = ["Fitter", "coverage"]
+
+
+def cma_maximise(lik, x0s: Sequence[np.ndarray], sigma0: float, seed: int, maxfevals: int,
+                 popsize: int | None = None) -> tuple[np.ndarray, float]:
+    """Maximise ``lik`` from each start in ``x0s`` (CMA-ES in the unit box); best (x, f)."""
+    b = np.asarray(lik.bounds, float)
+    lo, span = b[:, 0], b[:, 1] - b[:, 0]
+    best_x, best_f = None, -np.inf
+    if len(x0s):
+        # CMA-ES never evaluates its mean: score the starts themselves, so a warm start at the
+        # previous optimum can only improve
+        X0 = np.array([np.clip(np.asarray(x, float), b[:, 0], b[:, 1]) for x in x0s])
+        f0 = np.asarray(lik(X0), float)
+        if np.isfinite(f0).any():
+            i = int(np.nanargmax(np.where(np.isfinite(f0), f0, -np.inf)))
+            best_x, best_f = X0[i].copy(), float(f0[i])
+    for k, x0 in enumerate(x0s):
+        u0 = np.clip((np.asarray(x0, float) - lo) / span, 1e-3, 1 - 1e-3)
+        opts = {"bounds": [0.0, 1.0], "seed": int(seed) * 7919 + k + 1, "verbose": -9,
+                "verb_log": 0, "verb_disp": 0, "maxfevals": int(maxfevals), "tolfun": 1e-7,
+                "tolx": 1e-7}
+        if popsize:
+            opts["popsize"] = int(popsize)
+        state = np.random.get_state()  # cma reseeds numpy's global RNG: restore the caller's
+        try:
+            es = cma.CMAEvolutionStrategy(u0, sigma0, opts)
+            while not es.stop():
+                u = np.asarray(es.ask())
+                f = np.asarray(lik(lo + u * span), float)
+                f = np.where(np.isfinite(f), f, -1e300)
+                i = int(np.argmax(f))
+                if f[i] > best_f:
+                    best_f, best_x = float(f[i]), lo + u[i] * span
+                es.tell(list(u), (-f).tolist())
+        finally:
+            np.random.set_state(state)
+    if best_x is None:  # pragma: no cover - cma always evaluates something
+        raise HbmError("diagnose: the optimiser found no finite likelihood value")
+    return best_x, best_f
+
+
+def global_fit(lik, seed: int, restarts: int) -> tuple[np.ndarray, float]:
+    """Global fit of a fresh likelihood (:func:`hbm.optimize`, IPOP CMA-ES restarts)."""
+    res = optimize(lik, restarts=restarts, seed=seed, maxfevals=2500)
+    x = np.asarray(res.best["theta"], float)
+    return x, float(np.asarray(lik(x[None, :]))[0])
+
+
+def sample(lik, n_samples: int, seed: int, budget: float | None = TMCMC_BUDGET):
+    """TMCMC evidence run; the population shrinks for expensive models to keep the budget.
+
+    The cost per particle evaluation is measured on a small batch; a run costs about
+    N · (steps per stage) · (≈ 15 stages) evaluations.
+    """
+    n = int(n_samples)
+    if budget:
+        rng = np.random.default_rng(seed)
+        b = np.asarray(lik.bounds, float)
+        x = b[:, 0] + rng.uniform(0.2, 0.8, (128, b.shape[0])) * (b[:, 1] - b[:, 0])
+        t0 = _time.perf_counter()
+        lik(x)
+        per = (_time.perf_counter() - t0) / 128
+        n = int(np.clip(budget / max(per * 15 * TMCMC_MAX_STEPS, 1e-12), TMCMC_MIN_SAMPLES, n))
+    return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
+                 max_steps=TMCMC_MAX_STEPS)
+
+
+def rmse(lik, x: np.ndarray, data: SpecimenData) -> float:
+    """Root-mean-square error of the prediction at the free vector ``x``."""
+    pred = np.asarray(lik.predict(np.asarray(x)[None, :]))[0]
+    return float(np.sqrt(np.mean((data.stress - pred) ** 2)))
+
+
+def coverage(lik, samples: np.ndarray, data: SpecimenData, seed: int, band: float = BAND) -> dict:
+    """Posterior-predictive band and its coverage (overall, per test, along strain)."""
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(samples.shape[0], size=min(400, samples.shape[0]), replace=False)
+    th = samples[idx]
+    mu = np.asarray(lik.predict(th))
+    sd = np.asarray(lik.noise_sd(th))
+    draws = mu + sd * rng.standard_normal(mu.shape)
+    q = (1 - band) / 2
+    lo, hi = np.quantile(draws, [q, 1 - q], axis=0)
+    inside = (data.stress >= lo) & (data.stress <= hi)
+    out = {"band": band, "overall": float(inside.mean()), "lower": lo, "upper": hi,
+           "mean": mu.mean(axis=0)}
+    tests = data.test if data.test is not None else np.zeros(data.stress.size, int)
+    out["per_test"] = {str(t): float(inside[tests == t].mean()) for t in np.unique(tests)}
+    edges = np.quantile(data.strain, np.linspace(0, 1, 11))
+    b = np.clip(np.searchsorted(edges, data.strain, side="right") - 1, 0, 9)
+    out["along_strain"] = [[float(edges[i]), float(edges[i + 1]), float(inside[b == i].mean())]
+                           for i in range(10) if np.any(b == i)]
+    return out
+
+
+def fill_nan(x: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """``x`` with NaN entries set to the box centre, clipped into the box."""
+    x = x.copy()
+    bad = ~np.isfinite(x)
+    x[bad] = 0.5 * (bounds[bad, 0] + bounds[bad, 1])
+    return np.clip(x, bounds[:, 0], bounds[:, 1])
+
+
+def warm_start(prev: FitSummary, lik_names: Sequence[str], effect_start: Mapping[str, float],
+               noise: str, model_new: Model) -> np.ndarray:
+    """A start vector for an extended likelihood: the previous optimum + the effect's start."""
+    table = prev.noise_fits
+    src = table.get(noise) or table.get(prev.noise)
+    vals = dict(zip(src["lik"].names, src["x"])) if src else dict(zip(prev.names, prev.theta_max))
+    # a noise model not fitted on the previous model: start its extra parameters mid-range/at zero
+    x = []
+    for n in lik_names:
+        if n in effect_start:
+            v = float(effect_start[n])
+            if n in model_new.parameter_names:
+                # a start on a bound (nulls often are) keeps CMA-ES there: nudge 2 % inside
+                q = model_new.parameters[model_new.index(n)]
+                w = q.upper - q.lower
+                v = min(max(v, q.lower + 0.02 * w), q.upper - 0.02 * w)
+            x.append(v)
+        elif n in vals:
+            x.append(vals[n])
+        elif n == "rho":
+            x.append(0.0)
+        elif n in model_new.parameter_names:
+            q = model_new.parameters[model_new.index(n)]
+            x.append(q.null if q.null is not None else 0.5 * (q.lower + q.upper))
+        else:
+            x.append(np.nan)
+    return np.asarray(x, float)
+
+
+class Fitter:
+    """Shared settings of all fits in one diagnosis (same data, same noise prior)."""
+
+    def __init__(self, data: SpecimenData, fix, seed: int, n_samples: int, sigma_bounds, progress: bool):
+        self.data, self.fix, self.seed = data, fix, seed
+        self.n_samples, self.sigma_bounds, self.progress = n_samples, sigma_bounds, progress
+        self.n = data.stress.size
+
+    def log(self, msg: str) -> None:
+        """A progress line on stderr (when ``progress``)."""
+        if self.progress:
+            print(f"[diagnose] {msg}", file=sys.stderr, flush=True)
+
+    def bic(self, lik, f: float) -> float:
+        return -2.0 * f + len(lik.names) * math.log(self.n)
+
+    def likelihood(self, model: Model, noise: str):
+        """The likelihood of ``model`` at noise model ``noise`` with this diagnosis's prior box."""
+        return make_likelihood(model, self.data.ds, noise=noise, fix=dict(self.fix) if self.fix else None,
+                               sigma_bounds=self.sigma_bounds)
+
+    def warm_starts(self, prev: FitSummary, model: Model, noises: Sequence[str],
+                    effect_starts: Sequence[Mapping[str, float]]) -> dict[str, list[np.ndarray]]:
+        """Starts of an extended model at each noise model: the previous optimum completed with
+        each of ``effect_starts`` (values of the added effect's parameters)."""
+        out = {}
+        for nz in noises:
+            lk = self.likelihood(model, nz)
+            bnd = np.asarray(lk.bounds, float)
+            out[nz] = [fill_nan(warm_start(prev, lk.names, st, nz, model), bnd) for st in effect_starts]
+        return out
+
+    def fit(self, model: Model, noises: Sequence[str], starts: Mapping[str, Sequence[np.ndarray]] | None,
+            seed: int, sample: bool = True, global_restarts: int = 0,
+            names_effects: list[str] | None = None, expected_log_z=None) -> FitSummary:
+        """CMA-ES for each noise model, choose by BIC, TMCMC at the chosen one.
+
+        The first noise model gets the global (or warm-started) search; the others start from
+        its optimum (same mean parameters, noise parameters added), which is cheap and keeps
+        the comparison of noise models about the noise, not about optimiser luck.
+        ``expected_log_z`` (a BIC-type expectation) triggers one TMCMC rerun when the evidence
+        comes out implausibly low: a population that missed the posterior mass fails low.
+        """
+        t0 = _time.perf_counter()
+        table: dict[str, dict] = {}
+        for k, noise in enumerate(noises):
+            first = table[noises[0]] if k > 0 else None
+            table[noise] = self._optimum(model, noise, k, first, starts, seed, global_restarts)
+        if len(noises) > 1:
+            self._cross_seed(noises, table, seed)
+        best = min(noises, key=lambda n: table[n]["bic"])   # the first of equals, as a loop would
+        ch = table[best]
+        lik, x = ch["lik"], ch["x"]
+        fs = FitSummary(effects=list(names_effects if names_effects is not None else added_effects(model)),
+                        noise=best, names=list(lik.names), theta_max=x,
+                        max_log_likelihood=ch["max_log_likelihood"], bic=ch["bic"],
+                        rmse=rmse(lik, x, self.data),
+                        noise_bic={k: v["bic"] for k, v in table.items()}, likelihood=lik, model=model,
+                        noise_fits=table)
+        t_cma = _time.perf_counter() - t0
+        n_stages = 0
+        if sample:
+            n_stages = self._sample(fs, seed, expected_log_z)
+        fs.wall_time = _time.perf_counter() - t0
+        self.log(f"fit {'+'.join(fs.effects) or 'base'} [{best}]: max logL {fs.max_log_likelihood:.2f}, "
+                 f"log Z {fs.log_evidence:.2f} ± {fs.log_evidence_se:.2f}, RMSE {fs.rmse:.4g} "
+                 f"({fs.wall_time:.1f} s, CMA-ES {t_cma:.1f} s, TMCMC N={fs.samples.shape[0] if fs.samples is not None else 0}, "
+                 f"{n_stages} stages)")
+        return fs
+
+    def _optimum(self, model: Model, noise: str, k: int, first: dict | None, starts, seed: int,
+                 global_restarts: int) -> dict:
+        """CMA-ES optimum at the ``k``-th noise model tried, ``noise``.
+
+        The first (``k = 0``) gets the global or warm-started search; later ones start from
+        ``first``, the optimum at the first noise model.
+        """
+        lik = self.likelihood(model, noise)
+        b = np.asarray(lik.bounds, float)
+        x0s = [fill_nan(np.asarray(x, float), b) for x in (starts or {}).get(noise, [])]
+        if k > 0:
+            prev = first
+            vals = dict(zip(prev["lik"].names, prev["x"]))
+            # new noise parameters start from moment estimates of the previous residuals
+            # (CMA-ES started on a bound, e.g. rho = 0, tends to stay there)
+            r = self.data.stress - np.asarray(prev["lik"].predict(prev["x"][None, :]))[0]
+            cont = ~self.data.ar_first[1:]
+            r1 = float(np.sum(r[1:][cont] * r[:-1][cont]) / max(np.sum(r * r), 1e-300))
+            guess = {"rho": float(np.clip(r1, 0.05, 0.9)), "sigma_rel": 0.05}
+            x0 = np.array([vals.get(n, guess.get(n, np.nan)) for n in lik.names])
+            x0s = [fill_nan(x0, b)] + x0s[:1]
+            x, f = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=800)
+        elif global_restarts:
+            x, f = global_fit(lik, seed + 101 * k, global_restarts)
+            if x0s:
+                x2, f2 = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=1000)
+                if f2 > f:
+                    x, f = x2, f2
+        else:
+            x, f = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=1500)
+        return {"bic": self.bic(lik, f), "max_log_likelihood": f, "x": x, "lik": lik}
+
+    def _cross_seed(self, noises: Sequence[str], table: dict, seed: int) -> None:
+        """Restart each noise model from the other models' optimal mean parameters.
+
+        A poorly converged iid fit would otherwise hand the comparison to an AR(1) fit that
+        soaks up the misfit, or vice versa.
+        """
+        for noise in noises:
+            lik = table[noise]["lik"]
+            b = np.asarray(lik.bounds, float)
+            for other in noises:
+                if other == noise:
+                    continue
+                vals = dict(zip(table[other]["lik"].names, table[other]["x"]))
+                own = dict(zip(lik.names, table[noise]["x"]))
+                x0 = np.array([vals[n] if (n in vals and n in lik.model.parameter_names) else own[n]
+                               for n in lik.names])
+                x, f = cma_maximise(lik, [fill_nan(x0, b)], 0.01, seed + 31, maxfevals=500)
+                if f > table[noise]["max_log_likelihood"]:
+                    table[noise].update(x=x, max_log_likelihood=f, bic=self.bic(lik, f))
+
+    def _sample(self, fs: FitSummary, seed: int, expected_log_z) -> int:
+        """TMCMC at the chosen noise model: evidence, samples, coverage; returns the stages run."""
+        lik = fs.likelihood
+        res = sample(lik, self.n_samples, seed)
+        expected = None if expected_log_z is None else expected_log_z(fs.max_log_likelihood, len(lik.names))
+        if expected is not None and res.log_evidence < expected - 25.0:
+            res2 = sample(lik, self.n_samples, seed + 99991)
+            self.log(f"  TMCMC rerun (log Z {res.log_evidence:.1f} far below the BIC-type "
+                     f"expectation {expected:.1f}) -> {res2.log_evidence:.1f}")
+            if res2.log_evidence > res.log_evidence:
+                res = res2
+        fs.samples = np.asarray(res.samples)
+        fs.log_evidence = float(res.log_evidence)
+        fs.log_evidence_se = float(res.log_evidence_se)
+        # the TMCMC population may contain a better point than CMA-ES found
+        ll = np.asarray(res.log_likelihood)
+        j = int(np.argmax(ll))
+        if ll[j] > fs.max_log_likelihood:
+            fs.theta_max, fs.max_log_likelihood = fs.samples[j].copy(), float(ll[j])
+            chosen = fs.noise_fits[fs.noise]
+            chosen["x"], chosen["max_log_likelihood"] = fs.theta_max, fs.max_log_likelihood
+            fs.rmse = rmse(lik, fs.theta_max, self.data)
+            fs.bic = self.bic(lik, fs.max_log_likelihood)
+        fs.predictive = coverage(lik, fs.samples, self.data, seed)
+        fs.coverage = fs.predictive["overall"]
+        return len(res.stages)

@@ -1,0 +1,120 @@
+"""The detective's inputs: the specimen's arrays, the current model and the candidate effects."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..data import load_specimen
+from ..effects import REGISTRY, load_effect, make_effect
+from ..errors import HbmError
+from ..model.core import Effect, Loading, Model
+from ..model.spyrou import BASE_EFFECTS, spyrou_model
+
+__all__ = ["SpecimenData", "as_data", "resolve_effect", "resolve_model", "resolve_candidates", "added_effects"]
+
+
+@dataclass(frozen=True, slots=True)
+class SpecimenData:
+    """A specimen as the detective uses it: flat arrays plus the sampling structure."""
+
+    ds: Any                      # the dataset itself (likelihoods are built from it)
+    strain: np.ndarray
+    stress: np.ndarray
+    time: np.ndarray | None
+    test: np.ndarray | None
+    segment: np.ndarray          # id of contiguous sampling segments (tests / histories)
+    ar_first: np.ndarray         # True where the likelihood's AR(1) noise restarts (history starts)
+    loading: Loading
+    name: str
+
+
+def as_data(data) -> SpecimenData:
+    """Check a dataset (or load a specimen file) and return its :class:`SpecimenData`."""
+    if isinstance(data, (str, os.PathLike)):
+        data = load_specimen(data)
+    try:
+        strain = np.asarray(data["strain"], float).ravel()
+        stress = np.asarray(data["stress"], float).ravel()
+    except (KeyError, TypeError) as exc:
+        raise HbmError(f"diagnose: data must have variables 'strain' and 'stress' ({exc})") from None
+    names = getattr(data, "variables", data)
+    time = np.asarray(data["time"], float).ravel() if "time" in names else None
+    test = np.asarray(data["test"]).ravel() if "test" in names else None
+    if strain.size != stress.size or strain.size < 10:
+        raise HbmError(f"diagnose: need >= 10 points with matching strain/stress, got {strain.size}/{stress.size}")
+    if not (np.all(np.isfinite(strain)) and np.all(np.isfinite(stress))):
+        raise HbmError("diagnose: strain/stress contain non-finite values")
+    loading = Loading(strain, time, test)
+    starts = np.zeros(strain.size, bool)
+    starts[0] = True
+    if test is not None:
+        starts[1:] |= test[1:] != test[:-1]
+    starts |= loading.history_starts
+    segment = np.cumsum(starts) - 1
+    attrs = getattr(data, "attrs", {}) or {}
+    return SpecimenData(data, strain, stress, time, test, segment, loading.history_starts.copy(), loading,
+                        str(attrs.get("id", "specimen")))
+
+
+def resolve_effect(c) -> Effect:
+    """An Effect from an instance, an Effect subclass, a library id or ``"path.py:ClassName"``."""
+    if isinstance(c, Effect):
+        return c
+    if isinstance(c, type) and issubclass(c, Effect):
+        return c()
+    if isinstance(c, str):
+        if ":" in c and (c.split(":")[0].endswith(".py")):
+            return load_effect(c)
+        if c not in REGISTRY:
+            raise HbmError(f"unknown effect {c!r}; known effects: {', '.join(sorted(REGISTRY))} "
+                           "(or path.py:ClassName for your own)")
+        return make_effect(c)
+    raise HbmError(f"a candidate must be an effect id, 'path.py:ClassName' or an hbm.Effect, got {c!r}")
+
+
+def resolve_model(model) -> Model:
+    """The current model: ``None``/``"base"``, ``"EFFECT,..."``, a list of effects or a Model."""
+    if model is None:
+        return spyrou_model()
+    if isinstance(model, Model):
+        return model
+    if isinstance(model, str):
+        parts = [p.strip() for p in model.split(",") if p.strip()]
+        parts = [p for p in parts if p != "base"]
+        return spyrou_model().with_effects(*[resolve_effect(p) for p in parts]) if parts else spyrou_model()
+    if isinstance(model, (list, tuple)):
+        return spyrou_model().with_effects(*[resolve_effect(p) for p in model])
+    raise HbmError(f"model must be None, 'base', 'EFFECT,...', a list of effects or an hbm.Model, got {model!r}")
+
+
+def resolve_candidates(candidates, model: Model) -> list[Effect]:
+    """The candidate effects to screen, without those already in ``model`` and duplicates."""
+    if candidates is None or (isinstance(candidates, str) and candidates == "all"):
+        effs = [resolve_effect(k) for k in REGISTRY]
+    else:
+        if isinstance(candidates, (str, Effect)):
+            candidates = [candidates] if isinstance(candidates, Effect) or ":" in candidates \
+                else [c for c in candidates.split(",") if c.strip()]
+        effs = []
+        for c in candidates:
+            if isinstance(c, str) and c.strip() == "all":
+                effs += [resolve_effect(k) for k in REGISTRY]
+            else:
+                effs.append(resolve_effect(c.strip() if isinstance(c, str) else c))
+    have = set(model.effect_names)
+    out, seen = [], set()
+    for e in effs:
+        if e.name in have or e.name in seen:
+            continue
+        seen.add(e.name)
+        out.append(e)
+    return out
+
+
+def added_effects(model: Model) -> list[str]:
+    """Effects of ``model`` beyond the Spyrou base (what reports call the model)."""
+    return [n for n in model.effect_names if n not in BASE_EFFECTS]

@@ -1,0 +1,315 @@
+"""How noisy are the data, and where does the fitted model fail (steps 1 and 2 of the detective).
+
+* :func:`model_free_noise` — (σ, ρ) from differences of the data alone, no model involved;
+* :func:`noise_prior_box` — the prior box of the noise sd shared by every fit of a diagnosis;
+* :func:`simulate_ar1` / :func:`whitener` — the AR(1) noise process and its inverse;
+* :func:`misfit_windows` — the scan for strain windows with a significant smoothed residual;
+* :func:`check_noise` — the step: the fitted noise against the model-free estimate, then the
+  windows, calibrated with the noise the data show.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats as _stats
+from scipy.signal import lfilter
+
+from .inputs import SpecimenData
+from .results import FitSummary, jsonable
+from .rules import WINDOW_ALPHA
+
+__all__ = ["model_free_noise", "noise_prior_box", "simulate_ar1", "whitener", "misfit_windows",
+           "NoiseCheck", "check_noise"]
+
+
+# =========================================================================================
+# model-free noise estimate (difference based)
+# =========================================================================================
+# third-order difference: annihilates quadratic trends, so a smooth curve contributes little
+_DIFF = np.array([1.0, -3.0, 3.0, -1.0]) / np.sqrt(20.0)
+
+
+def _diff_var_factor(rho: float, lag: int) -> float:
+    """Var(Σ a_j y_{i+j·lag}) / σ² for AR(1) noise with coefficient rho."""
+    j = np.arange(_DIFF.size)
+    return float(_DIFF @ (rho ** (lag * np.abs(j[:, None] - j[None, :]))) @ _DIFF)
+
+
+def model_free_noise(stress: np.ndarray, segment: np.ndarray | None = None, max_lag: int = 4) -> dict:
+    """Noise sd and lag-1 autocorrelation from differences of the data alone.
+
+    Third-order differences (which annihilate quadratic trends, so the smooth curve
+    contributes little) at lags k = 1..``max_lag`` within each sampling segment have mean
+    squares m_k = σ²·v_k(ρ) under AR(1) noise, v_k known in closed form.  (σ², ρ) are fitted to
+    log m_k by least squares (σ² profiled, ρ on a grid): a Gasser/Rice-type difference
+    estimator extended to AR(1).  The largest 5 % of squared differences are trimmed (with
+    the matching correction) so that kinks (load reversals, onsets) do not dominate.
+    Independent of any model, hence unaffected by a misfit that a fitted AR(1) might soak up.
+
+    Returns
+    -------
+    dict with ``sigma``, ``rho`` and ``sigma_iid`` (σ from lag 1 assuming ρ = 0).
+    """
+    y = np.asarray(stress, float)
+    seg = np.zeros(y.size, int) if segment is None else np.asarray(segment)
+    # E[x² | x² below its 95 % quantile] / E[x²] for a Gaussian x
+    q = _stats.chi2.ppf(0.95, 1)
+    trim_factor = _stats.chi2.cdf(q, 3) / 0.95
+    lags, ms = [], []
+    for lag in range(1, max_lag + 1):
+        vals = []
+        for s in np.unique(seg):
+            ys = y[seg == s]
+            m = ys.size - 3 * lag
+            if m <= 0:
+                continue
+            vals.append(sum(_DIFF[j] * ys[j * lag: j * lag + m] for j in range(4)))
+        v = np.concatenate(vals) if vals else np.zeros(0)
+        if v.size < 8:
+            break
+        v2 = np.sort(v * v)[: max(1, int(0.95 * v.size))]
+        lags.append(lag)
+        ms.append(float(v2.mean() / trim_factor))
+    if not ms or not ms[0] > 0:
+        return {"sigma": float("nan"), "rho": float("nan"), "sigma_iid": float("nan")}
+    lm = np.log(np.asarray(ms))
+    grid = np.linspace(-0.5, 0.97, 148)
+    best = (np.inf, 0.0, ms[0])
+    for r in grid:
+        lv = np.log([_diff_var_factor(r, k) for k in lags])
+        ls2 = float(np.mean(lm - lv))
+        sse = float(np.sum((lm - lv - ls2) ** 2))
+        if sse < best[0]:
+            best = (sse, float(r), math.exp(ls2))
+    return {"sigma": math.sqrt(best[2]), "rho": best[1], "sigma_iid": math.sqrt(ms[0])}
+
+
+def noise_prior_box(model_free: dict, stress: np.ndarray) -> tuple[float, float]:
+    """Prior box of the noise sd: the model-free σ ×1/20 … ×20 (a fallback from the stress
+    range when σ is unavailable).  Shared by every fit so that evidences are comparable."""
+    s0 = model_free["sigma"] if np.isfinite(model_free["sigma"]) and model_free["sigma"] > 0 \
+        else 1e-3 * max(np.ptp(stress), 1e-6)
+    return (s0 / 20.0, s0 * 20.0)
+
+
+# =========================================================================================
+# the AR(1) noise process and its whitening
+# =========================================================================================
+def _innovation_scale(rho: float) -> float:
+    """sd of the AR(1) innovations for unit marginal variance, √(1 − ρ²)."""
+    return math.sqrt(max(1.0 - rho * rho, 1e-12))
+
+
+def simulate_ar1(rng: np.random.Generator, shape: tuple[int, ...], rho: float) -> np.ndarray:
+    """Stationary AR(1) noise with unit marginal variance along the last axis.
+
+    x_0 = e_0, x_t = ρ·x_{t−1} + √(1 − ρ²)·e_t with e iid N(0, 1) drawn from ``rng`` (one
+    ``standard_normal(shape)`` call, also for ρ = 0, so the stream does not depend on ρ).
+    :func:`whitener` inverts it exactly.
+    """
+    # TODO(noise): replace with hbm.noise
+    e = rng.standard_normal(shape)
+    if rho != 0.0:
+        e[..., 1:] *= _innovation_scale(rho)
+        e = lfilter([1.0], [1.0, -rho], e, axis=-1)   # the vectorised recursion
+    return e
+
+
+def whitener(sd: np.ndarray, rho: float, first: np.ndarray):
+    """Function mapping (n,) or (n, k) arrays to noise-whitened units.
+
+    Divides by the marginal sd, then for AR(1) takes innovations (u_t = (z_t − ρ z_{t−1})/√(1−ρ²),
+    u = z where the process restarts, ``first``), which makes the noise iid N(0, 1).
+    """
+    # TODO(noise): replace with hbm.noise
+    sd = np.asarray(sd, float)
+    c = _innovation_scale(rho)
+
+    def w(a):
+        a = np.asarray(a, float)
+        z = a / (sd if a.ndim == 1 else sd[:, None])
+        if rho == 0.0:
+            return z
+        out = np.empty_like(z)
+        out[1:] = (z[1:] - rho * z[:-1]) / c
+        out[first] = z[first]
+        return out
+
+    return w
+
+
+# =========================================================================================
+# misfit windows
+# =========================================================================================
+def _window_scales(n: int) -> list[int]:
+    scales, w = [], 5
+    while w <= max(5, n // 2):
+        scales.append(w)
+        w = int(round(w * 1.6))
+    return scales
+
+
+def _window_z(z: np.ndarray, rho: float, scales: list[int]) -> list[tuple[int, np.ndarray]]:
+    """Standardised moving means of z (..., n) for each window length, under AR(1) rho."""
+    out = []
+    cs = np.concatenate([np.zeros(z.shape[:-1] + (1,)), np.cumsum(z, axis=-1)], axis=-1)
+    for w in scales:
+        if w > z.shape[-1]:
+            continue
+        k = np.arange(1, w)
+        var = (w + 2.0 * np.sum((w - k) * rho ** k)) / (w * w)   # variance of a w-point mean
+        m = (cs[..., w:] - cs[..., :-w]) / w
+        out.append((w, m / math.sqrt(var)))
+    return out
+
+
+def misfit_windows(z: np.ndarray, strain: np.ndarray, segment: np.ndarray, rho: float, *,
+                   alpha: float = WINDOW_ALPHA, n_sim: int = 400, seed: int = 0,
+                   test: np.ndarray | None = None) -> tuple[list[dict], float]:
+    """Strain windows where the smoothed standardised residual is significantly non-zero.
+
+    Parameters
+    ----------
+    z : array (n,)
+        Residuals divided by the marginal noise sd (not whitened: the smoothing averages the
+        correlated noise and its variance is computed for AR(1) ``rho``).
+    strain, segment : arrays (n,)
+        Strain of each point and the sampling segment (noise correlation runs within).
+    rho : float
+        Lag-1 noise autocorrelation (0 for iid).  The effective sample size of a w-point
+        window is smaller for rho > 0; the variance formula accounts for it.
+    alpha : float
+        Family-wise false-alarm rate over all windows, scales and segments; the threshold is
+        the (1 − alpha) quantile of the maximum |z| of simulated AR(1) noise scanned the same way.
+    n_sim : int
+        Simulated noise series per segment.
+    seed : int
+        Seed of the simulation.
+    test : array (n,), optional
+        Test ids (reported per window; the segment id otherwise).
+
+    Returns
+    -------
+    windows : list of dict
+        ``eps_lo, eps_hi, sign, z, test, i0, i1`` (merged overlapping windows of equal sign).
+    threshold : float
+    """
+    rng = np.random.default_rng(seed)
+    rho = float(np.clip(rho, -0.95, 0.99))
+    segs = [np.flatnonzero(segment == s) for s in np.unique(segment)]
+    # simulate the scan statistic under the noise model (vectorised over n_sim replicates)
+    sim_max = np.zeros(n_sim)
+    for idx in segs:
+        n = idx.size
+        if n < 5:
+            continue
+        for _, zz in _window_z(simulate_ar1(rng, (n_sim, n), rho), rho, _window_scales(n)):
+            sim_max = np.maximum(sim_max, np.abs(zz).max(axis=-1))
+    thr = float(np.quantile(sim_max, 1 - alpha)) if np.any(sim_max > 0) else float("inf")
+    found = []
+    for idx in segs:
+        n = idx.size
+        if n < 5:
+            continue
+        for w, zz in _window_z(z[idx], rho, _window_scales(n)):
+            for i in np.flatnonzero(np.abs(zz) > thr):
+                found.append((idx[i], idx[i + w - 1], int(np.sign(zz[i])), float(zz[i]), int(segment[idx[i]])))
+    # merge overlapping windows of the same sign in the same segment; keep the strongest z
+    found.sort(key=lambda t: (t[4], t[2], t[0]))
+    merged: list[list] = []
+    for a, b, s, zval, sg in found:
+        if merged and merged[-1][4] == sg and merged[-1][2] == s and a <= merged[-1][1]:
+            m = merged[-1]
+            m[1] = max(m[1], b)
+            if abs(zval) > abs(m[3]):
+                m[3] = zval
+        else:
+            merged.append([a, b, s, zval, sg])
+    out = []
+    for a, b, s, zval, sg in merged:
+        e = strain[a: b + 1]
+        t = test[a] if test is not None else sg
+        out.append({"eps_lo": float(e.min()), "eps_hi": float(e.max()), "sign": s, "z": zval,
+                    "test": jsonable(t), "i0": int(a), "i1": int(b)})
+    out.sort(key=lambda d: -abs(d["z"]))
+    return out, thr
+
+
+def smoothed_residual(z: np.ndarray, segment: np.ndarray, width: int) -> np.ndarray:
+    """Moving average of z within segments (for plotting)."""
+    out = np.empty_like(z)
+    for s in np.unique(segment):
+        idx = np.flatnonzero(segment == s)
+        w = max(1, min(width, idx.size))
+        k = np.ones(w) / w
+        num = np.convolve(z[idx], k, mode="same")
+        den = np.convolve(np.ones(idx.size), k, mode="same")
+        out[idx] = num / den
+    return out
+
+
+# =========================================================================================
+# the step
+# =========================================================================================
+@dataclass(slots=True)
+class NoiseCheck:
+    """The base fit's residuals, the noise they are judged against, and the misfit windows."""
+
+    noise: dict            # what Diagnosis.noise reports (fitted, model-free, which one is used)
+    pred: np.ndarray       # prediction of the base fit at its optimum
+    resid: np.ndarray      # data − prediction
+    sd: np.ndarray         # marginal noise sd per point used by the windows and the screen
+    rho: float             # lag-1 noise correlation used by the windows and the screen
+    z: np.ndarray          # resid / sd
+    windows: list          # misfit windows (dicts of :func:`misfit_windows`), strongest first
+    threshold: float       # family-wise threshold of the window scan
+
+    def residual_curve(self, predictive: dict, segment: np.ndarray) -> dict:
+        """What the diagnosis figure draws: prediction, residuals, smoothed z and the band."""
+        smooth_w = max(5, self.z.size // 20)
+        return {"pred": self.pred, "resid": self.resid, "z": self.z, "threshold": self.threshold,
+                "smoothed": smoothed_residual(self.z, segment, smooth_w),
+                "lower": predictive["lower"], "upper": predictive["upper"], "rho_window": self.rho}
+
+
+def fitted_noise_parameters(lik, x) -> dict:
+    """The noise parameters (not the model's) of the free vector ``x`` of ``lik``."""
+    return {n: float(v) for n, v in zip(lik.names, np.asarray(x, float)) if n not in lik.model.parameter_names}
+
+
+def check_noise(base: FitSummary, model_free: dict, d: SpecimenData, seed: int) -> NoiseCheck:
+    """Cross-check the fitted noise with the model-free estimate, then scan for misfit windows.
+
+    The windows (and the screen after them) use the noise the *data* show: if a fitted AR(1)
+    soaks up a real misfit (fitted ρ more than 0.3 above the model-free ρ), the model-free
+    correlation and sd are used instead.
+    """
+    lik = base.likelihood
+    noise_par = fitted_noise_parameters(lik, base.theta_max)
+    sd = np.asarray(lik.noise_sd(base.theta_max[None, :]))[0]
+    rho_fit = float(noise_par.get("rho", 0.0))
+    mf = model_free
+    noise = {"model": base.noise, **noise_par, "bic": base.noise_bic, "model_free": mf}
+    sig_fit = float(np.median(sd))
+    consistent = bool(np.isfinite(mf["sigma"]) and 0.67 < sig_fit / mf["sigma"] < 1.5
+                      and abs(rho_fit - mf["rho"]) < 0.3)
+    noise["consistent"] = consistent
+    if not consistent:
+        noise["note"] = ("fitted noise differs from the model-free estimate (sd {:.3g} vs {:.3g}, rho {:.2f} vs "
+                         "{:.2f}): a systematic misfit is probably inflating/correlating the residuals"
+                         .format(sig_fit, mf["sigma"], rho_fit, mf["rho"]))
+    pred = np.asarray(lik.predict(base.theta_max[None, :]))[0]
+    resid = d.stress - pred
+    rho_w, sd_w = rho_fit, sd
+    if np.isfinite(mf["rho"]) and rho_fit - mf["rho"] > 0.3:
+        rho_w = float(max(mf["rho"], 0.0))
+        sd_w = np.full_like(sd, mf["sigma"])
+    noise["windows_use"] = {"source": "fit" if rho_w == rho_fit else "model-free",
+                            "sigma": float(np.median(sd_w)), "rho": float(rho_w)}
+    zres = resid / sd_w
+    windows, thr = misfit_windows(zres, d.strain, d.segment, rho_w, seed=seed, test=d.test)
+    return NoiseCheck(noise=noise, pred=pred, resid=resid, sd=sd_w, rho=rho_w, z=zres, windows=windows,
+                      threshold=thr)

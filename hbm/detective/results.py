@@ -1,0 +1,315 @@
+"""What the detective returns: fitted models, screened candidates, the diagnosis and the
+extension, with their text and JSON renderings.
+
+Every field a result carries is declared here (``slots=True``: nothing can be attached at
+run time).  Figures are drawn by :mod:`hbm.plots.diagnose`, imported only when asked for.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..model.core import Effect, Model
+from .rules import BAND, DELTA_LOGZ_MIN
+
+__all__ = ["FitSummary", "CandidateResult", "Diagnosis", "Extension"]
+
+NAN = float("nan")
+
+
+@dataclass(slots=True)
+class FitSummary:
+    """One fitted model (at its chosen noise model)."""
+
+    effects: list[str]
+    noise: str
+    names: list[str]
+    theta_max: np.ndarray                 # free parameters at the CMA-ES optimum
+    max_log_likelihood: float
+    bic: float
+    rmse: float
+    log_evidence: float = NAN
+    log_evidence_se: float = NAN
+    samples: np.ndarray | None = None     # posterior samples (n, d) of the free parameters
+    coverage: float = NAN
+    noise_bic: dict = field(default_factory=dict)
+    wall_time: float = 0.0
+    likelihood: Any = None
+    model: Model | None = None
+    #: noise model -> {"bic", "max_log_likelihood", "x", "lik"}: the optimum found at every
+    #: noise model tried (warm starts for later fits of extended models)
+    noise_fits: dict = field(default_factory=dict, repr=False)
+    #: posterior-predictive band and its coverage (overall, per test, along strain), from
+    #: :func:`hbm.detective.fitting.coverage`; empty when the fit was not sampled
+    predictive: dict = field(default_factory=dict, repr=False)
+
+    def interval(self, name: str, q: tuple[float, float] = (0.025, 0.975)) -> tuple[float, float]:
+        """Posterior quantiles of parameter ``name`` (NaN when not sampled or not free)."""
+        if self.samples is None or name not in self.names:
+            return (NAN, NAN)
+        col = self.samples[:, self.names.index(name)]
+        return tuple(float(v) for v in np.quantile(col, q))
+
+
+@dataclass(slots=True)
+class CandidateResult:
+    """Screen and (optionally) refit result of one candidate effect."""
+
+    effect: str
+    score: float                          # normal-equivalent z of the projected score test
+    chi2: float
+    dof: int
+    absorbed: float                       # fraction of the signature the base model absorbs
+    refit: bool = False
+    physical: bool = True
+    delta_log_evidence: float = NAN
+    delta_log_evidence_se: float = NAN
+    delta_max_log_likelihood: float = NAN
+    rmse_before: float = NAN
+    rmse_after: float = NAN
+    noise: str | None = None
+    intervals: dict = field(default_factory=dict)   # primary parameter -> (lo, hi, null)
+    excludes_null: bool | None = None
+    fit: FitSummary | None = None
+    start: dict = field(default_factory=dict)       # refit start from the cheap local refit
+    local_z: float = 0.0                            # z of the cheap local-refit screen
+    local_chi2: float = 0.0
+    delta_log_evidence_tmcmc: float = NAN
+    delta_log_evidence_laplace: float = NAN
+    evidence_method: str = ""
+    #: the screened Effect itself (the refit and ``extend(auto=True)`` build models with it)
+    effect_instance: Effect | None = field(default=None, repr=False)
+    #: the score test's linearised estimate of the effect's parameters (a second refit start)
+    score_start: dict = field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (one entry of ``candidates`` in ``hbm diagnose --json``)."""
+        return {"effect": self.effect, "score": _num(self.score),
+                "delta_log_evidence": _num(self.delta_log_evidence),
+                "delta_log_evidence_se": _num(self.delta_log_evidence_se),
+                "rmse_before": _num(self.rmse_before), "rmse_after": _num(self.rmse_after),
+                "chi2": _num(self.chi2), "dof": int(self.dof), "absorbed": _num(self.absorbed),
+                "local_refit_z": _num(self.local_z), "local_refit_chi2": _num(self.local_chi2),
+                "refit": bool(self.refit), "physical": bool(self.physical),
+                "delta_max_log_likelihood": _num(self.delta_max_log_likelihood),
+                "noise": self.noise,
+                "delta_log_evidence_tmcmc": _num(self.delta_log_evidence_tmcmc),
+                "delta_log_evidence_laplace": _num(self.delta_log_evidence_laplace),
+                "evidence_method": self.evidence_method,
+                "intervals": {k: [_num(v) for v in t] for k, t in self.intervals.items()},
+                "excludes_null": self.excludes_null}
+
+
+@dataclass(slots=True)
+class Diagnosis:
+    """Result of :func:`hbm.diagnose`.
+
+    Attributes
+    ----------
+    verdict : str
+        ``"adequate"``, ``"effect"``, ``"group"`` or ``"unexplained"``.
+    selected : list of str
+        The named effect (verdict ``"effect"``).
+    group : list of str
+        Near-tied candidates (verdict ``"group"``).
+    misfit_windows : list of (eps_lo, eps_hi, sign)
+        Strain windows with a significant smoothed standardised residual.
+    noise : dict
+        Chosen noise model, its parameters, BIC of each noise model and the model-free estimate.
+    candidates : list of CandidateResult
+        Every screened candidate (refitted ones carry Δlog Z), best first; the control last.
+    suggested_experiment : str
+        What would separate a confusable group (or locate an unexplained misfit).
+    message : str
+        One-line verdict for people.
+    base : FitSummary
+        The fit of the current model.
+    coverage : dict
+        Posterior-predictive coverage: ``band``, ``overall``, ``per_test``, ``along_strain``.
+    window_detail : list of dict
+        Each misfit window with its z, test and index range.
+    timings : dict
+        Wall seconds per step, ``total`` and ``cpu``.
+    data : SpecimenData
+        The specimen's arrays (for the figure).
+    residual_curve : dict
+        Prediction, residuals, standardised and smoothed residuals, band (for the figure).
+    skipped : dict
+        Candidate -> why it could not be screened (e.g. no time column).
+    """
+
+    verdict: str
+    selected: list
+    group: list
+    misfit_windows: list
+    noise: dict
+    candidates: list
+    suggested_experiment: str
+    message: str
+    base: FitSummary
+    coverage: dict
+    window_detail: list
+    timings: dict
+    data: Any = None
+    residual_curve: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """The JSON object of ``hbm diagnose --json`` (issue 5 shape plus detail keys)."""
+        return {
+            "verdict": self.verdict,
+            "selected": list(self.selected),
+            "group": list(self.group),
+            "misfit_windows": [[_num(a), _num(b), int(s)] for a, b, s in self.misfit_windows],
+            "noise": jsonable(self.noise),
+            "candidates": [c.to_dict() for c in self.candidates],
+            "suggested_experiment": self.suggested_experiment,
+            "message": self.message,
+            "base": {"effects": self.base.effects, "noise": self.base.noise,
+                     "rmse": _num(self.base.rmse), "log_evidence": _num(self.base.log_evidence),
+                     "log_evidence_se": _num(self.base.log_evidence_se),
+                     "max_log_likelihood": _num(self.base.max_log_likelihood),
+                     "theta": {n: _num(v) for n, v in zip(self.base.names, self.base.theta_max)}},
+            "coverage": jsonable(self.coverage),
+            "misfit_window_detail": jsonable(self.window_detail),
+            "timings": jsonable(self.timings),
+            "skipped_candidates": dict(self.skipped),
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    def summary(self) -> str:
+        """Human-readable report (what ``hbm diagnose`` prints)."""
+        b = self.base
+        lines = [f"model: {' + '.join(b.effects) or 'base'}   noise: {_noise_text(self.noise)}",
+                 f"fit: RMSE {b.rmse:.4g} MPa, log Z {b.log_evidence:.2f} ± {b.log_evidence_se:.2f}, "
+                 f"{int(BAND * 100)}% predictive coverage {self.coverage.get('overall', NAN):.2f}"]
+        mf = self.noise.get("model_free", {})
+        if mf:
+            lines.append(f"model-free noise: sigma {mf.get('sigma', NAN):.3g} MPa, "
+                         f"rho {mf.get('rho', NAN):.2f}"
+                         + ("" if self.noise.get("consistent", True) else "  (DISAGREES with the fit)"))
+        if self.misfit_windows:
+            lines.append("misfit windows (smoothed standardised residual, family-wise 5%):")
+            for d in self.window_detail:
+                lines.append(f"  eps in [{d['eps_lo']:.4f}, {d['eps_hi']:.4f}] test {d['test']}: "
+                             f"{'model too low (data above)' if d['sign'] > 0 else 'model too high (data below)'}"
+                             f", z = {d['z']:.1f}")
+        else:
+            lines.append("misfit windows: none")
+        lines.append("")
+        lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ':>9}"
+                     f"{'TMCMC ± SE':>15}{'RMSE before':>12}{'after':>9}  noise  interval of new parameter")
+        for c in self.candidates:
+            iv = "; ".join(f"{k} [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in c.intervals.items())
+            if c.refit:
+                tm = f"{c.delta_log_evidence_tmcmc:.1f} ± {c.delta_log_evidence_se:.1f}"
+                lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{c.delta_log_evidence:>9.2f}"
+                             f"{tm:>15}{c.rmse_before:>12.4g}{c.rmse_after:>9.4g}  "
+                             f"{c.noise or '':<6} {iv}")
+            else:
+                lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{'—':>9}{'':>15}"
+                             f"{c.rmse_before:>12.4g}{'':>9}")
+        lines.append("")
+        lines.append(f"verdict: {self.verdict} — {self.message}")
+        if self.suggested_experiment:
+            lines.append(f"suggested experiment: {self.suggested_experiment}")
+        t = self.timings.get("total")
+        if t is not None:
+            lines.append(f"(wall time {t:.1f} s, CPU time {self.timings.get('cpu', NAN):.1f} s)")
+        return "\n".join(lines)
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def plot(self, path):
+        """Write the diagnosis figure (data, fit, band, residuals with windows) to ``path``."""
+        return _figures().plot_diagnosis(self, path, evidence_threshold=DELTA_LOGZ_MIN)
+
+
+@dataclass(slots=True)
+class Extension:
+    """Result of :func:`hbm.extend`: one :class:`FitSummary` per step, the base model first."""
+
+    steps: list
+    decisions: list = field(default_factory=list)
+    data: Any = None
+    timings: dict = field(default_factory=dict)
+    #: model-free noise estimate of the data (``sigma``, ``rho``, ``sigma_iid``): the noise
+    #: level the error should fall to (the figure's reference line)
+    noise: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"steps": [{"effects": list(s.effects), "rmse": _num(s.rmse),
+                           "log_evidence": _num(s.log_evidence),
+                           "log_evidence_se": _num(s.log_evidence_se),
+                           "coverage": _num(s.coverage), "noise": s.noise,
+                           "max_log_likelihood": _num(s.max_log_likelihood)} for s in self.steps],
+                "decisions": jsonable(self.decisions)}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    def table(self) -> str:
+        """The error-fall table."""
+        rows = [f"{'step':<5}{'effects':<40}{'noise':<13}{'RMSE':>10}{'log Z':>10}{'± SE':>7}"
+                f"{'dlogZ':>8}{'coverage':>10}"]
+        z0 = None
+        for i, s in enumerate(self.steps):
+            eff = "+".join(s.effects) if s.effects else "(base)"
+            dz = "" if z0 is None else f"{s.log_evidence - z0:8.2f}"
+            rows.append(f"{i:<5}{eff:<40}{s.noise:<13}{s.rmse:>10.4g}{s.log_evidence:>10.2f}"
+                        f"{s.log_evidence_se:>7.2f}{dz:>8}{s.coverage:>10.2f}")
+            z0 = s.log_evidence if z0 is None else z0
+        return "\n".join(rows)
+
+    def __str__(self) -> str:
+        return self.table()
+
+    def plot(self, path):
+        """Write the error-fall figure (fits per step, RMSE, log Z, coverage) to ``path``."""
+        return _figures().plot_extension(self, path, noise_sd=self.noise.get("sigma"))
+
+
+def _figures():
+    """:mod:`hbm.plots.diagnose`, imported when a figure is drawn."""
+    # matplotlib is heavy and optional: the detective itself never needs it
+    import hbm.plots.diagnose as figures
+    return figures
+
+
+def _num(x):
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def jsonable(x):
+    """``x`` with numpy scalars/arrays turned into Python numbers/lists and NaN into None."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (float, np.floating)):
+        return _num(x)
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    return x
+
+
+def _noise_text(noise: dict) -> str:
+    m = noise.get("model", "?")
+    parts = [m] + [f"{k} {noise[k]:.3g}" for k in ("sigma", "sigma_rel", "rho") if noise.get(k) is not None]
+    return ", ".join(parts)

@@ -1,0 +1,26 @@
+"""The detective's fixed numbers: decision thresholds, false-alarm rate, band, budgets.
+
+One leaf module that every step reads, so that a threshold is changed in one place
+(DESIGN.md §2 explains each value).
+"""
+
+from __future__ import annotations
+
+# --- decision (DESIGN.md §2: ΔBIC ≈ 6 raised false alarms on AR(1) noise, ≈ 10 did not)
+DELTA_LOGZ_MIN = 5.0      # evidence gain needed to name anything (≈ ΔBIC 10)
+RUNNER_UP_MARGIN = 3.0    # a named effect must beat the runner-up by this many nats (and 2 SE)
+CONTROL_MARGIN = 5.0      # the generic control must beat the best physical effect by this much
+
+# --- where it fails
+WINDOW_ALPHA = 0.05       # family-wise false-alarm rate of the misfit-window scan
+BAND = 0.90               # posterior-predictive band used for coverage
+
+# --- what is missing
+CONTROL_NAME = "local_misfit"
+MIN_REFIT_SCORE = 1.0     # screen z below which a candidate is not refitted
+SCREEN_STEPS = (1e-4, 0.1, 0.3)  # derivative and secant steps (fractions of the box width)
+
+# --- evidence runs
+TMCMC_MAX_STEPS = 25      # MH steps per stage cap: the time budget of a diagnosis (≤ 60 s)
+TMCMC_BUDGET = 6.0        # seconds aimed at per evidence run; N shrinks for slow models
+TMCMC_MIN_SAMPLES = 250

@@ -1,0 +1,367 @@
+"""What is missing: a cheap screen of every candidate effect (step 3 of the detective).
+
+Two screens per candidate, both in noise-whitened units at the base fit: a projected score
+test at the effect's null (:func:`score_screen`) and a few Gauss–Newton steps of a local refit
+(:func:`local_refit_screen`).  The non-physical control :class:`LocalMisfit` is screened the
+same way, from a grid of starts because its centre is multimodal.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+from scipy import optimize as _sopt
+from scipy import stats as _stats
+
+from ..errors import HbmError
+from ..model.core import Effect, Model, Parameter
+from .inputs import SpecimenData
+from .noise_check import NoiseCheck, whitener
+from .results import CandidateResult, FitSummary
+from .rules import CONTROL_NAME, SCREEN_STEPS
+
+__all__ = ["LocalMisfit", "score_screen", "local_refit_screen", "screen_candidates"]
+
+
+# =========================================================================================
+# the non-physical control
+# =========================================================================================
+class LocalMisfit(Effect):
+    """Generic local misfit: a Gaussian bump in applied strain, ``A·exp(−½((ε − C)/W)²)``.
+
+    Not a physical effect: a *control*.  If the control explains a misfit much better than
+    every physical candidate, the misfit is reported as unexplained in ε ∈ [C − 2W, C + 2W]
+    instead of being absorbed by (or misattributed to) a physical effect.  The prior box is
+    set from the data (:meth:`for_data`) so that its Occam penalty is comparable across
+    specimens.
+    """
+
+    name = CONTROL_NAME
+    stage = "output"
+    strength = "BUMP_A"
+    description = "non-physical control: Gaussian stress bump in strain (amplitude, centre, width)"
+
+    def __init__(self, amplitude: float = 0.05, strain_range: tuple[float, float] = (0.0, 0.5),
+                 width_range: tuple[float, float] | None = None) -> None:
+        lo, hi = float(strain_range[0]), float(strain_range[1])
+        if not hi > lo:
+            raise HbmError(f"LocalMisfit: strain range must be increasing, got {strain_range}")
+        span = hi - lo
+        wlo, whi = width_range if width_range is not None else (span / 100.0, span / 3.0)
+        a = abs(float(amplitude))
+        self.parameters = (
+            Parameter("BUMP_A", -a, a, "MPa", "amplitude of the local misfit bump", null=0.0),
+            Parameter("BUMP_C", lo, hi, "-", "centre strain of the bump", null=0.5 * (lo + hi)),
+            Parameter("BUMP_W", float(wlo), float(whi), "-", "width (sd) of the bump in strain",
+                      null=float(np.sqrt(wlo * whi))),
+        )
+
+    @classmethod
+    def for_data(cls, strain: np.ndarray, stress: np.ndarray) -> "LocalMisfit":
+        """Control with amplitude up to half the stress range and centre inside the data."""
+        strain = np.asarray(strain, float)
+        stress = np.asarray(stress, float)
+        amp = 0.5 * float(np.ptp(stress)) or 1e-3
+        return cls(amp, (float(strain.min()), float(strain.max())))
+
+    def modify(self, state, p, stress):
+        eps = state.loading.strain
+        z = (eps - p["BUMP_C"]) / p["BUMP_W"]
+        return stress + p["BUMP_A"] * np.exp(-0.5 * z * z)
+
+
+# =========================================================================================
+# the score test
+# =========================================================================================
+def _candidate_sensitivity(model: Model, effect: Effect, theta_model: np.ndarray, data: SpecimenData,
+                           overrides: Mapping[str, float] | None = None,
+                           rel_step: float = 1e-4) -> tuple[np.ndarray, list[str], Model]:
+    """d stress / d(effect parameters) at their null values, by finite differences.
+
+    One-sided (into the box) where the null sits on a bound.  With a large ``rel_step``
+    (fraction of the box width) this is a *secant* sensitivity, which sees signatures that
+    are nonlinear in the parameter (a kink that moves, as with slack) and that the
+    derivative at the null misses.  Returns (J (n, k), names, model+effect).
+    """
+    mc = model.with_effects(effect)
+    th0 = mc.null_theta(theta_model)
+    for k, v in (overrides or {}).items():
+        th0[mc.index(k)] = v
+    names = [q.name for q in effect.parameters]
+    pert, steps = [], []
+    for q in effect.parameters:
+        i = mc.index(q.name)
+        width = q.upper - q.lower
+        h = rel_step * width
+        x0 = th0[i]
+        if x0 + h > q.upper:        # null near the upper bound: step inward (backward)
+            a, b = x0 - h, x0
+        elif x0 - h < q.lower:      # null near the lower bound: forward
+            a, b = x0, x0 + h
+        else:
+            a, b = x0 - h, x0 + h
+        ta, tb = th0.copy(), th0.copy()
+        ta[i], tb[i] = a, b
+        pert += [ta, tb]
+        steps.append(b - a)
+    s = np.asarray(mc.stress(data.loading, np.array(pert)))
+    J = (s[1::2] - s[0::2]) / np.asarray(steps)[:, None]
+    return J.T, names, mc
+
+
+def _grid(q: Parameter, n: int) -> np.ndarray:
+    if q.lower > 0 and q.upper / q.lower > 20:
+        return np.geomspace(q.lower, q.upper, n + 2)[1:-1]
+    return np.linspace(q.lower, q.upper, n + 2)[1:-1]
+
+
+def score_screen(model: Model, theta_model: np.ndarray, free: Sequence[str], effect: Effect,
+                 residual: np.ndarray, whiten, data: SpecimenData, n_grid: int = 5) -> dict:
+    """Projected score statistic of one candidate effect.
+
+    The candidate's sensitivity columns J_c (at the null) and the base model's Jacobian J_b
+    (free parameters, at the fit) are whitened with the noise model; the part of J_c in the
+    span of J_b is what parameter drift absorbs and is projected out.  The statistic is the
+    reduction of the whitened residual sum of squares by a (sign-constrained where the null
+    sits on a bound) linear fit of the remaining columns — chi-square with rank(J̃) degrees of
+    freedom under the null.  Parameters whose sensitivity vanishes at the null (e.g. a time
+    constant when the amplitude is zero) are nuisances: the statistic is maximised over a grid
+    of their values.  Besides the derivative at the null, secant sensitivities over 10 % and
+    30 % of the box (``SCREEN_STEPS``) are tried, because some signatures are nonlinear in the
+    parameter (slack moves a kink).  The p-value is Bonferroni-corrected for grid × steps.
+
+    Returns
+    -------
+    dict with ``chi2``, ``dof``, ``p``, ``z``, ``absorbed`` and ``start`` (linearised estimate
+    of the effect's parameters, a warm start for the refit).
+    """
+    Jb = np.asarray(model.stress_jacobian(data.loading, theta_model))
+    cols = [model.index(n) for n in free]
+    Wb = whiten(Jb[:, cols])
+    # orthonormal basis of the absorbable directions (drop numerically null directions)
+    U, sv, _ = np.linalg.svd(Wb, full_matrices=False)
+    U = U[:, sv > sv.max() * 1e-9] if sv.size and sv.max() > 0 else U[:, :0]
+    r = whiten(residual)
+    r = r - U @ (U.T @ r)
+
+    J0, names, mc = _candidate_sensitivity(model, effect, theta_model, data)
+    steps = SCREEN_STEPS
+    scale = np.linalg.norm(whiten(J0), axis=0)
+    ref = max(float(np.linalg.norm(r)), 1e-300)
+    nuis = [n for n, s in zip(names, scale) if not (s * 1e-3 > 1e-12 * ref and s > 0)]
+    nuis_params = [q for q in effect.parameters if q.name in nuis]
+    if nuis_params and len(nuis_params) < len(names):
+        grids = np.array(np.meshgrid(*[_grid(q, n_grid) for q in nuis_params], indexing="ij"))
+        combos = grids.reshape(len(nuis_params), -1).T
+        if combos.shape[0] > 25:
+            combos = combos[np.linspace(0, combos.shape[0] - 1, 25).astype(int)]
+    else:
+        combos = np.zeros((1, 0))
+    best = None
+    for combo, rel in ((c, r) for c in combos for r in steps):
+        ov = {q.name: v for q, v in zip(nuis_params, combo)}
+        J, _, _ = (J0, names, mc) if not ov and rel == steps[0] else \
+            _candidate_sensitivity(model, effect, theta_model, data, ov, rel_step=rel)
+        act = [i for i, n in enumerate(names) if n not in ov]
+        Wc = whiten(J[:, act])
+        norm0 = np.linalg.norm(Wc, axis=0)
+        Wp = Wc - U @ (U.T @ Wc)
+        normp = np.linalg.norm(Wp, axis=0)
+        keep = normp > 1e-8 * np.maximum(norm0, 1e-300)
+        if not keep.any():
+            res = {"chi2": 0.0, "dof": 0, "absorbed": 1.0, "beta": np.zeros(len(act)), "ov": ov, "act": act}
+        else:
+            A = Wp[:, keep]
+            qa = [effect.parameters[i] for i in np.array(act)[keep]]
+            lb = np.array([0.0 if q.null is not None and q.null <= q.lower else -np.inf for q in qa])
+            ub = np.array([0.0 if q.null is not None and q.null >= q.upper else np.inf for q in qa])
+            # column scaling keeps lsq_linear well conditioned
+            cs = np.linalg.norm(A, axis=0)
+            sol = _sopt.lsq_linear(A / cs, r, bounds=(lb, ub))
+            beta_s = sol.x
+            chi2 = float(r @ r - np.sum((r - (A / cs) @ beta_s) ** 2))
+            beta = np.zeros(len(act))
+            beta[np.flatnonzero(keep)] = beta_s / cs
+            res = {"chi2": max(chi2, 0.0), "dof": int(np.linalg.matrix_rank(A)),
+                   "absorbed": float(1 - np.sum(normp ** 2) / max(np.sum(norm0 ** 2), 1e-300)),
+                   "beta": beta, "ov": ov, "act": act}
+        if best is None or res["chi2"] > best["chi2"]:
+            best = res
+    dof = max(best["dof"], 1)
+    p = float(_stats.chi2.sf(best["chi2"], dof)) * len(combos) * len(steps)
+    p = min(max(p, 1e-300), 1.0)
+    z = float(_stats.norm.isf(p)) if p < 0.5 else 0.0
+    # warm start: null + linearised step (clipped into the box), nuisances at their best grid value
+    start = {q.name: q.null for q in effect.parameters}
+    start.update(best["ov"])
+    for i, b in zip(best["act"], best["beta"]):
+        q = effect.parameters[i]
+        start[q.name] = float(np.clip(q.null + b, q.lower + 1e-3 * (q.upper - q.lower),
+                                      q.upper - 1e-3 * (q.upper - q.lower)))
+    return {"chi2": best["chi2"], "dof": best["dof"], "p": p, "z": z,
+            "absorbed": best["absorbed"], "start": start}
+
+
+# =========================================================================================
+# the cheap local refit
+# =========================================================================================
+def local_refit_screen(model: Model, theta_model: np.ndarray, free: Sequence[str], effect: Effect,
+                       whiten, data: SpecimenData, starts: Sequence[Mapping[str, float]],
+                       max_nfev: int = 25) -> dict:
+    """Cheap local refit: a few bounded Gauss–Newton (trust-region) steps of the base model plus
+    the effect from the base fit, on noise-whitened residuals.
+
+    Complements the score test (a linearisation at the null) for effects whose signature is
+    nonlinear in their parameter.  Returns ``chi2`` (drop of the whitened residual sum of
+    squares, ≈ 2·Δlog-likelihood), ``dof``, ``z`` and the refit ``start``.
+    """
+    mc = model.with_effects(effect)
+    th0 = mc.null_theta(theta_model)
+    names = list(free) + [q.name for q in effect.parameters]
+    idx = np.array([mc.index(n) for n in names])
+    box = mc.bounds[idx]
+    y = data.stress
+    loading = data.loading
+
+    def put(x):
+        x = np.atleast_2d(x)
+        t = np.repeat(th0[None, :], x.shape[0], axis=0)
+        t[:, idx] = x
+        return t
+
+    def fun(x):
+        return whiten(y - np.asarray(mc.stress(loading, put(x)))[0])
+
+    width = box[:, 1] - box[:, 0]
+
+    def jac(x):
+        h = 1e-6 * width
+        xp = np.clip(x + np.diag(h), box[:, 0], box[:, 1])
+        xm = np.clip(x - np.diag(h), box[:, 0], box[:, 1])
+        s = np.asarray(mc.stress(loading, put(np.vstack([xp, xm]))))
+        k = x.size
+        dx = np.maximum(xp[np.arange(k), np.arange(k)] - xm[np.arange(k), np.arange(k)], 1e-300)
+        # residual = y − stress, whitening is linear
+        return -whiten(((s[:k] - s[k:]) / dx[:, None]).T)
+
+    r0 = fun(th0[idx])
+    ssr0 = float(r0 @ r0)
+    best = (ssr0, th0[idx])
+    for st in starts:
+        x0 = th0[idx].copy()
+        for j, q in enumerate(effect.parameters):
+            v = float(st.get(q.name, q.null))
+            w = q.upper - q.lower
+            x0[len(free) + j] = min(max(v, q.lower + 0.02 * w), q.upper - 0.02 * w)
+        x0 = np.clip(x0, box[:, 0] + 1e-9 * width, box[:, 1] - 1e-9 * width)
+        try:
+            with np.errstate(all="ignore"):
+                res = _sopt.least_squares(fun, x0, jac=jac, bounds=(box[:, 0], box[:, 1]), x_scale=width,
+                                          max_nfev=max_nfev, method="trf")
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if np.isfinite(res.cost) and 2 * res.cost < best[0]:
+            best = (2 * float(res.cost), res.x)
+    chi2 = max(ssr0 - best[0], 0.0)
+    dof = len(effect.parameters)
+    p = min(max(float(_stats.chi2.sf(chi2, dof)), 1e-300), 1.0)
+    z = float(_stats.norm.isf(p)) if p < 0.5 else 0.0
+    start = {n: float(v) for n, v in zip(names[len(free):], best[1][len(free):])}
+    return {"chi2": chi2, "dof": dof, "z": z, "start": start}
+
+
+# =========================================================================================
+# the step
+# =========================================================================================
+def screen_candidates(base: FitSummary, candidates: Sequence[Effect], check: NoiseCheck, d: SpecimenData,
+                      log: Callable[[str], None]) -> tuple[list[CandidateResult], CandidateResult, dict[str, str]]:
+    """Screen every candidate and the control at the base fit.
+
+    The screen whitens with the same noise as the windows: an AR(1) fit that soaked up the
+    misfit would whiten the very signature looked for away.
+
+    Returns
+    -------
+    results : list of CandidateResult
+        The physical candidates, ranked by the stronger of their two screens.
+    control : CandidateResult
+        The :class:`LocalMisfit` control.
+    skipped : dict
+        Candidate -> why it could not be screened (e.g. no time column).
+    """
+    base_model, lik = base.model, base.likelihood
+    theta_model = np.asarray(lik.model_theta(base.theta_max[None, :]))[0]
+    free = [n for n in lik.names if n in base_model.parameter_names]
+    whiten = whitener(check.sd, check.rho, d.ar_first)
+    resid = check.resid
+    results: list[CandidateResult] = []
+    skipped: dict[str, str] = {}
+    for e in candidates:
+        try:
+            sc = score_screen(base_model, theta_model, free, e, resid, whiten, d)
+        except HbmError as exc:
+            # e.g. viscoelasticity on a specimen without a time column: not applicable here
+            skipped[e.name] = str(exc)
+            log(f"candidate {e.name} skipped: {exc}")
+            continue
+        except Exception as exc:  # a broken user effect: one clear line, not a traceback
+            raise HbmError(f"candidate {e.name!r}: screening failed ({type(exc).__name__}: {exc})") from None
+        lr = local_refit_screen(base_model, theta_model, free, e, whiten, d,
+                                [sc["start"], {q.name: q.null for q in e.parameters}])
+        results.append(CandidateResult(effect=e.name, score=sc["z"], chi2=sc["chi2"], dof=sc["dof"],
+                                       absorbed=sc["absorbed"], rmse_before=base.rmse, start=lr["start"],
+                                       local_z=lr["z"], local_chi2=lr["chi2"], effect_instance=e,
+                                       score_start=sc["start"]))
+    control = LocalMisfit.for_data(d.strain, d.stress)
+    sc = score_screen(base_model, theta_model, free, control, resid, whiten, d)
+    lr = _control_local_refit(control, sc["start"], check, d,
+                              partial(local_refit_screen, base_model, theta_model, free, control, whiten, d,
+                                      max_nfev=15))
+    ctrl = CandidateResult(effect=CONTROL_NAME, score=sc["z"], chi2=sc["chi2"], dof=sc["dof"],
+                           absorbed=sc["absorbed"], physical=False, rmse_before=base.rmse, start=lr["start"],
+                           local_z=lr["z"], local_chi2=lr["chi2"], effect_instance=control,
+                           score_start=sc["start"])
+    # rank by the stronger of the two screens (score test at the null, cheap local refit)
+    results.sort(key=lambda c: -max(c.score, c.local_z))
+    log("screen: " + ", ".join(f"{c.effect} z={c.score:.1f}/{c.local_z:.1f}" for c in results)
+        + f"; control z={ctrl.score:.1f}")
+    return results, ctrl, skipped
+
+
+def _control_local_refit(control: LocalMisfit, score_start: dict, check: NoiseCheck, d: SpecimenData,
+                         refit: Callable[[list[dict]], dict]) -> dict:
+    """The best cheap local refit of the control over a grid of starts.
+
+    The control is multimodal in its centre: starts at the strongest misfit window, at the
+    score test's estimate and on a grid of centres and widths; ``refit([start])`` is one
+    local refit from ``start``.
+    """
+    resid = check.resid
+    cq = control.parameters
+    # the window start: centre/width from the strongest misfit window if any
+    wstart = dict(score_start)
+    if check.windows:
+        w0 = check.windows[0]
+        c = 0.5 * (w0["eps_lo"] + w0["eps_hi"])
+        wd = max((w0["eps_hi"] - w0["eps_lo"]) / 4, cq[2].lower * 1.01)
+        i0, i1 = w0["i0"], w0["i1"]
+        wstart = {"BUMP_A": float(np.clip(np.mean(resid[i0:i1 + 1]), -cq[0].upper * 0.99, cq[0].upper * 0.99)),
+                  "BUMP_C": c, "BUMP_W": min(wd, cq[2].upper * 0.99)}
+    grid_starts = [wstart, score_start] + [
+        {"BUMP_A": 0.0, "BUMP_C": float(cc), "BUMP_W": float(ww)}
+        for cc in np.linspace(cq[1].lower, cq[1].upper, 9)[1:-1]
+        for ww in np.geomspace(cq[2].lower * 2, cq[2].upper / 2, 3)]
+    best = None
+    for st in grid_starts:
+        st = dict(st)
+        if st.get("BUMP_A", 0.0) == 0.0:
+            # amplitude from the mean residual near the centre (sign matters for the refit)
+            near = np.abs(d.strain - st["BUMP_C"]) < st["BUMP_W"]
+            st["BUMP_A"] = float(np.clip(np.mean(resid[near]) if near.any() else 0.0,
+                                         cq[0].lower * 0.9, cq[0].upper * 0.9))
+        lr = refit([st])
+        if best is None or lr["chi2"] > best["chi2"]:
+            best = lr
+    return best
