@@ -6,16 +6,31 @@ CSV format
 
     # id: calvo2010_rat1                  <- optional metadata, ``# key: value``, only at the top
     # source: synthetic stand-in for ...
-    strain,stress,time,test               <- header: strain and stress required, any column order
+    strain,stress,time,test               <- header: a deformation and a stress column, any order
     0.0,0.0012,0.0,1
     0.01,0.0031,45.45,1
     ...
 
-* ``strain`` — engineering strain ε = ΔL/L0 (dimensionless), within [−0.5, 2].
-* ``stress`` — Cauchy (true) stress along the fibers in MPa.
+Columns (header names are case-insensitive; exactly one deformation and one stress column):
+
+* deformation — ``strain``: engineering strain ε = ΔL/L0 (dimensionless); or ``stretch``
+  λ = L/L0 (ε = λ − 1); or ``sarcomere_length_um``, the sarcomere length SL in µm
+  (ε = SL/SL0 − 1 with the reference SL0 from ``# reference_sarcomere_length_um: 2.0`` or the
+  ``sl0=`` argument).  The resulting strain must lie within [−0.5, 2] and must not consist of
+  whole numbers only (that is what decimal commas or percent leave behind).
+* stress — ``stress`` in MPa unless declared otherwise: ``# units_stress: MPa|kPa|Pa`` or a unit
+  suffix on the column (``stress_kPa``, ``stress_Pa``, ``stress_MPa``); Cauchy (true) stress
+  unless ``# stress_measure: nominal`` or the column is ``nominal_stress*`` (``cauchy_stress*``
+  declares Cauchy).  Nominal stress P (force / undeformed area) becomes Cauchy stress
+  σ = λ·P = (1 + ε)·P (incompressible uniaxial tension).  The loaded dataset always holds
+  Cauchy stress in MPa; a Cauchy stress above :data:`MAX_PASSIVE_STRESS` (5 MPa) is refused as
+  a unit mix-up.  A cell like ``01`` (leading zero) is refused: it is the tail of a decimal comma.
 * ``time`` (optional) — seconds.
-* ``test`` (optional) — integer id of a protocol segment (a ramp, a hold, an unloading ...).
-  The rows of one test must be contiguous.
+* ``test`` (optional) — a protocol segment (a ramp, a hold, an unloading ...): integer ids, or
+  labels as labs write them (``load``, ``unload``, ``hold``, ``ramp_0.01``: a letter, then
+  letters, digits, spaces or ``_ . + - / ( ) %``, at most 64 characters), not both.  Labels are
+  numbered 0, 1, 2 ... in order of first appearance and kept in the ``test_labels`` attribute
+  (JSON list).  The rows of one test must be contiguous.
 
 Rules for ``time`` (DESIGN.md §2).  Inside a test, time is non-decreasing.  At the first row
 of a new test, time either *continues* (≥ the previous row's time): the new test is the next
@@ -26,8 +41,15 @@ starts from rest, a new loading history.  Any other drop in time is an error.  W
 ``time`` column, every test is its own history (see :class:`hbm.Loading`).
 
 Metadata lines must come before the header and look like ``# key: value`` (key: letters,
-digits, ``_ . -``; each key once).  Blank lines are ignored.  ``id`` names the specimen
-(default: the file stem); ``provenance`` is ``synthetic`` or ``measured``.
+digits, ``_ . -`` and spaces, which become ``_``; each key once).  Blank lines are ignored.
+``id`` names the specimen (default: the file stem); ``provenance`` is ``synthetic`` or
+``measured``.  Every row has as many cells as the header; only regular files are read.
+
+Conversions are recorded in the attributes, so that :func:`save_specimen` writes a file that
+loads back to the same numbers: ``units_stress`` (then ``MPa``) and ``units_stress_original``,
+``stress_measure`` (then ``cauchy``) and ``stress_measure_original``, ``deformation_input``,
+``reference_sarcomere_length_um``, ``test_labels``.  A file that carries one of these records
+itself keeps it when no conversion happens, and must agree with it when one does.
 
 Every problem raises :class:`hbm.errors.DataError` with a one-line message naming the file,
 the line (and column) and what was expected.
@@ -39,8 +61,11 @@ import csv
 import io
 import json
 import math
+import os
 import re
+import stat
 from dataclasses import dataclass
+from numbers import Real
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -54,43 +79,76 @@ from .noise import make_noise
 from .utils import atomic_path, as_generator
 
 __all__ = [
-    "STRAIN_RANGE", "MIN_POINTS", "load_specimen", "load_specimens", "save_specimen",
-    "specimen_loading", "provenance", "synthetic_specimen", "Segment", "ramp", "hold", "cycle",
-    "protocol",
+    "STRAIN_RANGE", "MIN_POINTS", "MAX_PASSIVE_STRESS", "STRESS_UNITS", "DEFORMATIONS",
+    "load_specimen", "load_specimens", "save_specimen", "specimen_loading", "provenance",
+    "input_summary", "synthetic_specimen", "Segment", "ramp", "hold", "cycle", "protocol",
 ]
 
 #: allowed engineering strain (catches percent-vs-fraction mix-ups)
 STRAIN_RANGE = (-0.5, 2.0)
 #: minimum number of data points in a specimen
 MIN_POINTS = 5
+#: largest plausible Cauchy stress of passive muscle in MPa; above it a file is refused as a
+#: unit mix-up (kPa or Pa read as MPa)
+MAX_PASSIVE_STRESS = 5.0
+#: stress units of ``# units_stress:`` and of column suffixes -> values per MPa
+STRESS_UNITS = {"MPa": 1.0, "kPa": 1e3, "Pa": 1e6}
+#: deformation columns; a file has exactly one
+DEFORMATIONS = ("strain", "stretch", "sarcomere_length_um")
 
 _COLUMNS = ("strain", "stress", "time", "test")
 _UNITS = {"strain": "-", "stress": "MPa", "time": "s", "test": "-"}
 _LONG = {"strain": "engineering strain", "stress": "Cauchy stress along the fibers",
          "time": "time", "test": "protocol segment (test) id"}
-_META_RE = re.compile(r"^#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s?(.*)$")
+_META_RE = re.compile(r"^#\s*([A-Za-z_][A-Za-z0-9_.\- ]*?)\s*:\s?(.*)$")
 _KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+_UNIT_NAMES = {u.lower(): u for u in STRESS_UNITS}
+_MEASURES = ("cauchy", "nominal")
+_STRESS_COL_RE = re.compile(r"^(?:(nominal|cauchy)_)?stress(?:_(mpa|kpa|pa))?$")
+_LABEL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.+\-/()% ]{0,63}$")
+_LEADING_ZERO_RE = re.compile(r"^[+-]?0[0-9]+$")
+_INT64 = 2 ** 63
+_EXPECTED_COLUMNS = ("strain|stretch|sarcomere_length_um, stress (or stress_MPa|stress_kPa|stress_Pa, "
+                     "nominal_stress[_unit], cauchy_stress[_unit]), time, test")
+_SEPARATOR_HINT = " (cells are separated by ',', numbers use '.')"
+_LABEL_RULE = "a letter, then letters, digits, spaces or _ . + - / ( ) %, at most 64 characters"
 
 
 # ---------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------
+def _show(text: str, limit: int = 40) -> str:
+    """``repr`` of a cell, shortened so that a 100 kB cell still gives a one-line message."""
+    return repr(text) if len(text) <= limit else repr(text[:limit]) + f"... ({len(text)} characters)"
+
+
 def _number(cell: str, where: str, *, integer: bool = False) -> float | int:
     text = cell.strip()
     try:
         value = int(text) if integer else float(text)
     except ValueError:
         if integer:
-            try:  # accept "3.0" as an integer test id, not "3.5"
-                f = float(text)
-                if math.isfinite(f) and f == int(f):
-                    return int(f)
-            except ValueError:
-                pass
-            raise DataError(f"{where}: expected an integer test id, got {text!r}") from None
-        raise DataError(f"{where}: expected a number, got {text!r}") from None
-    if not integer and not math.isfinite(value):
-        raise DataError(f"{where}: expected a finite number, got {text!r}")
+            f = float(text) if _is_float(text) else math.nan
+            if math.isfinite(f) and f == int(f):  # accept "3.0" as an integer test id, not "3.5"
+                return _test_id(int(f), text, where)
+            raise DataError(f"{where}: expected an integer test id, got {_show(text)}") from None
+        raise DataError(f"{where}: expected a number, got {_show(text)}") from None
+    if integer:
+        return _test_id(value, text, where)
+    if not math.isfinite(value):
+        raise DataError(f"{where}: expected a finite number, got {_show(text)}")
+    if _LEADING_ZERO_RE.match(text):
+        # "0,01" split at the decimal comma leaves "01": no writer of numbers pads with zeros
+        raise DataError(f"{where}: expected a number with '.' as decimal separator, got {_show(text)} "
+                        "(a leading zero: the tail of a decimal comma like 0,01?)")
+    return value
+
+
+def _test_id(value: int, text: str, where: str) -> int:
+    # ids are stored as int64: a larger one would overflow (a traceback, not a message)
+    if not -_INT64 <= value < _INT64:
+        raise DataError(f"{where}: test id {_show(text)} out of range, expected an integer id "
+                        f"within +-2**63 or a label")
     return value
 
 
@@ -102,20 +160,253 @@ def _is_float(text: str) -> bool:
     return True
 
 
-def load_specimen(path: str | Path) -> xr.Dataset:
-    """Read and validate one specimen CSV.
+def _read_text(path: Path) -> str:
+    """The file's text (UTF-8, optional BOM, universal newlines); only regular files are opened."""
+    name = str(path)
+    try:
+        # stat before opening: opening a FIFO blocks until a writer appears, a device may act
+        mode = path.stat().st_mode
+        if stat.S_ISDIR(mode):
+            raise DataError(f"{name}: is a directory, expected a CSV file")
+        if not stat.S_ISREG(mode):
+            raise DataError(f"{name}: not a regular file (a FIFO, socket or device), expected a CSV file")
+        # O_NONBLOCK: should the path be swapped for a FIFO after the stat, open still returns
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with open(fd, "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise DataError(f"{name}: not a regular file, expected a CSV file")
+            raw = fh.read()
+    except FileNotFoundError:
+        raise DataError(f"{name}: file not found") from None
+    except IsADirectoryError:
+        raise DataError(f"{name}: is a directory, expected a CSV file") from None
+    except OSError as exc:
+        raise DataError(f"{name}: cannot read ({exc.strerror or exc})") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{name}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
+    return text.replace("\r\n", "\n").replace("\r", "\n")
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """What the header says: column index and header text per role, units in the names."""
+
+    index: dict[str, int]  # role ("deformation", "stress", "time", "test") -> column index
+    names: dict[str, str]  # role -> header cell as written
+    deformation: str  # one of DEFORMATIONS
+    unit: str | None  # stress unit carried by the column name
+    measure: str | None  # stress measure carried by the column name
+
+
+def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
+    index: dict[str, int] = {}
+    names: dict[str, str] = {}
+    seen: dict[str, int] = {}
+    deformation, unit, measure = "strain", None, None
+    for j, cell in enumerate(cells):
+        text = cell.strip()
+        col = text.lower()
+        where = f"{name}: line {lineno}, column {j + 1}"
+        if col in seen:
+            raise DataError(f"{where}: duplicate column name {col!r} (also column {seen[col] + 1})")
+        seen[col] = j
+        m = _STRESS_COL_RE.match(col)
+        if col in DEFORMATIONS:
+            role = "deformation"
+        elif m:
+            role = "stress"
+        elif col in ("time", "test"):
+            role = col
+        else:
+            hint = _SEPARATOR_HINT if any(c in text for c in ";\t") else ""
+            raise DataError(f"{where}: unknown column {_show(text)}, expected one of "
+                            f"{_EXPECTED_COLUMNS}{hint}")
+        if role in index:
+            raise DataError(f"{where}: second {role} column {_show(text)} (column {index[role] + 1} is "
+                            f"{names[role]!r}), expected exactly one {role} column")
+        index[role], names[role] = j, text
+        if role == "deformation":
+            deformation = col
+        elif role == "stress":
+            measure, unit = m.group(1), _UNIT_NAMES.get(m.group(2) or "")
+    for role, need in (("deformation", "strain"), ("stress", "stress")):
+        if role not in index:
+            raise DataError(f"{name}: line {lineno}: header has no {need!r} column, expected columns "
+                            f"strain,stress[,time][,test] (see {_EXPECTED_COLUMNS}), got {_show(line.strip())}")
+    return _Columns(index, names, deformation, unit, measure)
+
+
+def _declared(name: str, attrs: Mapping[str, str], meta_line: Mapping[str, int], key: str,
+              allowed: Mapping[str, str], from_column: str | None, column: str) -> str | None:
+    """A stress declaration (unit or measure) from metadata and column name; a conflict is an error."""
+    if key not in attrs:
+        return from_column
+    where = f"{name}: line {meta_line[key]}"
+    value = allowed.get(attrs[key].strip().lower())
+    if value is None:
+        raise DataError(f"{where}: metadata {key} is {_show(attrs[key])}, expected one of "
+                        f"{', '.join(dict.fromkeys(allowed.values()))}")
+    if from_column is not None and from_column != value:
+        raise DataError(f"{where}: '# {key}: {attrs[key]}' contradicts column {column!r} ({from_column}), "
+                        "expected one declaration (drop the metadata line or rename the column)")
+    return value
+
+
+def _positive_sl(text: Any) -> float | None:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) and value > 0 else None
+
+
+def _reference_sl(name: str, attrs: Mapping[str, str], meta_line: Mapping[str, int],
+                  sl0: float | None) -> float | None:
+    """SL0 in µm from ``# reference_sarcomere_length_um`` and/or ``sl0``; they must agree."""
+    key = "reference_sarcomere_length_um"
+    if key not in attrs:
+        return sl0
+    where = f"{name}: line {meta_line[key]}"
+    value = _positive_sl(attrs[key])
+    if value is None:
+        raise DataError(f"{where}: metadata {key} is {_show(attrs[key])}, expected a positive sarcomere "
+                        "length in micrometres (e.g. 2.0)")
+    if sl0 is not None and sl0 != value:
+        raise DataError(f"{where}: '# {key}: {attrs[key]}' contradicts sl0={sl0!r}, expected one reference "
+                        "sarcomere length (drop the metadata line or the sl0 argument)")
+    return value
+
+
+def _check_sl0(sl0: Any) -> float | None:
+    if sl0 is None:
+        return None
+    value = None if isinstance(sl0, bool) or not isinstance(sl0, (Real, str)) else _positive_sl(sl0)
+    if value is None:
+        raise DataError(f"sl0: expected a positive reference sarcomere length in micrometres "
+                        f"(e.g. 2.0), got {sl0!r}")
+    return value
+
+
+def _record(name: str, attrs: dict[str, str], meta_line: Mapping[str, int], key: str, value: str,
+            same=lambda a, b: a.strip().lower() == b.lower()) -> None:
+    """Record a conversion in ``attrs[key]``; a record the file carries itself must agree."""
+    if key in attrs and not same(attrs[key], value):
+        raise DataError(f"{name}: line {meta_line[key]}: metadata {key} is {_show(attrs[key])} but the file "
+                        f"says {value!r}; expected the key absent (it records a conversion) or equal")
+    attrs[key] = value
+
+
+def _same_labels(text: str, labels_json: str) -> bool:
+    try:
+        return json.loads(text) == json.loads(labels_json)
+    except ValueError:
+        return False
+
+
+def _test_column(name: str, cells: Sequence[str], linenos: Sequence[int],
+                 column: str) -> tuple[np.ndarray, list[str] | None]:
+    """Integer test ids, or labels numbered in order of first appearance (then also the labels)."""
+    texts = [c.strip() for c in cells]
+    labelled = not _is_float(texts[0])
+    first = f"line {linenos[0]} has {_show(texts[0])}"
+    ids: list[int] = []
+    order: dict[str, int] = {}
+    for lineno, text in zip(linenos, texts):
+        where = f"{name}: line {lineno}, column {column!r}"
+        if not labelled:
+            if not _is_float(text):
+                raise DataError(f"{where}: expected an integer test id like the rows above ({first}), "
+                                f"got {_show(text)}")
+            ids.append(_number(text, where, integer=True))
+        elif _is_float(text):
+            raise DataError(f"{where}: expected a test label like the rows above ({first}), got the number "
+                            f"{_show(text)}; expected either integer ids or labels throughout")
+        elif not _LABEL_RE.match(text):
+            raise DataError(f"{where}: expected an integer test id or a test label ({_LABEL_RULE}), "
+                            f"got {_show(text)}")
+        else:
+            ids.append(order.setdefault(text, len(order)))
+    return np.asarray(ids, dtype=np.int64), (list(order) if labelled else None)
+
+
+def _strain(name: str, raw: np.ndarray, deformation: str, sl0: float | None,
+            column: str, linenos: Sequence[int]) -> np.ndarray:
+    """Engineering strain from the deformation column, range-checked."""
+    if deformation == "stretch":
+        strain = raw - 1.0
+    elif deformation == "sarcomere_length_um":
+        strain = raw / sl0 - 1.0
+    else:
+        strain = raw
+    lo, hi = STRAIN_RANGE
+    bad = np.flatnonzero(~((strain >= lo) & (strain <= hi)))
+    if bad.size:
+        i = bad[0]
+        where = f"{name}: line {linenos[i]}, column {column!r}"
+        if deformation == "stretch":
+            raise DataError(f"{where}: expected stretch L/L0 in [{1 + lo}, {1 + hi}] (strain in [{lo}, {hi}]), "
+                            f"got {raw[i]!r}")
+        if deformation == "sarcomere_length_um":
+            raise DataError(f"{where}: expected a sarcomere length in micrometres within "
+                            f"[{(1 + lo) * sl0:.4g}, {(1 + hi) * sl0:.4g}] (strain SL/SL0 - 1 in [{lo}, {hi}] "
+                            f"with SL0 = {sl0!r} um), got {raw[i]!r}")
+        raise DataError(f"{where}: expected engineering strain in [{lo}, {hi}] (a fraction, not percent), "
+                        f"got {strain[i]!r}")
+    if np.all(raw == np.round(raw)):
+        # a curve needs varying deformation; whole numbers only = decimal commas split the cells
+        raise DataError(f"{name}: lines {linenos[0]}-{linenos[-1]}, column {column!r}: every value is a whole "
+                        f"number ({', '.join(map(repr, np.unique(raw)[:4].tolist()))}), expected a varying "
+                        "deformation (decimal commas? write 0.01, not 0,01)")
+    return strain
+
+
+def _check_plausible(name: str, raw: np.ndarray, stress: np.ndarray, unit: str | None, nominal: bool,
+                     cols: _Columns, linenos: Sequence[int]) -> None:
+    """Refuse a Cauchy stress above MAX_PASSIVE_STRESS and name the declaration that fixes it."""
+    i = int(np.argmax(np.abs(stress)))
+    peak = abs(float(stress[i]))
+    if peak <= MAX_PASSIVE_STRESS:
+        return
+    where = f"{name}: line {linenos[i]}, column {cols.names['stress']!r}"
+    have = unit or "MPa"
+    smaller = [u for u in STRESS_UNITS if STRESS_UNITS[u] > STRESS_UNITS[have]]
+    guess = next((u for u in smaller if peak * STRESS_UNITS[have] / STRESS_UNITS[u] <= MAX_PASSIVE_STRESS),
+                 None)
+    if guess is None:
+        fix = "check the values and their unit"
+    elif cols.unit is not None:
+        prefix = f"{cols.measure}_" if cols.measure else ""
+        fix = f"if the values are in {guess}, rename the column to '{prefix}stress_{guess}'"
+    else:
+        fix = f"add '# units_stress: {guess}'" if unit is None else f"write '# units_stress: {guess}'"
+    seen = f"{float(raw[i]):g} {'(no unit declared, read as MPa)' if unit is None else unit}"
+    measure = " nominal" if nominal else ""
+    raise DataError(f"{where}: stress {seen}{measure} gives a Cauchy stress of {peak:g} MPa, implausible for "
+                    f"passive muscle (limit {MAX_PASSIVE_STRESS:g} MPa); {fix}")
+
+
+def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
+    """Read and validate one specimen CSV, converting units, stress measure and deformation.
 
     Parameters
     ----------
     path : str or Path
-        CSV file in the format described in the module docstring.
+        CSV file in the format described in the module docstring (README "Data format").
+    sl0 : float, optional
+        Reference sarcomere length in µm for a ``sarcomere_length_um`` column
+        (strain = SL/SL0 − 1), for files without ``# reference_sarcomere_length_um``.  If the
+        file declares one too, both must be equal.  Ignored for other deformation columns.
 
     Returns
     -------
     xarray.Dataset
-        Dimension ``point``; variables ``strain``, ``stress`` (MPa) and, when present,
+        Dimension ``point``; variables ``strain``, ``stress`` (Cauchy, MPa) and, when present,
         ``time`` (s) and ``test`` (int).  Attributes: the metadata (strings), ``id``
-        (metadata ``id`` or the file stem) and ``source_file``.
+        (metadata ``id`` or the file stem), ``source_file`` and the record of every conversion
+        (``units_stress_original``, ``stress_measure_original``, ``deformation_input``,
+        ``reference_sarcomere_length_um``, ``test_labels``).
 
     Raises
     ------
@@ -124,16 +415,8 @@ def load_specimen(path: str | Path) -> xr.Dataset:
     """
     path = Path(path)
     name = str(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DataError(f"{name}: file not found") from None
-    except IsADirectoryError:
-        raise DataError(f"{name}: is a directory, expected a CSV file") from None
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{name}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
-    except OSError as exc:
-        raise DataError(f"{name}: cannot read ({exc.strerror})") from None
+    sl0 = _check_sl0(sl0)
+    text = _read_text(path)
     if not text.strip():
         raise DataError(f"{name}: empty file, expected '# key: value' metadata lines and a "
                         "header with strain,stress")
@@ -142,9 +425,9 @@ def load_specimen(path: str | Path) -> xr.Dataset:
     meta_line: dict[str, int] = {}
     header: list[str] | None = None
     header_lineno = 0
-    cols: dict[str, int] = {}
+    cols: _Columns | None = None
     rows: list[tuple[int, list[str]]] = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in enumerate(text.split("\n"), start=1):
         if not line.strip():
             continue
         if line.lstrip().startswith("#"):
@@ -153,76 +436,103 @@ def load_specimen(path: str | Path) -> xr.Dataset:
                                 f"the header (metadata '# key: value' lines go before the header)")
             m = _META_RE.match(line.strip())
             if not m:
-                raise DataError(f"{name}: line {lineno}: unknown metadata format {line.strip()!r}, "
+                raise DataError(f"{name}: line {lineno}: unknown metadata format {_show(line.strip())}, "
                                 "expected '# key: value'")
-            key, value = m.group(1), m.group(2).strip()
+            key, value = re.sub(r"\s+", "_", m.group(1)), m.group(2).strip()
             if key in attrs:
                 raise DataError(f"{name}: line {lineno}: metadata key {key!r} repeated "
                                 f"(first on line {meta_line[key]})")
             attrs[key], meta_line[key] = value, lineno
             continue
-        cells = next(csv.reader([line]))
+        try:
+            cells = next(csv.reader([line]))
+        except csv.Error as exc:  # e.g. a cell over the csv module's 128 KiB field limit
+            raise DataError(f"{name}: line {lineno}: unreadable CSV row ({exc}), expected "
+                            "comma-separated numbers") from None
         if header is None:
             if all(_is_float(c) for c in cells):
                 raise DataError(f"{name}: line {lineno}: expected a header with strain,stress before the data, "
-                                f"got a numeric row {line.strip()!r}")
+                                f"got a numeric row {_show(line.strip())}")
+            cols = _columns(name, cells, lineno, line)
             header, header_lineno = [c.strip().lower() for c in cells], lineno
-            for j, col in enumerate(header):
-                if col not in _COLUMNS:
-                    raise DataError(f"{name}: line {lineno}, column {j + 1}: unknown column {cells[j].strip()!r}, "
-                                    f"expected one of {', '.join(_COLUMNS)}")
-                if col in cols:
-                    raise DataError(f"{name}: line {lineno}, column {j + 1}: duplicate column name "
-                                    f"{col!r} (also column {cols[col] + 1})")
-                cols[col] = j
-            for need in ("strain", "stress"):
-                if need not in cols:
-                    raise DataError(f"{name}: line {lineno}: header has no {need!r} column, expected "
-                                    f"columns strain,stress[,time][,test], got {line.strip()!r}")
             continue
         if [c.strip().lower() for c in cells] == header:
             raise DataError(f"{name}: line {lineno}: duplicate header (first on line {header_lineno}), "
                             "expected a data row")
         if len(cells) != len(header):
+            hint = _SEPARATOR_HINT if any(c in line for c in ";\t") else ""
             raise DataError(f"{name}: line {lineno}: ragged row with {len(cells)} cells, expected "
-                            f"{len(header)} like the header on line {header_lineno}")
+                            f"{len(header)} like the header on line {header_lineno}{hint}")
         rows.append((lineno, cells))
 
-    if header is None:
+    if header is None or cols is None:
         raise DataError(f"{name}: no header line, expected a header with strain,stress after the metadata")
+    unit = _declared(name, attrs, meta_line, "units_stress", _UNIT_NAMES, cols.unit, cols.names["stress"])
+    measure = _declared(name, attrs, meta_line, "stress_measure", {m: m for m in _MEASURES}, cols.measure,
+                        cols.names["stress"])
+    ref = _reference_sl(name, attrs, meta_line, sl0)
+    if cols.deformation == "sarcomere_length_um" and ref is None:
+        raise DataError(f"{name}: line {header_lineno}, column {cols.names['deformation']!r}: a sarcomere "
+                        "length needs the reference SL0 (strain = SL/SL0 - 1); add "
+                        "'# reference_sarcomere_length_um: <SL0 in um, e.g. 2.0>' or pass sl0 (--sl0)")
     if len(rows) < MIN_POINTS:
         raise DataError(f"{name}: {len(rows)} data rows, expected at least {MIN_POINTS} points")
 
-    data: dict[str, np.ndarray] = {}
-    for col, j in cols.items():
-        integer = col == "test"
-        vals = [_number(cells[j], f"{name}: line {lineno}, column {col!r}", integer=integer)
-                for lineno, cells in rows]
-        data[col] = np.asarray(vals, dtype=np.int64 if integer else float)
     linenos = [ln for ln, _ in rows]
+    raw: dict[str, np.ndarray] = {}
+    labels = None
+    for role, j in sorted(cols.index.items(), key=lambda kv: kv[1]):
+        column = cols.names[role]
+        if role == "test":
+            raw[role], labels = _test_column(name, [cells[j] for _, cells in rows], linenos, column)
+            continue
+        raw[role] = np.asarray([_number(cells[j], f"{name}: line {lineno}, column {column!r}")
+                                for lineno, cells in rows], dtype=float)
 
-    lo, hi = STRAIN_RANGE
-    bad = np.flatnonzero((data["strain"] < lo) | (data["strain"] > hi))
-    if bad.size:
-        i = bad[0]
-        raise DataError(f"{name}: line {linenos[i]}, column 'strain': expected engineering strain in "
-                        f"[{lo}, {hi}] (a fraction, not percent), got {data['strain'][i]!r}")
-    _check_tests_and_time(name, data.get("time"), data.get("test"), linenos)
+    data: dict[str, np.ndarray] = {"strain": _strain(name, raw["deformation"], cols.deformation, ref,
+                                                     cols.names["deformation"], linenos)}
+    stress = raw["stress"]
+    if unit not in (None, "MPa"):
+        stress = stress / STRESS_UNITS[unit]
+    if measure == "nominal":
+        stress = (1.0 + data["strain"]) * stress  # incompressible uniaxial: sigma = lambda * P
+    data["stress"] = stress
+    for role in ("time", "test"):
+        if role in raw:
+            data[role] = raw[role]
+    _check_tests_and_time(name, data.get("time"), data.get("test"), linenos, labels)
+    _check_plausible(name, raw["stress"], stress, unit, measure == "nominal", cols, linenos)
 
+    # the dataset holds Cauchy stress in MPa and strain: record what the file held
+    if unit is not None:
+        attrs["units_stress"] = "MPa"  # the declaration now describes the dataset
+        if unit != "MPa":
+            _record(name, attrs, meta_line, "units_stress_original", unit)
+    if measure is not None:
+        attrs["stress_measure"] = "cauchy"
+        if measure == "nominal":
+            _record(name, attrs, meta_line, "stress_measure_original", "nominal")
+    if cols.deformation != "strain":
+        _record(name, attrs, meta_line, "deformation_input", cols.deformation)
+    if cols.deformation == "sarcomere_length_um":
+        attrs["reference_sarcomere_length_um"] = repr(ref)
+    if labels is not None:
+        _record(name, attrs, meta_line, "test_labels", json.dumps(labels), same=_same_labels)
     attrs.setdefault("id", path.stem)
     attrs["source_file"] = str(path)
     return _dataset(data, attrs)
 
 
 def _check_tests_and_time(name: str, time: np.ndarray | None, test: np.ndarray | None,
-                          linenos: Sequence[int]) -> None:
+                          linenos: Sequence[int], labels: Sequence[str] | None = None) -> None:
     n = len(linenos)
+    show = (lambda t: repr(labels[t])) if labels is not None else str  # noqa: E731
     if test is not None:
         seen: dict[int, int] = {}
         for i in range(n):
             t = int(test[i])
             if i and t != test[i - 1] and t in seen:
-                raise DataError(f"{name}: line {linenos[i]}, column 'test': test {t} reappears after "
+                raise DataError(f"{name}: line {linenos[i]}, column 'test': test {show(t)} reappears after "
                                 f"other tests (first block ends before line {linenos[seen[t]]}), expected "
                                 "the rows of each test to be contiguous")
             seen.setdefault(t, i)
@@ -236,8 +546,8 @@ def _check_tests_and_time(name: str, time: np.ndarray | None, test: np.ndarray |
         where = f"{name}: line {linenos[i]}, column 'time'"
         if new_test:
             raise DataError(f"{where}: time drops from {time[i - 1]!r} to {time[i]!r} at the start of test "
-                            f"{test[i]}; expected it to continue (>= {time[i - 1]!r}, same loading history) "
-                            "or to restart at exactly 0 (new history from rest)")
+                            f"{show(int(test[i]))}; expected it to continue (>= {time[i - 1]!r}, same loading "
+                            "history) or to restart at exactly 0 (new history from rest)")
         raise DataError(f"{where}: decreasing time ({time[i - 1]!r} -> {time[i]!r}); expected non-decreasing "
                         "time within a test (time may restart at 0 only where a new test starts)")
 
@@ -251,8 +561,16 @@ def _dataset(data: Mapping[str, np.ndarray], attrs: Mapping[str, str]) -> xr.Dat
     return xr.Dataset(variables, attrs=dict(attrs))
 
 
-def load_specimens(folder: str | Path) -> dict[str, xr.Dataset]:
+def load_specimens(folder: str | Path, *, sl0: float | None = None) -> dict[str, xr.Dataset]:
     """Load every ``*.csv`` in ``folder`` (not recursive).
+
+    Parameters
+    ----------
+    folder : str or Path
+        Folder of specimen CSV files.
+    sl0 : float, optional
+        Reference sarcomere length in µm for files with a ``sarcomere_length_um`` column and no
+        ``# reference_sarcomere_length_um`` line (see :func:`load_specimen`).
 
     Returns
     -------
@@ -272,7 +590,7 @@ def load_specimens(folder: str | Path) -> dict[str, xr.Dataset]:
         raise DataError(f"{folder}: no *.csv files, expected at least one specimen file")
     out: dict[str, xr.Dataset] = {}
     for f in files:
-        ds = load_specimen(f)
+        ds = load_specimen(f, sl0=sl0)
         sid = ds.attrs["id"]
         if sid in out:
             raise DataError(f"{f}: duplicate specimen id {sid!r} (also in {out[sid].attrs['source_file']}), "
@@ -354,12 +672,44 @@ def specimen_loading(ds: xr.Dataset | Loading) -> Loading:
 def provenance(ds: xr.Dataset) -> str:
     """``"synthetic"``, ``"measured"`` or ``"unknown"`` from the ``provenance``/``source`` metadata."""
     prov = str(ds.attrs.get("provenance", "")).strip().lower()
+    word = prov.split(maxsplit=1)[0] if prov else ""
+    if word in ("synthetic", "measured"):  # "measured (group mean of ...)" -> "measured"
+        return word
     if prov:
         return prov
     source = str(ds.attrs.get("source", "")).lower()
     if "synthetic" in source:
         return "synthetic"
     return "measured" if source else "unknown"
+
+
+def input_summary(ds: xr.Dataset) -> str:
+    """What the loader converted, from the attributes; ``""`` when the file held strain and MPa.
+
+    Examples: ``"stress kPa->MPa, nominal->Cauchy; strain from sarcomere_length_um (SL0 2.0 um)"``,
+    ``"tests labelled load, unload, reload"``.
+    """
+    a = ds.attrs
+    parts = []
+    stress = []
+    if a.get("units_stress_original"):
+        stress.append(f"{a['units_stress_original']}->{a.get('units_stress', 'MPa')}")
+    if a.get("stress_measure_original"):
+        stress.append(f"{a['stress_measure_original']}->Cauchy")
+    if stress:
+        parts.append("stress " + ", ".join(stress))
+    deformation = a.get("deformation_input")
+    if deformation:
+        ref = a.get("reference_sarcomere_length_um")
+        parts.append(f"strain from {deformation}" + (f" (SL0 {ref} um)" if ref and "sarcomere" in deformation
+                                                     else ""))
+    if a.get("test_labels"):
+        try:
+            labels = ", ".join(map(str, json.loads(a["test_labels"])))
+        except (TypeError, ValueError):
+            labels = str(a["test_labels"])
+        parts.append(f"tests labelled {labels}")
+    return "; ".join(parts)
 
 
 # ---------------------------------------------------------------------------------------

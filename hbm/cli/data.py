@@ -16,7 +16,12 @@ each bad file is reported on one line (file, line, column, what was expected) an
 status is 2 if any file failed, 0 otherwise.
 
 CSV format: optional '# key: value' metadata lines, then a header with strain,stress
-(engineering strain, Cauchy stress in MPa) and optional time (s) and test (integer) columns.
+(engineering strain, Cauchy stress in MPa) and optional time (s) and test (integer or label)
+columns.  Other inputs are converted and the conversion is shown (column "input" and a line per
+converted specimen): '# units_stress: kPa' (or Pa, or a column stress_kPa ...), nominal stress
+('# stress_measure: nominal' or a column nominal_stress...), stretch or sarcomere_length_um
+(with '# reference_sarcomere_length_um: 2.0') instead of strain.  A Cauchy stress above 5 MPa
+is refused as a unit mix-up.
 """
 
 
@@ -54,6 +59,17 @@ def _files(paths: list[str], errors: list[str]) -> list[Path]:
     return files
 
 
+def _input(ds) -> str:
+    """Short form of what the loader converted: original unit, measure, deformation, labels."""
+    a = ds.attrs
+    parts = [a.get("units_stress_original", ""), a.get("stress_measure_original", "")]
+    deformation = a.get("deformation_input", "")
+    if deformation == "sarcomere_length_um":
+        deformation = f"SL/{a.get('reference_sarcomere_length_um', '?')}um"
+    parts += [deformation, "labels" if a.get("test_labels") else ""]
+    return ",".join(p for p in parts if p) or "-"
+
+
 def _row(ds) -> list[str]:
     from ..data import provenance
 
@@ -63,19 +79,20 @@ def _row(ds) -> list[str]:
     if len(source) > 48:
         source = source[:45] + "..."
     return [str(ds.attrs["id"]), str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
-            f"{stress.max():.4g}", tests, "yes" if "time" in ds else "-", provenance(ds), source]
+            f"{stress.max():.4g}", tests, "yes" if "time" in ds else "-", _input(ds), provenance(ds), source]
 
 
 def run_check(args: argparse.Namespace) -> int:
     """Check every file, print the table of good ones and one line per bad one."""
-    from ..data import load_specimen
+    from ..data import input_summary, load_specimen
 
     errors: list[str] = []
     rows: list[list[str]] = []
+    notes: list[str] = []
     ids: dict[str, str] = {}
     for f in _files(args.paths, errors):
         try:
-            ds = load_specimen(f)
+            ds = load_specimen(f, sl0=getattr(args, "sl0", None))  # --sl0, once the option exists
         except HbmError as exc:
             errors.append(str(exc))
             continue
@@ -86,14 +103,20 @@ def run_check(args: argparse.Namespace) -> int:
             continue
         ids[sid] = str(f)
         rows.append(_row(ds))
+        if input_summary(ds):
+            notes.append(f"{sid}: {input_summary(ds)}")
     if rows:
-        head = ["id", "points", "strain", "max stress [MPa]", "tests", "time", "provenance", "source"]
+        head = ["id", "points", "strain", "max stress [MPa]", "tests", "time", "input", "provenance", "source"]
         widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
         line = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
         print(line(head))
         print("  ".join("-" * w for w in widths))
         for r in rows:
             print(line(r))
+        if notes:
+            print("converted on loading (dataset: engineering strain, Cauchy stress in MPa):")
+            for n in notes:
+                print(f"  {n}")
         print(f"{len(rows)} specimen(s) OK" + (f", {len(errors)} failed" if errors else ""))
     for e in errors:
         print(f"hbm: error: {e}", file=sys.stderr)
