@@ -8,9 +8,11 @@ The main entry points, by role:
   :func:`fit_specimen`, :func:`hierarchical`
 * workflow: :func:`run_workflow` (the six-specimen dask run behind ``hbm run``)
 * the missing-physics loop: :func:`diagnose`, :func:`extend`
+* errors: :class:`HbmError` and its subclasses (:mod:`hbm.errors`), raised for every bad input
 """
 
 from ._version import __version__
+from ._import_guard import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
 from .model import Effect, Loading, Model, Parameter, State, spyrou_model
 from .data import load_specimen, load_specimens, save_specimen, synthetic_specimen
 from .likelihood import Likelihood, make_likelihood
@@ -22,9 +24,12 @@ from .organ import FusiformGeometry, load_geometry, organ_response
 from .fit import FitResult, fit_specimen
 from .workflow import RunConfig, run_workflow
 from .organ_report import predict_organ
-from . import data, effects, io, organ
+from . import data, effects, errors, io, organ
 from .detective import Diagnosis, diagnose, extend
 from .optimization import OptimizeResult, optimize
+from .errors import DataError, HbmError, OutputError, OutputLockedError, SettingError, TooLargeError
+
+_restore_sigint()
 
 __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "spyrou_model",
            "load_specimen", "load_specimens", "save_specimen", "synthetic_specimen",
@@ -32,4 +37,5 @@ __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "s
            "SobolResult", "sobol", "OptimizeResult", "optimize", "identifiable_directions",
            "volf_t1_manifold", "FusiformGeometry", "load_geometry", "organ_response",
            "predict_organ", "FitResult", "fit_specimen", "RunConfig", "run_workflow", "Diagnosis", "diagnose", "extend",
-           "data", "effects", "io", "organ"]
+           "data", "effects", "io", "organ", "errors", "HbmError", "DataError", "SettingError",
+           "TooLargeError", "OutputError", "OutputLockedError"]

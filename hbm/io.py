@@ -52,7 +52,7 @@ import xarray as xr
 from ._version import __version__
 from .errors import HbmError
 from .samplers.tmcmc import StageInfo
-from .utils import atomic_path
+from .utils import atomic_path, write_error
 
 __all__ = ["SpecimenResult", "HierarchicalFile", "write_specimen_result", "read_specimen_result",
            "is_complete", "read_attrs", "write_hierarchical", "read_hierarchical", "write_population_summary",
@@ -306,13 +306,17 @@ def _mark_complete(path: Path) -> None:
 def _write_tree(tree, path: str | os.PathLike, complete: bool | None) -> Path:
     """Write a DataTree atomically; with ``complete`` set the flag is the last write before the rename.
 
-    ``complete=None``: files without a completeness flag.
+    ``complete=None``: files without a completeness flag.  A failed write (full disk,
+    permission) raises :class:`hbm.errors.OutputError` naming ``path``; no temporary file stays.
     """
     path = Path(path)
     with atomic_path(path) as tmp:
-        tree.to_netcdf(tmp, engine="netcdf4")
-        if complete:
-            _mark_complete(tmp)
+        try:
+            tree.to_netcdf(tmp, engine="netcdf4")
+            if complete:
+                _mark_complete(tmp)
+        except RuntimeError as exc:  # netCDF4/HDF5 report a failed write (full disk, I/O) this way
+            raise write_error(path, exc) from exc
     return path
 
 

@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterator, Mapping
 import numpy as np
 
 from . import seeds
-from .errors import HbmError
+from .errors import HbmError, OutputError
 from .samplers.tmcmc import checkpoint_progress
 
 __all__ = ["BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
@@ -42,10 +42,60 @@ def spawn_specimen_seeds(seed: int, ids) -> dict[str, np.random.SeedSequence]:
     return {sid: seeds.stream(int(seed), "specimen", k) for k, sid in enumerate(sorted(ids))}
 
 
+#: loggers that report on a cluster being shut down (silenced once a run is interrupted)
+_SHUTDOWN_LOGGERS = ("distributed", "tornado", "asyncio")
+
+
+@contextlib.contextmanager
+def _workers_ignore_sigint() -> Iterator[None]:
+    """Start worker processes that ignore SIGINT: Ctrl-C in a terminal reaches every process of
+    the foreground group, and the workers' KeyboardInterrupt tracebacks would bury the one line
+    of the main process, which shuts the cluster down itself.
+
+    SIGINT is ignored (which the spawned workers inherit) and blocked (so that a Ctrl-C meanwhile
+    stays pending rather than being lost) while the cluster starts; afterwards the handler is
+    restored and a pending Ctrl-C is delivered as KeyboardInterrupt.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    old_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old_handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is raised here
+
+
+@contextlib.contextmanager
+def _quiet_shutdown() -> Iterator[None]:
+    """Silence dask/tornado/asyncio while a failed or interrupted run closes its cluster
+    (lost-worker warnings, cancelled-task and closed-comm tracebacks)."""
+    import logging
+
+    loggers = [logging.getLogger(name) for name in _SHUTDOWN_LOGGERS]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+
+
 @contextlib.contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None, *,
                 dashboard: bool = False, silence_logs: bool = True) -> Iterator[Any]:
     """A ``distributed.Client``; closes what it created on exit.
+
+    The embedded cluster's workers ignore SIGINT (Ctrl-C interrupts the main process only, which
+    closes the cluster); when the body raises (KeyboardInterrupt included) the cluster is closed
+    with dask's logging silenced, so that the caller's one-line message stays the last word.
 
     Parameters
     ----------
@@ -62,31 +112,36 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
     from distributed import Client, LocalCluster
 
     address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
-    if address:
-        try:
-            client = Client(address, timeout="30s")
-        except OSError as exc:
-            raise HbmError(f"cannot connect to dask scheduler {address}: {exc}") from None
-        try:
-            yield client
-        finally:
-            client.close()
-        return
     n = int(workers) if workers else (os.cpu_count() or 1)
-    if n < 1:
+    if not address and n < 1:
         raise HbmError(f"--workers must be >= 1, got {workers}")
-    for k, v in BLAS_ENV.items():  # also for anything spawned from this process
-        os.environ.setdefault(k, v)
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           dashboard_address=":8787" if dashboard else ":0",
-                           silence_logs=logging.ERROR if silence_logs else logging.WARNING,
-                           env=dict(BLAS_ENV))
-    client = Client(cluster)
+    cluster = client = None
+    failed = False
     try:
+        if address:
+            try:
+                client = Client(address, timeout="30s")
+            except OSError as exc:
+                raise HbmError(f"cannot connect to dask scheduler {address}: {exc}") from None
+        else:
+            for k, v in BLAS_ENV.items():  # also for anything spawned from this process
+                os.environ.setdefault(k, v)
+            with _workers_ignore_sigint():
+                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                       dashboard_address=":8787" if dashboard else ":0",
+                                       silence_logs=logging.ERROR if silence_logs else logging.WARNING,
+                                       env=dict(BLAS_ENV))
+            client = Client(cluster)
         yield client
+    except BaseException:
+        failed = True
+        raise
     finally:
-        client.close()
-        cluster.close()
+        with _quiet_shutdown() if failed else contextlib.nullcontext():
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
 
 
 def checkpoint_status(path: str | os.PathLike) -> str | None:
@@ -139,6 +194,12 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
     Returns
     -------
     MapResult
+
+    Raises
+    ------
+    OutputError
+        As soon as one task cannot write its result (full disk, unwritable folder): the other
+        tasks would fail the same way.  Other task errors are collected in ``errors``.
     """
     kwargs = dict(kwargs or {})
     seeds = spawn_specimen_seeds(seed, all_ids if all_ids is not None else items)
@@ -160,6 +221,8 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
                 try:
                     path, dt = _timed_call(func, items[sid], seeds[sid], kwargs)
                     res.paths[sid], res.task_times[sid] = str(path), dt
+                except OutputError:  # full disk, unwritable folder: every other task would fail too
+                    raise
                 except HbmError as exc:
                     res.errors[sid] = str(exc)
                 if bar is not None:
@@ -177,6 +240,8 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
                     try:
                         path, dt = f.result()
                         res.paths[sid], res.task_times[sid] = str(path), dt
+                    except OutputError:  # full disk, unwritable folder: every other task would fail too
+                        raise
                     except Exception as exc:  # keep going: report the failure at the end
                         res.errors[sid] = f"{type(exc).__name__}: {exc}"
                     if bar is not None:

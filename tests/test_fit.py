@@ -106,5 +106,5 @@ def test_cli_fit(tmp_path, run_cli):
                            "--no-progress", "--fix", "EOPT=0.15"])
     assert rc == 0 and io.is_complete(out)
     assert "(1-VOLF)*T1" in text and "log-evidence" in text
-    assert "must be >= 4" in cli_error(run_cli, ["fit", csv, "--samples", "2"])
+    assert "sample size >= 20" in cli_error(run_cli, ["fit", csv, "--samples", "2"])
     assert "power of 2" in cli_error(run_cli, ["fit", csv, "--sobol", "100"])

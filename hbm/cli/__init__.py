@@ -1,13 +1,24 @@
-"""The ``hbm`` command.  Each subcommand lives in its own module with ``register(subparsers)``."""
+"""The ``hbm`` command.  Each subcommand lives in its own module with ``register(subparsers)``.
+
+Error contract of :func:`main`: a bad option, bad input file, unwritable output, full disk or
+a size that cannot fit in memory ends as ONE line ``hbm: error: ...`` on stderr naming the
+option or file, exit status 2; Ctrl-C (or SIGTERM) at any moment ends as ``hbm: interrupted``,
+exit status 130 (143), with temporary files removed and TMCMC checkpoints kept.  An unexpected
+internal error is one line too (exit 1); ``HBM_DEBUG=1`` shows its traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
+import threading
 
 from .._version import __version__
-from ..errors import HbmError
+from ..errors import HbmError, SettingError
+from ._common import HbmArgumentParser
 
 # subcommand modules, in the order shown by --help
 COMMANDS = ["run", "fit", "optimize", "sobol", "diagnose", "predict", "data"]
@@ -21,29 +32,75 @@ Fits the Spyrou-Agoras-Danas microstructural model of passive muscle (fibers + E
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="hbm", description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    """The ``hbm`` parser with every subcommand (errors: one line, see :class:`HbmArgumentParser`)."""
+    parser = HbmArgumentParser(prog="hbm", description=DESCRIPTION,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"hbm {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"{__name__}.{name}").register(sub)
+    parser.set_defaults(commands=list(sub.choices))
     return parser
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that ``finally`` blocks remove temporary files."""
+
+
+def _raise_terminated(signum, frame):
+    raise _Terminated()
+
+
+def _exit_now(signum, frame):  # pragma: no cover - interpreter shutdown
+    sys.stderr.write("hbm: interrupted\n")
+    sys.stderr.flush()
+    os._exit(130)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _os_error(exc: OSError) -> str:
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    names = [n for n in (exc.filename, exc.filename2) if n is not None]
+    return f"{' -> '.join(map(str, names))}: {reason}" if names else reason
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+    """Run ``hbm ARGV`` (default ``sys.argv[1:]``) and return the exit status."""
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous_term = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if not getattr(args, "func", None):
+            raise SettingError(f"expected a command ({', '.join(args.commands)}); see hbm --help")
         return int(args.func(args) or 0)
     except HbmError as exc:
-        print(f"hbm: error: {exc}", file=sys.stderr)
+        print(f"hbm: error: {_one_line(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         print("hbm: interrupted", file=sys.stderr)
-        return 130
+        return 143 if isinstance(exc, _Terminated) else 130
+    except OSError as exc:  # permission, missing path, full disk from code that does not wrap it
+        print(f"hbm: error: {_one_line(_os_error(exc))}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("hbm: error: out of memory; use smaller sizes (--samples, --n, --sobol-n)", file=sys.stderr)
+        return 2
+    except Exception as exc:
+        if os.environ.get("HBM_DEBUG"):
+            raise
+        print(f"hbm: error: internal error {type(exc).__name__}: {_one_line(exc)} (HBM_DEBUG=1 shows the "
+              "traceback; please report it)", file=sys.stderr)
+        return 1
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous_term is None else previous_term)
+            if argv is None and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+                # the process ends now: Ctrl-C during interpreter shutdown (dask's atexit) stays one line
+                signal.signal(signal.SIGINT, _exit_now)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,7 +1,11 @@
-"""Shared helpers of the ``hbm`` subcommands: option parsing, specimen loading, JSON output.
+"""Shared helpers of the ``hbm`` subcommands: ONE validation rule per kind of setting, specimen
+loading, model building, JSON output.
 
-Every parsing error is an :class:`hbm.errors.HbmError` with a one-line message naming the
-option and what was expected (the ``hbm`` entry point turns it into exit status 2).
+Every option value is checked when the command line is parsed (the ``type=`` functions and
+actions below), every check that needs the model (parameter names, free parameters, sweeps,
+pools) and every output path and memory estimate right after, before any computation starts.
+Each failure is one line ``hbm: error: ...`` naming the option and what was expected, exit
+status 2 (:class:`HbmArgumentParser` for parse errors, :class:`hbm.errors.HbmError` otherwise).
 """
 
 from __future__ import annotations
@@ -11,92 +15,309 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from ..errors import HbmError
+from ..data import load_specimen
+from ..effects import resolve_effect
+from ..errors import HbmError, SettingError
+from ..model import spyrou_model
+from ..utils import format_bytes, require_memory
 
 SPECIMEN_FOLDER = Path("data") / "specimens"
+#: the smallest population / draw count any command accepts (TMCMC populations of --samples and
+#: --hier-samples, posterior draws of predict): a population covariance over the 9-16
+#: parameters of the base model plus effects needs more particles than parameters
+MIN_SAMPLES = 20
+#: seeds are non-negative integers below 2**32 (numpy's legacy seeding inside cma and SALib)
+SEED_LIMIT = 2 ** 32
+_FLOAT = 8  # bytes per float64
 
 
-def _float(text: str, option: str, item: str, expected: str) -> float:
+class HbmArgumentParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line ``hbm: error: <command>: <message>``, exit 2.
+
+    ``error`` raises :class:`SettingError` (the ``hbm`` entry point prints it) instead of
+    printing a usage block; sub-parsers inherit the class.
+    """
+
+    def error(self, message: str):  # type: ignore[override]
+        command = self.prog.partition(" ")[2]
+        raise SettingError(f"{command}: {message}" if command else message)
+
+
+# ----------------------------------------------------------------------- value rules (type=)
+def _type_error(text: str, expected: str) -> argparse.ArgumentTypeError:
+    return argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+
+
+def _parse_int(text: str, expected: str) -> int:
     try:
-        value = float(text)
+        return int(str(text).strip())
     except ValueError:
-        raise HbmError(f"{option} {item!r}: expected {expected}, {text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise HbmError(f"{option} {item!r}: expected {expected} with a finite number")
+        raise _type_error(text, expected) from None
+
+
+def integer(minimum: int, expected: str | None = None) -> Callable[[str], int]:
+    """``type=`` rule: an integer >= ``minimum``."""
+    expected = expected or f"an integer >= {minimum}"
+
+    def parse(text: str) -> int:
+        value = _parse_int(text, expected)
+        if value < minimum:
+            raise _type_error(text, expected)
+        return value
+
+    parse.__name__ = f"integer>={minimum}"
+    return parse
+
+
+#: counts: positive (budgets, sizes) and non-negative (restarts, retries, workers)
+positive_int = integer(1)
+non_negative_int = integer(0)
+#: TMCMC population sizes and posterior draw counts, the same minimum everywhere
+sample_size = integer(MIN_SAMPLES, f"a sample size >= {MIN_SAMPLES}")
+
+
+def seed(text: str) -> int:
+    """``type=`` rule of every ``--seed``: a non-negative integer below 2**32."""
+    expected = f"a seed: an integer from 0 to {SEED_LIMIT - 1}"
+    value = _parse_int(text, expected)
+    if not 0 <= value < SEED_LIMIT:
+        raise _type_error(text, expected)
     return value
 
 
-def parse_fix(items: Iterable[str] | None, option: str = "--fix") -> dict[str, float]:
-    """``["EOPT=0.192", ...]`` -> ``{"EOPT": 0.192}``."""
-    out: dict[str, float] = {}
-    for item in items or ():
-        name, sep, value = item.partition("=")
-        name = name.strip()
-        if not sep or not name:
-            raise HbmError(f"{option} {item!r}: expected NAME=VALUE, e.g. EOPT=0.192")
-        out[name] = _float(value.strip(), option, item, "NAME=VALUE")
-    return out
+def power_of_two(text: str) -> int:
+    """``type=`` rule of Sobol base sample sizes: a power of 2 >= 2 (Sobol' sequence)."""
+    expected = "a power of 2 >= 2 (e.g. 512, 1024)"
+    value = _parse_int(text, expected)
+    if value < 2 or value & (value - 1):
+        raise _type_error(text, expected)
+    return value
 
 
-def parse_bounds(items: Iterable[str] | None, option: str = "--bounds") -> dict[str, tuple[float, float]]:
-    """``["VOLF=0.5:0.75", ...]`` -> ``{"VOLF": (0.5, 0.75)}``."""
-    out: dict[str, tuple[float, float]] = {}
-    for item in items or ():
-        name, sep, rng = item.partition("=")
-        name = name.strip()
-        lo, sep2, hi = rng.partition(":")
-        if not sep or not name or not sep2:
-            raise HbmError(f"{option} {item!r}: expected NAME=LO:HI, e.g. VOLF=0.5:0.75")
-        a = _float(lo.strip(), option, item, "NAME=LO:HI")
-        b = _float(hi.strip(), option, item, "NAME=LO:HI")
-        if not a < b:
-            raise HbmError(f"{option} {item!r}: expected NAME=LO:HI with LO < HI")
-        out[name] = (a, b)
-    return out
+def power_of_two_or_zero(text: str) -> int:
+    """Like :func:`power_of_two`, or 0 for "skip"."""
+    if str(text).strip() == "0":
+        return 0
+    try:
+        return power_of_two(text)
+    except argparse.ArgumentTypeError:
+        raise _type_error(text, "0 (skip) or a power of 2 >= 2 (e.g. 512, 1024)") from None
 
 
-def parse_range(text: str | None, option: str) -> tuple[float, float] | None:
-    """``"LO:HI"`` -> (lo, hi)."""
-    if text is None:
-        return None
-    lo, sep, hi = text.partition(":")
+def _parse_float(text: str, expected: str) -> float:
+    try:
+        value = float(str(text).strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {expected}; {str(text).strip()!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {expected}; {str(text).strip()!r} is not finite")
+    return value
+
+
+def real(minimum: float | None = None, *, strict: bool = False) -> Callable[[str], float]:
+    """``type=`` rule: a finite number, optionally >= (``strict``: >) ``minimum``."""
+    if minimum is None:
+        expected = "a finite number"
+    else:
+        expected = f"a finite number {'>' if strict else '>='} {minimum:g}"
+
+    def parse(text: str) -> float:
+        value = _parse_float(text, expected)
+        if minimum is not None and (value <= minimum if strict else value < minimum):
+            raise _type_error(text, expected)
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+finite_float = real()
+positive_float = real(0.0, strict=True)
+
+
+def _name(text: str, expected: str) -> str:
+    name = text.strip()
+    if not name or any(c.isspace() for c in name) or "," in name:
+        raise _type_error(text, expected)
+    return name
+
+
+def name_list(text: str) -> list[str]:
+    """``type=`` rule of comma-separated name lists (effects, pooled parameters): non-empty, no repeats."""
+    expected = "comma-separated names without repeats, e.g. offset,damage"
+    names = [t.strip() for t in str(text).split(",")]
+    if not all(names):
+        raise _type_error(text, expected)
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise argparse.ArgumentTypeError(f"{', '.join(repeated)} given twice in {text!r}, expected each name once")
+    return names
+
+
+def fix_item(text: str) -> tuple[str, float]:
+    """``type=`` rule of ``--fix NAME=VALUE``."""
+    expected = "NAME=VALUE with a finite number, e.g. EOPT=0.192"
+    name, sep, value = str(text).partition("=")
     if not sep:
-        raise HbmError(f"{option} {text!r}: expected LO:HI")
-    a, b = _float(lo, option, text, "LO:HI"), _float(hi, option, text, "LO:HI")
+        raise _type_error(text, expected)
+    return _name(name, expected), _parse_float(value, expected)
+
+
+def bounds_item(text: str) -> tuple[str, tuple[float, float]]:
+    """``type=`` rule of ``--bounds NAME=LO:HI``."""
+    expected = "NAME=LO:HI with finite LO < HI, e.g. VOLF=0.5:0.75"
+    name, sep, rng = str(text).partition("=")
+    if not sep:
+        raise _type_error(text, expected)
+    return _name(name, expected), value_range(rng, expected)
+
+
+def value_range(text: str, expected: str = "LO:HI with finite LO < HI") -> tuple[float, float]:
+    """``type=`` rule of ``LO:HI`` ranges (``--sigma-bounds``)."""
+    lo, sep, hi = str(text).partition(":")
+    if not sep:
+        raise _type_error(text, expected)
+    a, b = _parse_float(lo, expected), _parse_float(hi, expected)
     if not a < b:
-        raise HbmError(f"{option} {text!r}: expected LO:HI with LO < HI")
+        raise _type_error(text, expected)
     return a, b
 
 
-def parse_sweep(text: str | None, option: str = "--sweep") -> tuple[str, float] | None:
-    """``"VOLF:0.01"`` -> ("VOLF", 0.01)."""
-    if text is None:
+class Sweep(NamedTuple):
+    """A parsed ``--sweep NAME:WIDTH`` (``text``: as given, e.g. for the run's settings record)."""
+
+    name: str
+    width: float
+    text: str
+
+
+def sweep(text: str) -> Sweep | None:
+    """``type=`` rule of ``--sweep NAME:WIDTH`` (WIDTH > 0); ``none``/``off`` -> None."""
+    if str(text).strip().lower() in ("none", "off", ""):
         return None
-    name, sep, width = text.partition(":")
-    if not sep or not name.strip():
-        raise HbmError(f"{option} {text!r}: expected NAME:WIDTH, e.g. VOLF:0.01")
-    w = _float(width, option, text, "NAME:WIDTH")
-    if w <= 0:
-        raise HbmError(f"{option} {text!r}: expected NAME:WIDTH with WIDTH > 0")
-    return name.strip(), w
+    expected = "NAME:WIDTH with WIDTH > 0, e.g. VOLF:0.05 (or none)"
+    name, sep, width = str(text).partition(":")
+    if not sep:
+        raise _type_error(text, expected)
+    w = _parse_float(width, expected)
+    if not w > 0:
+        raise _type_error(text, expected)
+    return Sweep(_name(name, expected), w, str(text).strip())
 
 
+def plot_path(text: str) -> Path:
+    """``type=`` rule of figure paths: an existing folder and a format matplotlib can write."""
+    # the one function-level import of the CLI: matplotlib costs ~0.4 s and only --plot needs it
+    from ..plots import supported_formats
+
+    path = Path(text).expanduser()
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r}: no folder {path.parent}, expected an existing folder")
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a folder, expected a file name")
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    formats = supported_formats()
+    if fmt not in formats:
+        raise argparse.ArgumentTypeError(f"{text!r}: cannot write .{fmt} figures, expected one of "
+                                         f"{', '.join('.' + f for f in formats)}")
+    return path
+
+
+class UniqueNames(argparse.Action):
+    """Repeatable ``NAME=...`` option collected into a dict; a NAME given twice is refused."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        name, value = values
+        current = dict(getattr(namespace, self.dest, None) or {})
+        if name in current:
+            parser.error(f"argument {option_string}: {name} given twice, expected each parameter once")
+        current[name] = value
+        setattr(namespace, self.dest, current)
+
+
+# ----------------------------------------------------------------------- shared options
+def add_seed(parser: argparse.ArgumentParser, help_text: str = "root seed (default 0)") -> None:
+    """``--seed S`` with the shared rule."""
+    parser.add_argument("--seed", type=seed, default=0, metavar="S", help=help_text)
+
+
+def add_fix(parser: argparse.ArgumentParser, example: str = "EOPT=0.192") -> None:
+    """``--fix NAME=VALUE`` (repeatable, each name once)."""
+    parser.add_argument("--fix", action=UniqueNames, type=fix_item, default={}, metavar="NAME=VALUE",
+                        help=f"hold a parameter fixed, e.g. --fix {example}; repeatable")
+
+
+def add_model_arguments(parser: argparse.ArgumentParser) -> None:
+    """--effect / --iso-factor / --fix / --bounds, shared by commands that build a model."""
+    parser.add_argument("--effect", action="append", default=[], metavar="ID",
+                        help="add an effect to the base model (library id or file.py:Class); repeatable")
+    parser.add_argument("--iso-factor", type=positive_float, default=1.0, metavar="K",
+                        help="k_iso of the neo-Hookean term: 1 (default) or 2/3 (thesis literal)")
+    add_fix(parser)
+    parser.add_argument("--bounds", action=UniqueNames, type=bounds_item, default={}, metavar="NAME=LO:HI",
+                        help="narrow a parameter's box, e.g. --bounds VOLF=0.5:0.75; repeatable")
+
+
+# ----------------------------------------------------------------------- checks needing the model
 def check_names(model, names: Iterable[str], option: str) -> None:
     """Raise a one-line error if some names are not parameters of ``model``."""
     bad = [n for n in names if n not in model.parameter_names]
     if bad:
-        raise HbmError(f"{option}: unknown parameter(s) {', '.join(bad)}; expected one of "
-                       f"{', '.join(model.parameter_names)}")
+        raise SettingError(f"{option}: unknown parameter(s) {', '.join(bad)}; expected one of "
+                           f"{', '.join(model.parameter_names)}")
+
+
+def check_fix_bounds(model, fix: dict, bounds: dict) -> None:
+    """--fix / --bounds against the model: known names, sub-ranges of the prior box, fixed
+    values inside their box, and at least one parameter left free."""
+    check_names(model, fix, "--fix")
+    check_names(model, bounds, "--bounds")
+    box = model.bounds
+    for k, (lo, hi) in bounds.items():
+        a, b = box[model.index(k)]
+        if lo < a or hi > b:
+            raise SettingError(f"--bounds {k}={lo:g}:{hi:g}: expected a sub-range of the prior box [{a:g}, {b:g}]")
+    for k, v in fix.items():
+        a, b = bounds.get(k, box[model.index(k)])
+        if not a <= v <= b:
+            raise SettingError(f"--fix {k}={v:g}: expected a value inside the box [{a:g}, {b:g}]")
+    if len(fix) >= model.n_params:
+        raise SettingError(f"--fix: all {model.n_params} model parameters are fixed, expected at least one free "
+                           "parameter to learn")
+
+
+def free_parameters(model, fix: dict) -> list[str]:
+    """The model parameters not held by --fix."""
+    return [n for n in model.parameter_names if n not in fix]
+
+
+def check_sweep(model, fix: dict, spec: Sweep | None, option: str = "--sweep") -> None:
+    """A sweep must run over a free parameter of the model."""
+    if spec is not None and spec.name not in free_parameters(model, fix):
+        what = "is fixed by --fix" if spec.name in fix else "is not a model parameter"
+        raise SettingError(f"{option} {spec.text}: {spec.name} {what}; expected NAME:WIDTH with NAME a free model "
+                           f"parameter ({', '.join(free_parameters(model, fix))}) or {option} none")
+
+
+def build_model(args: argparse.Namespace):
+    """Base Spyrou model plus ``--effect`` effects, with --fix/--bounds (and --sweep) checked."""
+    model = spyrou_model(iso_factor=float(getattr(args, "iso_factor", 1.0)))
+    effects = list(getattr(args, "effect", []) or [])
+    if effects:
+        model = model.with_effects(*[resolve_effect(e) for e in effects])
+    fix = dict(getattr(args, "fix", None) or {})
+    bounds = dict(getattr(args, "bounds", None) or {})
+    check_fix_bounds(model, fix, bounds)
+    check_sweep(model, fix, getattr(args, "sweep", None))
+    return model, fix, bounds
 
 
 def load_specimen_arg(spec: str):
     """A SPECIMEN argument -> Dataset: a CSV path, or an id of ``data/specimens/<id>.csv``."""
-    from ..data import load_specimen
-
     path = Path(spec)
     if path.exists():
         return load_specimen(path)
@@ -109,44 +330,29 @@ def load_specimen_arg(spec: str):
                    "specimen id)")
 
 
-def add_model_arguments(parser: argparse.ArgumentParser) -> None:
-    """--effect / --iso-factor / --fix / --bounds, shared by commands that build a model."""
-    parser.add_argument("--effect", action="append", default=[], metavar="ID",
-                        help="add an effect to the base model (library id or file.py:Class); repeatable")
-    parser.add_argument("--iso-factor", type=float, default=1.0, metavar="K",
-                        help="k_iso of the neo-Hookean term: 1 (default) or 2/3 (thesis literal)")
-    parser.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
-                        help="hold a parameter fixed, e.g. --fix EOPT=0.192; repeatable")
-    parser.add_argument("--bounds", action="append", default=[], metavar="NAME=LO:HI",
-                        help="narrow a parameter's box, e.g. --bounds VOLF=0.5:0.75; repeatable")
+def n_points(ds) -> int:
+    """Strain points of a specimen Dataset."""
+    return int(ds["strain"].size)
 
 
-def build_model(args: argparse.Namespace):
-    """Base Spyrou model plus ``--effect`` effects; checks --fix/--bounds names."""
-    from ..model import spyrou_model
-
-    model = spyrou_model(iso_factor=float(getattr(args, "iso_factor", 1.0)))
-    effects = list(getattr(args, "effect", []) or [])
-    if effects:
-        from ..effects import resolve_effect
-
-        model = model.with_effects(*[resolve_effect(e) for e in effects])
-    fix = parse_fix(getattr(args, "fix", None))
-    bounds = parse_bounds(getattr(args, "bounds", None))
-    check_names(model, fix, "--fix")
-    check_names(model, bounds, "--bounds")
-    box = model.bounds
-    for k, (lo, hi) in bounds.items():
-        a, b = box[model.index(k)]
-        if lo < a or hi > b:
-            raise HbmError(f"--bounds {k}={lo:g}:{hi:g}: expected a sub-range of the prior box [{a:g}, {b:g}]")
-    for k, v in fix.items():
-        a, b = bounds.get(k, box[model.index(k)])
-        if not a <= v <= b:
-            raise HbmError(f"--fix {k}={v:g}: expected a value inside the box [{a:g}, {b:g}]")
-    return model, fix, bounds
+# ----------------------------------------------------------------------- memory estimates
+def check_population_memory(setting: str, n: int, points: int, n_params: int) -> None:
+    """A population of ``n`` parameter sets evaluated at ``points`` strain points holds at least
+    an (n, points) stress array and the (n, n_params) population: refuse what cannot fit.
+    ``setting`` names the option and value, e.g. ``"--samples 5000"``."""
+    need = float(n) * (points + n_params) * _FLOAT
+    require_memory(need, setting, f"{n} parameter sets x ({points} strain points + {n_params} parameters) x 8 bytes")
 
 
+def check_sobol_memory(setting: str, n: int, n_free: int, n_params: int, points: int) -> None:
+    """Sobol: N*(D+2) parameter sets, their stress at every point and the sample matrices."""
+    rows = float(n) * (n_free + 2)
+    need = rows * (points + n_params + n_free) * _FLOAT
+    require_memory(need, setting, f"N*(D+2) = {rows:.0f} model evaluations x "
+                   f"{points + n_params + n_free} values x 8 bytes")
+
+
+# ----------------------------------------------------------------------- output
 def _jsonable(obj: Any) -> Any:
     """Convert numpy scalars/arrays and non-finite floats (-> null) for strict JSON."""
     if isinstance(obj, dict):
@@ -176,3 +382,11 @@ def format_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     def line(r):
         return "  ".join(str(x).ljust(w) if i == 0 else str(x).rjust(w) for i, (x, w) in enumerate(zip(r, widths)))
     return "\n".join([line(header), "  ".join("-" * w for w in widths)] + [line(r) for r in rows])
+
+
+__all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positive_int", "non_negative_int",
+           "sample_size", "seed", "power_of_two", "power_of_two_or_zero", "real", "finite_float", "positive_float",
+           "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
+           "add_seed", "add_fix", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
+           "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",
+           "check_sobol_memory", "print_json", "format_table", "format_bytes"]

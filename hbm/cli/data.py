@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..errors import DataError, HbmError
+from ..data import input_summary, load_specimen, provenance
+from ..errors import DataError, HbmError, SettingError
 
 CHECK_DESCRIPTION = """\
 Validate specimen CSV files and print a summary table.
@@ -36,12 +37,11 @@ def register(subparsers) -> None:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     check.add_argument("paths", nargs="+", metavar="PATH", help="CSV file or folder of CSV files")
     check.set_defaults(func=run_check)
-    parser.set_defaults(func=lambda args: _usage(parser))
+    parser.set_defaults(func=_no_action)
 
 
-def _usage(parser: argparse.ArgumentParser) -> int:
-    parser.print_help(sys.stderr)
-    return 2
+def _no_action(args: argparse.Namespace) -> int:
+    raise SettingError("data: expected an action, e.g. 'hbm data check PATH...' (see hbm data --help)")
 
 
 def _files(paths: list[str], errors: list[str]) -> list[Path]:
@@ -71,8 +71,6 @@ def _input(ds) -> str:
 
 
 def _row(ds) -> list[str]:
-    from ..data import provenance
-
     strain, stress = ds["strain"].values, ds["stress"].values
     tests = str(len(set(ds["test"].values.tolist()))) if "test" in ds else "1"
     source = str(ds.attrs.get("citation") or ds.attrs.get("source") or "")
@@ -84,8 +82,6 @@ def _row(ds) -> list[str]:
 
 def run_check(args: argparse.Namespace) -> int:
     """Check every file, print the table of good ones and one line per bad one."""
-    from ..data import input_summary, load_specimen
-
     errors: list[str] = []
     rows: list[list[str]] = []
     notes: list[str] = []

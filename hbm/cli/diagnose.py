@@ -5,8 +5,16 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import HbmError
-from ._common import load_specimen_arg, parse_fix, print_json
+from ..detective import diagnose, extend
+from ..effects import resolve_effect
+from ..errors import SettingError
+from ..model import spyrou_model
+from ..utils import prepare_output_file
+from ._common import (add_fix, add_seed, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
+                      name_list, non_negative_int, plot_path, print_json, sample_size)
+
+#: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
+DEFAULT_SAMPLES = 800
 
 DIAGNOSE_DESCRIPTION = """\
 Compare the model with a specimen, show where it fails and name the missing effect.
@@ -40,15 +48,15 @@ examples:
 
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("specimen", metavar="SPECIMEN", help="specimen CSV path or id in data/specimens/")
-    p.add_argument("--model", default="base", metavar="base|EFFECT,...",
+    p.add_argument("--model", type=name_list, default=["base"], metavar="base|EFFECT,...",
                    help="current model: 'base' (Spyrou) or base plus comma-separated effects (default base)")
-    p.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
-                   help="hold a parameter fixed, e.g. --fix EOPT=0.12; repeatable")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of every random step (default 0)")
-    p.add_argument("--samples", type=int, default=None, metavar="N",
-                   help="TMCMC population size per evidence run (default 800; shrinks for slow models)")
+    add_fix(p, "EOPT=0.12")
+    add_seed(p, "seed of every random step (default 0)")
+    p.add_argument("--samples", type=sample_size, default=None, metavar="N",
+                   help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; shrinks for slow models)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
-    p.add_argument("--plot", metavar="FILE", default=None, help="write the figure (PNG/PDF/SVG)")
+    p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
+                   help="write the figure (PNG/PDF/SVG/...; into an existing folder)")
     p.add_argument("--progress", action="store_true", help="progress lines on stderr")
 
 
@@ -58,53 +66,76 @@ def register(subparsers) -> None:
                               description=DIAGNOSE_DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_common(p)
-    p.add_argument("--candidates", default="all", metavar="all|EFFECT,...",
+    p.add_argument("--candidates", type=name_list, default=["all"], metavar="all|none|EFFECT,...",
                    help="library effects to screen (default all)")
     p.add_argument("--candidate", action="append", default=[], metavar="PATH.py:ClassName",
                    help="a user-written effect to screen as well; repeatable")
-    p.add_argument("--top", type=int, default=3, metavar="K", help="physical candidates refitted (default 3)")
+    p.add_argument("--top", type=non_negative_int, default=3, metavar="K",
+                   help="physical candidates refitted (default 3)")
     p.set_defaults(func=run_diagnose)
 
     q = subparsers.add_parser("extend", help="add effects one at a time and show the error fall",
                               description=EXTEND_DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_common(q)
-    q.add_argument("--add", default="", metavar="EFFECT[,EFFECT...]",
+    q.add_argument("--add", type=name_list, default=[], metavar="EFFECT[,EFFECT...]",
                    help="effects to add in this order (library ids or PATH.py:ClassName)")
     q.add_argument("--auto", action="store_true",
                    help="greedy: keep adding the effect `diagnose` names until none passes")
     q.set_defaults(func=run_extend)
 
 
-def _split(text: str) -> list[str]:
-    return [t.strip() for t in (text or "").split(",") if t.strip()]
+def _model_effects(args) -> list[str]:
+    """--model as a list of effect specs ('base' is the Spyrou model itself)."""
+    return [m for m in args.model if m != "base"]
 
 
-def _candidates(args) -> object:
-    lib = args.candidates.strip() if args.candidates else "all"
-    out: list = [] if lib == "none" else (["all"] if lib == "all" else _split(lib))
+def _prepare(args, extra: list[str]):
+    """Every check before the first fit: effects resolve (also user files), --fix names, sizes,
+    the figure's folder.  ``extra``: effect specs added on top of --model (extend --add).
+
+    Returns the specimen and the keyword arguments shared by diagnose and extend.
+    """
+    effects = [resolve_effect(e) for e in _model_effects(args)]
+    model = spyrou_model().with_effects(*effects) if effects else spyrou_model()
+    have = set(model.effect_names)
+    for spec in extra:
+        name = resolve_effect(spec).name
+        if name in have:
+            raise SettingError(f"--add {spec}: effect {name!r} is already in the model "
+                               f"({', '.join(model.effect_names)}); expected a new effect")
+        have.add(name)
+    check_fix_bounds(model, dict(args.fix), {})
+    ds = load_specimen_arg(args.specimen)
+    samples = args.samples or DEFAULT_SAMPLES
+    check_population_memory(f"--samples {samples}", samples, n_points(ds), model.n_params + len(extra) + 2)
+    if args.plot is not None:
+        prepare_output_file(args.plot, "--plot")
+    kw = {"model": ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress}
+    if args.samples is not None:
+        kw["n_samples"] = args.samples
+    return ds, kw
+
+
+def _candidates(args) -> list[str]:
+    """--candidates (all | none | ids) plus --candidate files, each resolved now: an unknown id or
+    a user file that does not load fails before the base fit, not after it."""
+    lib = args.candidates
+    out: list = [] if lib == ["none"] else list(lib)
     out += list(args.candidate or [])
+    for spec in out:
+        if spec != "all":
+            resolve_effect(spec)
     if not out:
-        raise HbmError("--candidates/--candidate: nothing to screen")
+        raise SettingError("--candidates/--candidate: nothing to screen")
     return out
 
 
-def _kw(args) -> dict:
-    kw = {"model": args.model, "fix": parse_fix(args.fix), "seed": args.seed, "progress": args.progress}
-    if args.samples is not None:
-        if args.samples < 50:
-            raise HbmError(f"--samples {args.samples}: expected an integer >= 50")
-        kw["n_samples"] = args.samples
-    return kw
-
-
 def run_diagnose(args) -> int:
-    from ..detective import diagnose
-
-    if args.top < 0:
-        raise HbmError(f"--top {args.top}: expected an integer >= 0")
-    ds = load_specimen_arg(args.specimen)
-    dg = diagnose(ds, candidates=_candidates(args), top=args.top, **_kw(args))
+    """Check everything, then diagnose and print (or plot) the verdict."""
+    candidates = _candidates(args)
+    ds, kw = _prepare(args, [])
+    dg = diagnose(ds, candidates=candidates, top=args.top, **kw)
     if args.plot:
         dg.plot(args.plot)
     if args.json:
@@ -117,13 +148,12 @@ def run_diagnose(args) -> int:
 
 
 def run_extend(args) -> int:
-    from ..detective import extend
-
-    adds = _split(args.add)
+    """Check everything, then refit with the effects added and print the table."""
+    adds = list(args.add)
     if not adds and not args.auto:
-        raise HbmError("extend: give --add EFFECT[,EFFECT...] or --auto")
-    ds = load_specimen_arg(args.specimen)
-    ext = extend(ds, add=adds, auto=args.auto, **_kw(args))
+        raise SettingError("extend: give --add EFFECT[,EFFECT...] or --auto")
+    ds, kw = _prepare(args, adds)
+    ext = extend(ds, add=adds, auto=args.auto, **kw)
     if args.plot:
         ext.plot(args.plot)
     if args.json:

@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import HbmError
-from ._common import add_model_arguments, build_model, load_specimen_arg, parse_range
+from ..fit import fit_specimen
+from ..io import specimen_path
+from ..utils import prepare_output_dir, prepare_output_file, remove_stale_temps
+from ._common import (add_model_arguments, add_seed, build_model, check_population_memory, check_sobol_memory,
+                      free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
+                      power_of_two_or_zero, sample_size, sweep, value_range)
 
 DESCRIPTION = """\
 Fit one specimen: CMA-ES optima (restarts and an optional bound sweep), the TMCMC posterior of
@@ -28,20 +32,23 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("fit", help="posterior (TMCMC) + optima (CMA-ES) of one specimen -> netCDF",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("specimen", metavar="SPECIMEN", help="specimen CSV file or id in data/specimens")
-    p.add_argument("--samples", type=int, default=2000, metavar="N", help="TMCMC population size (default 2000)")
+    p.add_argument("--samples", type=sample_size, default=2000, metavar="N",
+                   help="TMCMC population size (default 2000)")
     p.add_argument("--kernel", default="rw", choices=["rw", "manifold"],
                    help="TMCMC move: random walk (default) or gradient/Fisher-metric manifold MALA")
     p.add_argument("--noise", default="iid", choices=["iid", "weighted", "proportional", "ar1"],
                    help="noise model (default iid Gaussian with unknown sigma)")
-    p.add_argument("--sigma-bounds", metavar="LO:HI", help="box of the noise sd (or scale)")
+    p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
     add_model_arguments(p)
-    p.add_argument("--restarts", type=int, default=4, metavar="K", help="CMA-ES restarts (0 = skip; default 4)")
-    p.add_argument("--sweep", metavar="NAME:WIDTH", help="CMA-ES bound sweep tracing a manifold, e.g. VOLF:0.05")
-    p.add_argument("--maxfevals", type=int, default=5000, metavar="M",
+    p.add_argument("--restarts", type=non_negative_int, default=4, metavar="K",
+                   help="CMA-ES restarts (0 = skip; default 4)")
+    p.add_argument("--sweep", type=sweep, metavar="NAME:WIDTH",
+                   help="CMA-ES bound sweep tracing a manifold, e.g. VOLF:0.05")
+    p.add_argument("--maxfevals", type=positive_int, default=5000, metavar="M",
                    help="evaluation budget per CMA-ES run (default 5000)")
-    p.add_argument("--sobol", type=int, default=0, metavar="N",
+    p.add_argument("--sobol", type=power_of_two_or_zero, default=0, metavar="N",
                    help="Sobol base sample size (power of 2; default 0 = skip)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="root seed (default 0)")
+    add_seed(p)
     p.add_argument("--out", metavar="FILE.nc", help="output file (default results/specimens/<id>.nc)")
     p.add_argument("--checkpoint-dir", metavar="DIR",
                    help="TMCMC checkpoint folder: an interrupted fit resumes from its last stage")
@@ -50,25 +57,27 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..fit import fit_specimen
-    from ..io import specimen_path
-
-    data = load_specimen_arg(args.specimen)
+    """Check settings, sizes and paths, then fit and print the summary."""
     model, fix, bounds = build_model(args)
-    if args.samples < 4:
-        raise HbmError(f"--samples must be >= 4, got {args.samples}")
-    if args.restarts < 0:
-        raise HbmError(f"--restarts must be >= 0, got {args.restarts}")
-    if args.sobol and (args.sobol & (args.sobol - 1)):
-        raise HbmError(f"--sobol must be a power of 2, got {args.sobol}")
+    data = load_specimen_arg(args.specimen)
+    points = n_points(data)
+    check_population_memory(f"--samples {args.samples}", args.samples, points, model.n_params + 2)
+    if args.sobol:
+        check_sobol_memory(f"--sobol {args.sobol}", args.sobol, len(free_parameters(model, fix)), model.n_params,
+                           points)
     sid = str(data.attrs.get("id", Path(args.specimen).stem))
     out = Path(args.out) if args.out else specimen_path("results", sid)
+    checked = prepare_output_file(out, "--out")
+    remove_stale_temps(checked.parent, recursive=False, target=out.name)  # of this file, left by a killed fit
+    if args.checkpoint_dir is not None:
+        ckdir = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
+        remove_stale_temps(ckdir, recursive=False, target=f"{sid}.npz")
     res = fit_specimen(data, model=model, samples=args.samples, kernel=args.kernel, noise=args.noise,
                        fix=fix or None, bounds=bounds or None, seed=args.seed, restarts=args.restarts,
-                       sweep=args.sweep, sobol_n=args.sobol or None, checkpoint_dir=args.checkpoint_dir,
+                       sweep=(args.sweep.name, args.sweep.width) if args.sweep else None,
+                       sobol_n=args.sobol or None, checkpoint_dir=args.checkpoint_dir,
                        out=out, progress=not args.no_progress,
-                       optimize_options={"maxfevals": args.maxfevals},
-                       sigma_bounds=parse_range(args.sigma_bounds, "--sigma-bounds"))
+                       optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds)
     print(res.table())
     t = res.timings
     print("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import HbmError
-from ._common import (add_model_arguments, build_model, format_table, load_specimen_arg, parse_range,
-                      parse_sweep, print_json)
+from ..likelihood import make_likelihood
+from ..optimization import optimize
+from ._common import (add_model_arguments, add_seed, build_model, check_population_memory, format_table,
+                      integer, load_specimen_arg, n_points, positive_int, print_json, sweep, value_range)
 
 DESCRIPTION = """\
 Fit the model to one specimen with CMA-ES (the `cma` package) in the unit box of the free
@@ -35,16 +36,18 @@ def register(subparsers) -> None:
                               description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("specimen", metavar="SPECIMEN", help="specimen CSV file or id")
-    p.add_argument("--restarts", type=int, default=4, metavar="K", help="CMA-ES runs (IPOP), default 4")
-    p.add_argument("--sweep", metavar="NAME:WIDTH", help="bound sweep, e.g. VOLF:0.01")
+    p.add_argument("--restarts", type=positive_int, default=4, metavar="K", help="CMA-ES runs (IPOP), default 4")
+    p.add_argument("--sweep", type=sweep, metavar="NAME:WIDTH", help="bound sweep, e.g. VOLF:0.01")
     add_model_arguments(p)
     p.add_argument("--noise", default="iid", choices=["iid", "weighted", "proportional", "ar1"],
                    help="noise model of the likelihood (default iid)")
-    p.add_argument("--sigma-bounds", metavar="LO:HI", help="box of the noise sd (or scale)")
+    p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
     p.add_argument("--objective", default="map", choices=["map", "wls"], help="map (default) or wls")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--popsize", type=int, default=None, help="initial CMA-ES population size")
-    p.add_argument("--maxfevals", type=int, default=None, help="evaluation budget per CMA-ES run")
+    add_seed(p, "random seed (default 0)")
+    p.add_argument("--popsize", type=integer(2), default=None, metavar="P",
+                   help="initial CMA-ES population size (>= 2; default cma's 4 + 3 ln d)")
+    p.add_argument("--maxfevals", type=positive_int, default=None, metavar="M",
+                   help="evaluation budget per CMA-ES run")
     p.add_argument("--progress", action="store_true", help="progress bar on stderr")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.set_defaults(func=run)
@@ -52,19 +55,15 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the optimisation and print the optima."""
-    from ..likelihood import make_likelihood
-    from ..optimization import optimize
-
-    if args.restarts < 1:
-        raise HbmError(f"--restarts {args.restarts}: expected an integer >= 1")
-    sweep = parse_sweep(args.sweep)
-    sigma_bounds = parse_range(args.sigma_bounds, "--sigma-bounds")
     model, fix, bounds = build_model(args)
-    if sweep is not None and (sweep[0] not in model.parameter_names or sweep[0] in fix):
-        raise HbmError(f"--sweep {args.sweep!r}: expected NAME:WIDTH with NAME a free model parameter")
     ds = load_specimen_arg(args.specimen)
-    lik = make_likelihood(model, ds, noise=args.noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds)
-    res = optimize(lik, restarts=args.restarts, seed=args.seed, objective=args.objective, sweep=sweep,
+    if args.popsize is not None:  # IPOP doubles the population at every restart
+        largest = args.popsize * 2 ** (args.restarts - 1)
+        check_population_memory(f"--popsize {args.popsize} with --restarts {args.restarts} (IPOP: up to {largest})",
+                                largest, n_points(ds), model.n_params + 2)
+    sweep_spec = (args.sweep.name, args.sweep.width) if args.sweep else None
+    lik = make_likelihood(model, ds, noise=args.noise, fix=fix, bounds=bounds, sigma_bounds=args.sigma_bounds)
+    res = optimize(lik, restarts=args.restarts, seed=args.seed, objective=args.objective, sweep=sweep_spec,
                    popsize=args.popsize, maxfevals=args.maxfevals, progress=args.progress)
     out = res.to_dict()
     out["specimen"] = str(ds.attrs.get("id", args.specimen))
@@ -74,11 +73,11 @@ def run(args: argparse.Namespace) -> int:
         print_json(out)
         return 0
     names = list(res.best["params"])
-    key = "window" if sweep else "restart"
+    key = "window" if sweep_spec else "restart"
     header = [key, "objective"] + names
     rows = []
     for o in res.optima:
-        k = f"{o['window'][0]:.4g}-{o['window'][1]:.4g}" if sweep else str(o["restart"])
+        k = f"{o['window'][0]:.4g}-{o['window'][1]:.4g}" if sweep_spec else str(o["restart"])
         rows.append([k, f"{o['objective']:.6g}"] + [f"{o['params'][n]:.5g}" for n in names])
     print(f"specimen {out['specimen']}: {model.name}, noise={args.noise}, objective={args.objective}, "
           f"free={', '.join(res.names)}" + (f", fixed {fix}" if fix else ""))

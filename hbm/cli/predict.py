@@ -4,8 +4,13 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 from ..errors import HbmError
+from ..organ import load_geometry
+from ..organ_report import format_summary, predict_organ
+from ..utils import prepare_output_dir, require_memory
+from ._common import add_seed, integer, positive_float, real, sample_size
 
 DESCRIPTION = """\
 Predictions from fitted specimens.  Targets:
@@ -49,17 +54,18 @@ def register(subparsers) -> None:
     o.add_argument("--geometry", required=True, metavar="FILE.toml",
                    help="muscle geometry (lengths mm, areas mm^2, moduli MPa), e.g. data/geometry/fusiform.toml")
     o.add_argument("--out", metavar="DIR", help="output folder (default RESULTS/organ)")
-    o.add_argument("--samples", type=int, default=2000, metavar="N",
+    o.add_argument("--samples", type=sample_size, default=2000, metavar="N",
                    help="posterior draws per specimen and source (default 2000; all if fewer)")
-    o.add_argument("--forces", type=int, default=200, metavar="K", help="force levels per specimen (default 200)")
-    o.add_argument("--extrapolate", type=float, default=2.0, metavar="X",
+    o.add_argument("--forces", type=integer(2), default=200, metavar="K",
+                   help="force levels per specimen (default 200)")
+    o.add_argument("--extrapolate", type=real(1.0), default=2.0, metavar="X",
                    help="force grid up to X times the force where the organ leaves the tested range (default 2)")
-    o.add_argument("--ref-force", type=float, default=None, metavar="F",
+    o.add_argument("--ref-force", type=positive_float, default=None, metavar="F",
                    help="reference force (N) of the table (default: a round number inside every tested range)")
-    o.add_argument("--near", type=float, default=3.0, metavar="D",
+    o.add_argument("--near", type=real(0.0), default=3.0, metavar="D",
                    help="CMA-ES optima within D of the best -log-likelihood are shown (default 3)")
     o.add_argument("--optima-specimen", metavar="ID", help="specimen of the CMA-ES optima figure")
-    o.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the draw subsampling (default 0)")
+    add_seed(o, "seed of the draw subsampling (default 0)")
     o.add_argument("--no-figures", action="store_true", help="skip figures")
     o.set_defaults(func=run_organ)
 
@@ -69,21 +75,15 @@ def _no_target(args: argparse.Namespace) -> int:
 
 
 def run_organ(args: argparse.Namespace) -> int:
-    from ..organ import load_geometry
-    from ..organ_report import format_summary, predict_organ
-
+    """Check the geometry, sizes and output folder, then predict and print the table."""
     t0 = time.perf_counter()
-    if args.samples < 2:
-        raise HbmError(f"--samples must be >= 2, got {args.samples}")
-    if args.forces < 2:
-        raise HbmError(f"--forces must be >= 2, got {args.forces}")
-    if not args.extrapolate >= 1:
-        raise HbmError(f"--extrapolate must be >= 1 (a force multiple), got {args.extrapolate:g}")
-    if args.ref_force is not None and not args.ref_force > 0:
-        raise HbmError(f"--ref-force must be a force > 0 N, got {args.ref_force:g}")
-    if not args.near >= 0:
-        raise HbmError(f"--near must be >= 0, got {args.near:g}")
+    # the draws' elongations at every force level, per source, at least
+    require_memory(8.0 * args.samples * args.forces, f"--samples {args.samples} with --forces {args.forces}",
+                   f"{args.samples} draws x {args.forces} forces x 8 bytes")
     geometry = load_geometry(args.geometry)  # before reading results: a bad file fails fast
+    if Path(args.results).is_dir():  # (a missing RESULTS is predict_organ's own one-line error)
+        prepare_output_dir(args.out or Path(args.results) / "organ", "--out", files=("organ.nc",),
+                           subdirs=("figures",))
     pred = predict_organ(args.results, geometry, out=args.out, samples=args.samples, forces=args.forces,
                          extrapolate=args.extrapolate, ref_force=args.ref_force, near=args.near, seed=args.seed,
                          figures=not args.no_figures, optima_specimen=args.optima_specimen)

@@ -3,9 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
-from ..errors import HbmError
-from ._common import add_model_arguments, build_model
+from ..data import load_specimens
+from ..errors import SettingError
+from ..organ_report import organ_report_hook
+from ..utils import output_lock, prepare_output_dir, remove_stale_temps
+from ..workflow import RunConfig, run_workflow
+from ._common import (add_model_arguments, add_seed, build_model, check_population_memory, check_sobol_memory,
+                      free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
+                      sample_size, sweep)
+
+#: --pool keywords (anything else is a list of model parameters)
+POOL_MODES = ("auto", "combinations", "informed", "all")
+#: what hbm run writes inside --out (checked before the first fit)
+OUT_FILES = ("report.md", "run.json", "hierarchical.nc", "manifolds.nc")
+OUT_DIRS = ("specimens", "checkpoints", "figures", "organ")
 
 DESCRIPTION = """\
 For every specimen CSV in --data: CMA-ES optima with a VOLF bound sweep (the VOLF-T1
@@ -43,27 +56,31 @@ def register(subparsers) -> None:
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default="data/specimens", metavar="DIR",
                    help="folder of specimen CSV files (default data/specimens)")
-    p.add_argument("--out", default="results", metavar="DIR", help="output folder (default results)")
-    p.add_argument("--samples", type=int, default=2000, metavar="N", help="TMCMC population size (default 2000)")
+    p.add_argument("--out", default="results", metavar="DIR",
+                   help="output folder (default results); one hbm run at a time (locked)")
+    p.add_argument("--samples", type=sample_size, default=2000, metavar="N",
+                   help="TMCMC population size (default 2000)")
     p.add_argument("--kernel", default="rw", choices=["rw", "manifold"], help="TMCMC move kernel (default rw)")
     p.add_argument("--noise", default="iid", choices=["iid", "weighted", "proportional", "ar1"],
                    help="noise model (default iid)")
     add_model_arguments(p)
-    p.add_argument("--workers", type=int, default=None, metavar="K",
+    p.add_argument("--workers", type=non_negative_int, default=None, metavar="K",
                    help="dask worker processes of the embedded cluster (default: all cores; 0 = no dask)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing dask scheduler, e.g. tcp://host:8786")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="root seed (default 0)")
-    p.add_argument("--restarts", type=int, default=3, metavar="K", help="CMA-ES restarts per specimen (default 3)")
-    p.add_argument("--sweep", default="VOLF:0.07", metavar="NAME:WIDTH",
+    add_seed(p)
+    p.add_argument("--restarts", type=non_negative_int, default=3, metavar="K",
+                   help="CMA-ES restarts per specimen (0 = skip; default 3)")
+    p.add_argument("--sweep", type=sweep, default=sweep("VOLF:0.07"), metavar="NAME:WIDTH",
                    help="CMA-ES bound sweep tracing the VOLF-T1 manifold (default VOLF:0.07, 7 windows; "
                         "'none' to skip)")
-    p.add_argument("--maxfevals", type=int, default=3000, metavar="M",
+    p.add_argument("--maxfevals", type=positive_int, default=3000, metavar="M",
                    help="evaluation budget per CMA-ES run (default 3000)")
-    p.add_argument("--sobol-n", type=int, default=1024, metavar="N", help="Sobol base sample size (default 1024)")
+    p.add_argument("--sobol-n", type=power_of_two, default=1024, metavar="N",
+                   help="Sobol base sample size, a power of 2 (default 1024)")
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
-    p.add_argument("--hier-samples", type=int, default=1000, metavar="N",
+    p.add_argument("--hier-samples", type=sample_size, default=1000, metavar="N",
                    help="TMCMC population over the hyperparameters (default 1000)")
-    p.add_argument("--pool", metavar="auto|combinations|informed|all|P1,P2,...", default="auto",
+    p.add_argument("--pool", type=name_list, metavar="auto|combinations|informed|all|P1,P2,...", default=["auto"],
                    help="what gets a population distribution: 'combinations' = the identifiable combinations "
                         "log G, log VOLF*P1, log (1-VOLF)*T1 with T2, THETA (and EOPT when informed); "
                         "'informed' = the model parameters whose posterior sd (transformed space) is below 2/3 "
@@ -75,7 +92,8 @@ def register(subparsers) -> None:
                         "ratios (O(h^2) bias, robust when the population is narrower than a posterior)")
     p.add_argument("--no-hierarchical", action="store_true", help="skip the hierarchical layer")
     p.add_argument("--no-figures", action="store_true", help="skip figures")
-    p.add_argument("--retries", type=int, default=1, metavar="R", help="dask retries per specimen task (default 1)")
+    p.add_argument("--retries", type=non_negative_int, default=1, metavar="R",
+                   help="dask retries per specimen task (default 1)")
     p.add_argument("--quick", action="store_true",
                    help="smoke run: N<=500, 2 restarts, sweep VOLF:0.1, Sobol N 128, 500 hyper samples")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -85,32 +103,55 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _pool(names: list[str], free: list[str]) -> str | list[str]:
+    """--pool: one keyword, or free model parameters (checked before any fit)."""
+    if len(names) == 1 and names[0] in POOL_MODES:
+        return names[0]
+    bad = [n for n in names if n not in free]
+    if bad:
+        raise SettingError(f"--pool {','.join(names)}: {', '.join(bad)} not among the free model parameters "
+                           f"{', '.join(free)}; expected one of {', '.join(POOL_MODES)} or a list of those")
+    return names
+
+
+def _check_sizes(cfg: RunConfig, datasets, model, fix: dict) -> None:
+    """Refuse population/Sobol sizes whose memory cannot exist (one specimen task at least)."""
+    points = max(n_points(ds) for ds in datasets.values())
+    n_noise = 2  # sd plus at most one shape parameter (ar1 rho)
+    check_population_memory(f"--samples {cfg.samples}", cfg.samples, points, model.n_params + n_noise)
+    if cfg.sobol:
+        free = len(free_parameters(model, fix))
+        check_sobol_memory(f"--sobol-n {cfg.sobol_n}", cfg.sobol_n, free, model.n_params, points)
+    if cfg.hierarchical:
+        # the hyper-population's log-ratio blocks are (n_psi, >= 256 stage-1 samples)
+        check_population_memory(f"--hier-samples {cfg.hier_samples}", cfg.hier_samples, 256, 2 * model.n_params)
+
+
 def run(args: argparse.Namespace) -> int:
-    from ..workflow import RunConfig, run_workflow
-
+    """Check every setting, path and size, lock --out, then run the workflow."""
     model, fix, bounds = build_model(args)
-    if args.workers is not None and args.workers < 0:
-        raise HbmError(f"--workers must be >= 0, got {args.workers}")
-    if args.sobol_n & (args.sobol_n - 1):
-        raise HbmError(f"--sobol-n must be a power of 2, got {args.sobol_n}")
-    sweep = None if str(args.sweep).lower() in ("none", "", "off") else args.sweep
-    hooks = []
-    if getattr(args, "geometry", None):
-        from ..organ_report import organ_report_hook
-
-        # the geometry is read now, so a bad file fails before hours of fitting
-        hooks.append(organ_report_hook(args.geometry, model=model, seed=args.seed, figures=not args.no_figures))
+    pool = _pool(args.pool, free_parameters(model, fix))
+    datasets = load_specimens(args.data)  # a bad or missing data folder fails before any fit
     cfg = RunConfig(data=args.data, out=args.out, samples=args.samples, kernel=args.kernel, noise=args.noise,
                     workers=args.workers, scheduler=args.scheduler, seed=args.seed, sobol=not args.no_sobol,
-                    sobol_n=args.sobol_n, restarts=args.restarts, sweep=sweep, maxfevals=args.maxfevals,
+                    sobol_n=args.sobol_n, restarts=args.restarts,
+                    sweep=args.sweep.text if args.sweep else None, maxfevals=args.maxfevals,
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
-                    retries=args.retries, quick=args.quick,
-                    hier_estimator=args.hier_estimator,
-                    hier_pooled=(args.pool if args.pool in ("auto", "combinations", "informed", "all")
-                                 else [x.strip() for x in args.pool.split(",") if x.strip()] or "auto"))
+                    retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool)
+    _check_sizes(cfg, datasets, model, fix)
+    hooks = []
+    if getattr(args, "geometry", None):
+        # the geometry is read now, so a bad file fails before hours of fitting
+        hooks.append(organ_report_hook(args.geometry, model=model, seed=args.seed, figures=not args.no_figures))
+    out = prepare_output_dir(args.out, "--out", files=OUT_FILES, subdirs=OUT_DIRS)
     is_base = model.effect_names == ("matrix", "fibers", "collagen") and model.name == "spyrou"
-    res = run_workflow(cfg, model=None if is_base else model, extra_sections=hooks)
+    with output_lock(out):
+        # under the lock no other run writes here: temp files now are leftovers of a killed run
+        stale = remove_stale_temps(out)
+        if stale and not args.no_progress:
+            print(f"[hbm run] removed {len(stale)} temporary file(s) left by an interrupted run", file=sys.stderr)
+        res = run_workflow(cfg, model=None if is_base else model, extra_sections=hooks)
     print(f"{len(res.results)} specimens fitted ({len(res.skipped)} reused), "
           f"{len(res.errors)} failed; report: {res.report_path}")
     t = res.timings

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import HbmError
-from ._common import add_model_arguments, build_model, format_table, load_specimen_arg, print_json
+from ..sensitivity import sobol
+from ._common import (add_model_arguments, add_seed, build_model, check_sobol_memory, format_table,
+                      free_parameters, load_specimen_arg, n_points, power_of_two, print_json)
 
 DESCRIPTION = """\
 Sobol first-order (S1) and total (ST) indices, with bootstrap confidence half-widths, of a
@@ -37,11 +38,13 @@ def register(subparsers) -> None:
                               description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("specimen", metavar="SPECIMEN", help="specimen CSV file or id")
-    p.add_argument("--n", type=int, default=1024, help="base sample size N, a power of 2 (default 1024)")
+    p.add_argument("--n", type=power_of_two, default=1024, metavar="N",
+                   help="base sample size N, a power of 2 (default 1024)")
     add_model_arguments(p)
-    p.add_argument("--qoi", default="integrated_stress", choices=["integrated_stress", "log_integrated_stress", "misfit"],
+    p.add_argument("--qoi", default="integrated_stress",
+                   choices=["integrated_stress", "log_integrated_stress", "misfit"],
                    help="scalar quantity of interest (default integrated_stress)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    add_seed(p, "random seed (default 0)")
     p.add_argument("--no-per-point", action="store_true", help="skip the per-strain-point indices")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.set_defaults(func=run)
@@ -49,13 +52,10 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Compute and print the indices."""
-    from ..sensitivity import sobol
-
     n = args.n
-    if n < 2 or n & (n - 1):
-        raise HbmError(f"--n {n}: expected a power of 2 (e.g. 512, 1024, 2048)")
     model, fix, bounds = build_model(args)
     ds = load_specimen_arg(args.specimen)
+    check_sobol_memory(f"--n {n}", n, len(free_parameters(model, fix)), model.n_params, n_points(ds))
     res = sobol(model, data=ds, bounds=bounds, fix=fix, n=n, qoi=args.qoi, seed=args.seed,
                 per_point=not args.no_per_point)
     out = res.to_dict()
