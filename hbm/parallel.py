@@ -81,6 +81,19 @@ def _quiet_shutdown() -> Iterator[None]:
     levels = [lg.level for lg in loggers]
     for lg in loggers:
         lg.setLevel(logging.CRITICAL + 1)
+    # a Client garbage-collected after its event loop closed reports "IOLoop is closed" through
+    # sys.unraisablehook (not logging), possibly after this block: drop those of dask's own
+    # objects for the rest of the (ending) process, keep all others
+    previous = sys.unraisablehook
+
+    def hook(unraisable) -> None:
+        obj = getattr(unraisable, "object", None)
+        module = getattr(obj, "__module__", None) or type(obj).__module__
+        if str(module).split(".")[0] in ("distributed", "tornado"):
+            return
+        previous(unraisable)
+
+    sys.unraisablehook = hook
     try:
         yield
     finally:
@@ -130,7 +143,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                        dashboard_address=":8787" if dashboard else ":0",
                                        silence_logs=logging.ERROR if silence_logs else logging.WARNING,
-                                       env=dict(BLAS_ENV))
+                                       env=dict(BLAS_ENV), preload=["hbm._dask_worker"])
             client = Client(cluster)
         yield client
     except BaseException:
