@@ -27,7 +27,7 @@ import threading
 from typing import Callable
 
 __all__ = ["HbmError", "DataError", "SettingError", "TooLargeError", "OutputError", "OutputLockedError",
-           "exit_on_interrupt"]
+           "HbmWarning", "exit_on_interrupt"]
 
 
 class HbmError(Exception):
@@ -52,6 +52,11 @@ class OutputError(HbmError, OSError):
 
 class OutputLockedError(OutputError):
     """The output folder is locked by another running ``hbm run``."""
+
+
+class HbmWarning(UserWarning):
+    """A result rests on an assumption the user did not choose (a prior edge, few points, a
+    departure from the thesis box); the ``hbm`` command prints it as one ``hbm: warning:`` line."""
 
 
 def _running_as_command() -> bool:

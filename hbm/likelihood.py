@@ -27,6 +27,7 @@ import numpy as np
 
 from .errors import DataError, HbmError
 from .model.core import Loading, Model
+from .model.spyrou import compression_check, model_form
 from .noise import NoiseModel, eq120_weights, get_noise, noise_model_names
 
 
@@ -334,6 +335,13 @@ def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str,
     HbmError
         Unknown noise model or parameter names, values outside the box.
     DataError
-        Missing/non-finite data.
+        Missing/non-finite data, or substantially compressive data for the thesis form of the
+        Spyrou collagen (which turns tensile under axial compression, see
+        :func:`hbm.model.spyrou.compression_check`).
     """
+    if model_form(model) == "thesis":
+        strain, _, time, test, label = _dataset_arrays(data)
+        msg = compression_check(strain, "thesis", time=time, test=test, name=label)
+        if msg is not None:
+            raise DataError(msg)
     return Likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds)

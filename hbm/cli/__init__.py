@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import os
 import signal
 import sys
 import threading
+import warnings
 
 from .._version import __version__
-from ..errors import HbmError, SettingError
+from ..errors import HbmError, HbmWarning, SettingError
 from ._common import HbmArgumentParser
 
 # subcommand modules, in the order shown by --help
@@ -57,6 +59,17 @@ def _exit_now(signum, frame):  # pragma: no cover - interpreter shutdown
     os._exit(130)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """hbm's own warnings (an assumption the user did not choose) as one ``hbm: warning:`` line."""
+    if issubclass(category, HbmWarning):
+        print(f"hbm: warning: {_one_line(message)}", file=sys.stderr)
+    else:
+        _DEFAULT_SHOWWARNING(message, category, filename, lineno, file, line)
+
+
+_DEFAULT_SHOWWARNING = warnings.showwarning
+
+
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
@@ -71,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run ``hbm ARGV`` (default ``sys.argv[1:]``) and return the exit status."""
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous_term = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
+    words = list(sys.argv[1:] if argv is None else argv)
+    previous_show = warnings.showwarning
+    warnings.showwarning = _show_warning
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
@@ -78,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
             raise SettingError(f"expected a command ({', '.join(args.commands)}); see hbm --help")
         return int(args.func(args) or 0)
     except HbmError as exc:
+        if "--json" in words:  # --json promises exactly one JSON object on stdout, also on failure
+            print(json.dumps({"error": _one_line(exc)}))
         print(f"hbm: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
@@ -96,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
               "traceback; please report it)", file=sys.stderr)
         return 1
     finally:
+        warnings.showwarning = previous_show
         if in_main_thread:
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous_term is None else previous_term)
             if argv is None and signal.getsignal(signal.SIGINT) is signal.default_int_handler:

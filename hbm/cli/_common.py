@@ -21,8 +21,8 @@ import numpy as np
 
 from ..data import load_specimen
 from ..effects import resolve_effect
-from ..errors import HbmError, SettingError
-from ..model import spyrou_model
+from ..errors import DataError, HbmError, SettingError
+from ..model import FORMS, compression_check, model_form, spyrou_model
 from ..utils import format_bytes, require_memory
 
 SPECIMEN_FOLDER = Path("data") / "specimens"
@@ -251,12 +251,29 @@ def add_fix(parser: argparse.ArgumentParser, example: str = "EOPT=0.192") -> Non
                         help=f"hold a parameter fixed, e.g. --fix {example}; repeatable")
 
 
+def add_data_arguments(parser: argparse.ArgumentParser) -> None:
+    """--sl0, shared by every command that reads specimen files."""
+    parser.add_argument("--sl0", type=real(0.0, strict=True), default=None, metavar="UM",
+                        help="reference sarcomere length in µm for files with a sarcomere_length_um column "
+                             "(strain = SL/SL0 - 1; a file's '# reference_sarcomere_length_um:' line must agree)")
+
+
+def add_form_argument(parser: argparse.ArgumentParser) -> None:
+    """--form thesis|energy: the collagen form of the Spyrou model."""
+    parser.add_argument("--form", choices=list(FORMS), default="thesis",
+                        help="collagen form: 'thesis' (default; eqs. 1.7-1.14, tension only) or 'energy' "
+                             "(derived from a strain energy with free lateral faces; compressive under "
+                             "compression: use it for compression tests)")
+
+
 def add_model_arguments(parser: argparse.ArgumentParser) -> None:
-    """--effect / --iso-factor / --fix / --bounds, shared by commands that build a model."""
+    """--effect / --iso-factor / --form / --fix / --bounds / --sl0, shared by commands that build a model."""
     parser.add_argument("--effect", action="append", default=[], metavar="ID",
                         help="add an effect to the base model (library id or file.py:Class); repeatable")
     parser.add_argument("--iso-factor", type=positive_float, default=1.0, metavar="K",
                         help="k_iso of the neo-Hookean term: 1 (default) or 2/3 (thesis literal)")
+    add_form_argument(parser)
+    add_data_arguments(parser)
     add_fix(parser)
     parser.add_argument("--bounds", action=UniqueNames, type=bounds_item, default={}, metavar="NAME=LO:HI",
                         help="narrow a parameter's box, e.g. --bounds VOLF=0.5:0.75; repeatable")
@@ -305,7 +322,7 @@ def check_sweep(model, fix: dict, spec: Sweep | None, option: str = "--sweep") -
 
 def build_model(args: argparse.Namespace):
     """Base Spyrou model plus ``--effect`` effects, with --fix/--bounds (and --sweep) checked."""
-    model = spyrou_model(iso_factor=float(getattr(args, "iso_factor", 1.0)))
+    model = spyrou_model(iso_factor=float(getattr(args, "iso_factor", 1.0)), form=getattr(args, "form", "thesis"))
     effects = list(getattr(args, "effect", []) or [])
     if effects:
         model = model.with_effects(*[resolve_effect(e) for e in effects])
@@ -316,16 +333,38 @@ def build_model(args: argparse.Namespace):
     return model, fix, bounds
 
 
-def load_specimen_arg(spec: str):
-    """A SPECIMEN argument -> Dataset: a CSV path, or an id of ``data/specimens/<id>.csv``."""
+def check_domain(model, ds) -> None:
+    """Refuse substantially compressive data for the thesis form (it turns tensile there)."""
+    if model_form(model) == "thesis":
+        names = getattr(ds, "data_vars", ds)
+        msg = compression_check(np.asarray(ds["strain"], float), "thesis",
+                                time=np.asarray(ds["time"], float) if "time" in names else None,
+                                test=np.asarray(ds["test"]) if "test" in names else None,
+                                name=str(ds.attrs.get("id", "specimen")))
+        if msg is not None:
+            raise DataError(msg)
+
+
+def load_specimen_arg(spec: str, sl0: float | None = None, model=None):
+    """A SPECIMEN argument -> Dataset: a CSV path, or an id of ``data/specimens/<id>.csv``.
+
+    ``sl0``: reference sarcomere length (``--sl0``); ``model``: checked against the data's
+    domain (:func:`check_domain`) before any computation.
+    """
     path = Path(spec)
-    if path.exists():
-        return load_specimen(path)
-    if path.suffix.lower() == ".csv" or len(path.parts) > 1:
-        raise HbmError(f"specimen {spec!r}: no such file (expected a CSV path or a specimen id)")
     candidate = SPECIMEN_FOLDER / f"{spec}.csv"
-    if candidate.exists():
-        return load_specimen(candidate)
+    if path.exists():
+        ds = load_specimen(path, sl0=sl0)
+    elif path.suffix.lower() == ".csv" or len(path.parts) > 1:
+        raise HbmError(f"specimen {spec!r}: no such file (expected a CSV path or a specimen id)")
+    elif candidate.exists():
+        ds = load_specimen(candidate, sl0=sl0)
+    else:
+        ds = None
+    if ds is not None:
+        if model is not None:
+            check_domain(model, ds)
+        return ds
     raise HbmError(f"specimen {spec!r}: no such file, and no {candidate} (expected a CSV path or a "
                    "specimen id)")
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..data import input_summary, load_specimen, provenance
 from ..errors import DataError, HbmError, SettingError
+from ._common import add_data_arguments
 
 CHECK_DESCRIPTION = """\
 Validate specimen CSV files and print a summary table.
@@ -36,6 +37,7 @@ def register(subparsers) -> None:
                            description=CHECK_DESCRIPTION,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     check.add_argument("paths", nargs="+", metavar="PATH", help="CSV file or folder of CSV files")
+    add_data_arguments(check)
     check.set_defaults(func=run_check)
     parser.set_defaults(func=_no_action)
 
@@ -88,7 +90,7 @@ def run_check(args: argparse.Namespace) -> int:
     ids: dict[str, str] = {}
     for f in _files(args.paths, errors):
         try:
-            ds = load_specimen(f, sl0=getattr(args, "sl0", None))  # --sl0, once the option exists
+            ds = load_specimen(f, sl0=args.sl0)
         except HbmError as exc:
             errors.append(str(exc))
             continue

@@ -10,7 +10,7 @@ from ..effects import resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..utils import prepare_output_file
-from ._common import (add_fix, add_seed, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
+from ._common import (add_data_arguments, add_fix, add_form_argument, add_seed, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
                       name_list, non_negative_int, plot_path, print_json, sample_size)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
@@ -51,6 +51,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", type=name_list, default=["base"], metavar="base|EFFECT,...",
                    help="current model: 'base' (Spyrou) or base plus comma-separated effects (default base)")
     add_fix(p, "EOPT=0.12")
+    add_form_argument(p)
+    add_data_arguments(p)
     add_seed(p, "seed of every random step (default 0)")
     p.add_argument("--samples", type=sample_size, default=None, metavar="N",
                    help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; shrinks for slow models)")
@@ -97,7 +99,8 @@ def _prepare(args, extra: list[str]):
     Returns the specimen and the keyword arguments shared by diagnose and extend.
     """
     effects = [resolve_effect(e) for e in _model_effects(args)]
-    model = spyrou_model().with_effects(*effects) if effects else spyrou_model()
+    base = spyrou_model(form=args.form)
+    model = base.with_effects(*effects) if effects else base
     have = set(model.effect_names)
     for spec in extra:
         name = resolve_effect(spec).name
@@ -106,12 +109,12 @@ def _prepare(args, extra: list[str]):
                                f"({', '.join(model.effect_names)}); expected a new effect")
         have.add(name)
     check_fix_bounds(model, dict(args.fix), {})
-    ds = load_specimen_arg(args.specimen)
+    ds = load_specimen_arg(args.specimen, args.sl0, model)
     samples = args.samples or DEFAULT_SAMPLES
     check_population_memory(f"--samples {samples}", samples, n_points(ds), model.n_params + len(extra) + 2)
     if args.plot is not None:
         prepare_output_file(args.plot, "--plot")
-    kw = {"model": ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress}
+    kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     return ds, kw

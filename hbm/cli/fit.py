@@ -59,7 +59,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Check settings, sizes and paths, then fit and print the summary."""
     model, fix, bounds = build_model(args)
-    data = load_specimen_arg(args.specimen)
+    data = load_specimen_arg(args.specimen, args.sl0, model)
     points = n_points(data)
     check_population_memory(f"--samples {args.samples}", args.samples, points, model.n_params + 2)
     if args.sobol:

@@ -56,7 +56,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the optimisation and print the optima."""
     model, fix, bounds = build_model(args)
-    ds = load_specimen_arg(args.specimen)
+    ds = load_specimen_arg(args.specimen, args.sl0, model)
     if args.popsize is not None:  # IPOP doubles the population at every restart
         largest = args.popsize * 2 ** (args.restarts - 1)
         check_population_memory(f"--popsize {args.popsize} with --restarts {args.restarts} (IPOP: up to {largest})",

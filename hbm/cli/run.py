@@ -10,7 +10,7 @@ from ..errors import SettingError
 from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
 from ..workflow import RunConfig, run_workflow
-from ._common import (add_model_arguments, add_seed, build_model, check_population_memory, check_sobol_memory,
+from ._common import (add_model_arguments, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
                       sample_size, sweep)
 
@@ -131,7 +131,9 @@ def run(args: argparse.Namespace) -> int:
     """Check every setting, path and size, lock --out, then run the workflow."""
     model, fix, bounds = build_model(args)
     pool = _pool(args.pool, free_parameters(model, fix))
-    datasets = load_specimens(args.data)  # a bad or missing data folder fails before any fit
+    datasets = load_specimens(args.data, sl0=args.sl0)  # a bad or missing data folder fails before any fit
+    for ds in datasets.values():
+        check_domain(model, ds)
     cfg = RunConfig(data=args.data, out=args.out, samples=args.samples, kernel=args.kernel, noise=args.noise,
                     workers=args.workers, scheduler=args.scheduler, seed=args.seed, sobol=not args.no_sobol,
                     sobol_n=args.sobol_n, restarts=args.restarts,

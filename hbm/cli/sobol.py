@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     """Compute and print the indices."""
     n = args.n
     model, fix, bounds = build_model(args)
-    ds = load_specimen_arg(args.specimen)
+    ds = load_specimen_arg(args.specimen, args.sl0, model)
     check_sobol_memory(f"--n {n}", n, len(free_parameters(model, fix)), model.n_params, n_points(ds))
     res = sobol(model, data=ds, bounds=bounds, fix=fix, n=n, qoi=args.qoi, seed=args.seed,
                 per_point=not args.no_per_point)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -10,9 +11,10 @@ import numpy as np
 
 from ..data import load_specimen
 from ..effects import REGISTRY, load_effect, make_effect
-from ..errors import HbmError
+from ..errors import HbmError, HbmWarning
 from ..model.core import Effect, Loading, Model
 from ..model.spyrou import BASE_EFFECTS, spyrou_model
+from .rules import FEW_POINTS, MIN_POINTS
 
 __all__ = ["SpecimenData", "as_data", "resolve_effect", "resolve_model", "resolve_candidates", "added_effects"]
 
@@ -44,8 +46,13 @@ def as_data(data) -> SpecimenData:
     names = getattr(data, "variables", data)
     time = np.asarray(data["time"], float).ravel() if "time" in names else None
     test = np.asarray(data["test"]).ravel() if "test" in names else None
-    if strain.size != stress.size or strain.size < 10:
-        raise HbmError(f"diagnose: need >= 10 points with matching strain/stress, got {strain.size}/{stress.size}")
+    if strain.size != stress.size or strain.size < MIN_POINTS:
+        raise HbmError(f"diagnose: need >= {MIN_POINTS} points with matching strain/stress, "
+                       f"got {strain.size}/{stress.size}")
+    if strain.size < FEW_POINTS:
+        warnings.warn(f"diagnose: only {strain.size} points; misfit windows and effect evidence have little "
+                      f"power below {FEW_POINTS} points (an 'adequate' verdict is weak evidence)", HbmWarning,
+                      stacklevel=2)
     if not (np.all(np.isfinite(strain)) and np.all(np.isfinite(stress))):
         raise HbmError("diagnose: strain/stress contain non-finite values")
     loading = Loading(strain, time, test)

@@ -3,9 +3,9 @@
 from .core import STAGES, Effect, Loading, Model, Parameter, State
 from .spyrou import (BASE_EFFECTS, BASE_PARAMETERS, COMBINATIONS, FORMS, SHAPE_PARAMETERS, EnergyHelicalCollagen,
                      HelicalCollagen, NeoHookeanMatrix, PassiveFibers, collagen_energy, collagen_onset_stretch,
-                     compression_check, helical_stretch, identifiable_combinations, spyrou_model)
+                     compression_check, model_form, helical_stretch, identifiable_combinations, spyrou_model)
 
 __all__ = ["STAGES", "Effect", "Loading", "Model", "Parameter", "State", "BASE_PARAMETERS",
            "BASE_EFFECTS", "COMBINATIONS", "FORMS", "SHAPE_PARAMETERS", "EnergyHelicalCollagen", "HelicalCollagen",
            "NeoHookeanMatrix", "PassiveFibers", "collagen_energy", "collagen_onset_stretch", "compression_check",
-           "helical_stretch", "identifiable_combinations", "spyrou_model"]
+           "model_form", "helical_stretch", "identifiable_combinations", "spyrou_model"]

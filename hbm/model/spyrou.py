@@ -411,6 +411,15 @@ def compression_check(strain, form: str = "thesis", *, time=None, test=None,
             f"compression; use the energy-consistent form (spyrou_model(form='energy'), --form energy)")
 
 
+def model_form(model: Model) -> str | None:
+    """``"thesis"`` or ``"energy"``: the collagen form of a model built on the Spyrou collagen,
+    ``None`` for a model without it (then no compression check applies)."""
+    kinds = [e for e in model.effects if isinstance(e, HelicalCollagen)]
+    if not kinds:
+        return None
+    return "energy" if any(isinstance(e, EnergyHelicalCollagen) for e in kinds) else "thesis"
+
+
 #: Effect ids of the base model, in model order (the detective's removal test and the organ
 #: report ask for them by these names).
 BASE_EFFECTS: tuple[str, ...] = ("matrix", "fibers", "collagen")

@@ -1,0 +1,93 @@
+"""Measured-data options on the command line (issue 18): --sl0, --form energy and the thesis
+form's refusal of compressive data, --json error objects, few-point warnings."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from hbm.cli import main
+from hbm.errors import DataError, HbmWarning
+from hbm.likelihood import make_likelihood
+from hbm.model import spyrou_model
+
+
+def _compression_csv(path, n=20):
+    eps = np.linspace(0.0, -0.3, n)
+    theta = np.array([[0.9, 0.1, 0.1, 5.0, 10.0, 60.0, 0.01, 0.01]])
+    sig = spyrou_model(form="energy").stress(eps, theta)[0]
+    path.write_text("strain,stress\n" + "".join(f"{e:.6f},{s:.8f}\n" for e, s in zip(eps, sig)))
+    return path
+
+
+def test_thesis_form_refuses_compression_and_names_the_option(tmp_path, capsys):
+    csv = _compression_csv(tmp_path / "comp.csv")
+    rc = main(["fit", str(csv), "--samples", "50", "--restarts", "0", "--out", str(tmp_path / "o.nc")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--form energy" in err[0], err
+    assert not (tmp_path / "o.nc").exists()
+
+
+def test_api_refuses_compression_with_thesis_form_only():
+    eps = np.linspace(0.0, -0.3, 20)
+    ds = xr.Dataset({"strain": ("point", eps), "stress": ("point", -0.01 * np.ones_like(eps))}, attrs={"id": "c"})
+    with pytest.raises(DataError, match="energy"):
+        make_likelihood(spyrou_model(), ds)
+    lik = make_likelihood(spyrou_model(form="energy"), ds)
+    assert lik.n_model == 8
+    # a tension test starting slightly below zero still loads
+    eps_t = np.r_[-0.004, -0.002, np.linspace(0.0, 0.4, 18)]
+    ok = xr.Dataset({"strain": ("point", eps_t), "stress": ("point", np.linspace(0, 0.1, 20))})
+    make_likelihood(spyrou_model(), ok)
+
+
+def test_energy_form_fits_compression_from_the_cli(tmp_path, capsys):
+    csv = _compression_csv(tmp_path / "comp.csv", n=12)
+    rc = main(["optimize", str(csv), "--form", "energy", "--restarts", "1", "--maxfevals", "300", "--json"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    json.loads(out)
+
+
+def test_sl0_on_the_command_line(capsys):
+    assert main(["data", "check", "data/measured"]) == 2
+    capsys.readouterr()
+    assert main(["data", "check", "data/measured", "--sl0", "2.0"]) == 0
+    assert "SL0 2.0 um" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv", [["diagnose", "nosuch.csv", "--json"],
+                                  ["optimize", "nosuch.csv", "--json"],
+                                  ["diagnose", "data/specimens/calvo2010_rat1.csv", "--json", "--seed", "-1"]])
+def test_json_failure_is_one_json_object(argv, capsys):
+    rc = main(argv)
+    cap = capsys.readouterr()
+    assert rc == 2
+    obj = json.loads(cap.out)
+    assert set(obj) == {"error"} and obj["error"]
+    assert len(cap.err.strip().splitlines()) == 1
+
+
+def test_detective_accepts_five_points_with_a_warning():
+    from hbm.detective.inputs import as_data
+    eps = np.linspace(0.0, 0.4, 6)
+    ds = xr.Dataset({"strain": ("point", eps), "stress": ("point", eps ** 2)})
+    with pytest.warns(HbmWarning, match="only 6 points"):
+        d = as_data(ds)
+    assert d.strain.size == 6
+    with pytest.raises(Exception, match=">= 5 points"):
+        as_data(ds.isel(point=slice(0, 4)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        as_data(xr.Dataset({"strain": ("point", np.linspace(0, .4, 12)), "stress": ("point", np.ones(12))}))
+
+
+def test_hbm_warnings_print_as_one_line(capsys):
+    from hbm.cli import _show_warning
+    _show_warning("a prior edge\nsecond line", HbmWarning, "x.py", 1)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hbm: warning: a prior edge")
