@@ -37,7 +37,7 @@ from .samplers import tmcmc as _tmcmc
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
-           "format_at_bounds", "EDGE_TOL", "EDGE_MASS", "RIDGE_NOTE"]
+           "format_at_bounds", "map_prediction", "quality_lines", "EDGE_TOL", "EDGE_MASS", "RIDGE_NOTE"]
 
 #: a value lies "at" a box edge within this fraction of the box width (log width for loguniform)
 EDGE_TOL = 0.02
@@ -341,6 +341,19 @@ def _map_prediction(r: SpecimenResult, likelihood, row, source, j) -> np.ndarray
     return np.asarray(r.predictive_model[j], float)
 
 
+def map_prediction(result, likelihood=None) -> np.ndarray | None:
+    """Noise-free model stress (p,) at the MAP (:func:`map_estimate`).
+
+    Evaluated with ``likelihood`` (a :class:`FitResult` brings its own); from a stored result
+    alone, the best posterior sample's stored prediction (None without one).
+    """
+    r = _spec(result)
+    if likelihood is None and isinstance(result, FitResult):
+        likelihood = result.likelihood
+    row, _, source, j = _map_row(r)
+    return _map_prediction(r, likelihood, row, source, j)
+
+
 def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dict[str, Any]:
     """How well the fit reproduces the data -- the numbers to read before any parameter.
 
@@ -375,8 +388,8 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
     obs = np.asarray(raw if raw is not None else [], float).ravel()
     if obs.size == 0:
         raise HbmError(f"fit_quality: specimen {r.specimen_id}: no observed stress (pass data=)")
-    row, ll_map, source, j = _map_row(r)
-    pred = _map_prediction(r, likelihood, row, source, j)
+    _, ll_map, source, _ = _map_row(r)
+    pred = map_prediction(r, likelihood)
     if pred is not None and pred.shape != obs.shape:
         raise HbmError(f"fit_quality: specimen {r.specimen_id}: data have {obs.size} points, "
                        f"the fit {pred.size}")
