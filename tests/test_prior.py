@@ -226,3 +226,21 @@ def test_spyrou_fit_with_loguniform_prior_reports_natural_units():
     np.testing.assert_allclose(r.predictive_model, lik.predict(lik.from_natural(r.samples)), rtol=1e-10)
     with pytest.raises(PriorError, match="sweep.*loguniform"):
         fit_specimen(data, samples=10, restarts=1, sweep="P1:0.1", prior=prior, progress=False)
+
+
+def test_population_refuses_non_uniform_stage1_priors():
+    from types import SimpleNamespace
+
+    from hbm.population import run_population
+
+    model = spyrou_model()
+    rng = np.random.default_rng(0)
+    prior = {n: {"lo": float(a), "hi": float(b), "form": "uniform"}
+             for n, (a, b) in zip(model.parameter_names, model.bounds)}
+    prior["P1"]["form"] = "loguniform"
+    res = {f"s{k}": SimpleNamespace(names=list(model.parameter_names), bounds=model.bounds.copy(),
+                                    samples=rng.uniform(model.bounds[:, 0], model.bounds[:, 1], (50, 8)),
+                                    log_evidence=0.0, log_evidence_se=0.01, specimen_id=f"s{k}", prior=prior)
+           for k in range(2)}
+    with pytest.raises(HbmError, match="non-uniform prior on P1"):
+        run_population(res, None, model, pooled=["T2"], samples=50, progress=False)
