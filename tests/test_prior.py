@@ -13,6 +13,7 @@ from hbm.fit import fit_specimen
 from hbm.likelihood import make_likelihood
 from hbm.model import spyrou_model
 from hbm.prior import Prior, PriorError, load_prior, resolve_prior
+from test_fit import _specimen
 
 TRUTH = {"VOLF": 0.9, "EOPT": 0.15, "P1": 0.06, "T1": 1.0, "T2": 14.0, "THETA": 59.0, "GF": 0.03, "GM": 0.02}
 
@@ -197,8 +198,6 @@ def test_uniform_and_loguniform_forms_give_their_own_posteriors():
 
 
 def test_thesis_prior_passed_explicitly_is_bitwise_the_default():
-    from test_fit import _specimen
-
     data = _specimen(n=16)
     kw = dict(samples=120, restarts=1, optimize_options={"maxfevals": 150}, seed=3, progress=False,
               tmcmc_options={"max_steps": 4})
@@ -211,8 +210,6 @@ def test_thesis_prior_passed_explicitly_is_bitwise_the_default():
 
 
 def test_spyrou_fit_with_loguniform_prior_reports_natural_units():
-    from test_fit import _specimen
-
     data = _specimen(n=16)
     prior = {"P1": (1e-5, 1.0, "loguniform"), "GF": (1e-5, 0.1, "loguniform")}
     res = fit_specimen(data, samples=150, restarts=1, optimize_options={"maxfevals": 200}, seed=2,
