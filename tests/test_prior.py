@@ -241,3 +241,15 @@ def test_population_refuses_non_uniform_stage1_priors():
            for k in range(2)}
     with pytest.raises(HbmError, match="non-uniform prior on P1"):
         run_population(res, None, model, pooled=["T2"], samples=50, progress=False)
+
+
+def test_wls_optimum_reports_natural_noise_under_a_loguniform_sigma_prior():
+    from hbm.optimization import optimize
+
+    data = _specimen(n=16)
+    kw = dict(restarts=1, seed=4, objective="wls", maxfevals=300)
+    plain = optimize(make_likelihood(spyrou_model(), data, sigma_bounds=(1e-4, 0.1)), **kw).best
+    lg = optimize(make_likelihood(spyrou_model(), data, prior={"sigma": (1e-4, 0.1, "loguniform")}), **kw).best
+    # the model parameters are optimised identically (wls ignores sigma); sigma is the same RMS residual
+    assert lg["params"]["VOLF"] == plain["params"]["VOLF"]
+    assert lg["params"]["sigma"] == pytest.approx(plain["params"]["sigma"], rel=1e-12)
