@@ -269,7 +269,7 @@ def _edge_coords(x: np.ndarray, lo: float, hi: float, form: str) -> tuple[np.nda
     return x, lo, hi
 
 
-def at_bounds(result, *, tol: float = EDGE_TOL, mass: float = EDGE_MASS) -> list[dict[str, Any]]:
+def at_bounds(result, *, tol: float = EDGE_TOL, mass: float = EDGE_MASS, noise: bool = False) -> list[dict[str, Any]]:
     """Parameters whose best fit or posterior mass sits on a box edge.
 
     An edge is reported when the MAP (:func:`map_estimate`) lies within ``tol`` of the box width
@@ -283,6 +283,10 @@ def at_bounds(result, *, tol: float = EDGE_TOL, mass: float = EDGE_MASS) -> list
         Distance to the edge, as a fraction of the (log) box width.
     mass : float
         Posterior fraction near one edge above which it is reported.
+    noise : bool
+        Check the noise parameters too.  Off by default: their box runs from a numerical floor
+        (1e-4) to half the peak stress, so a well-determined sigma of a clean curve lies
+        "within 2 % of the width" of the floor without anything being cut off.
 
     Returns
     -------
@@ -294,9 +298,10 @@ def at_bounds(result, *, tol: float = EDGE_TOL, mass: float = EDGE_MASS) -> list
     r = _spec(result)
     prior = _prior_of(r)
     row, _, _, _ = _map_row(r)
+    skip = () if noise else set(_noise_names(r))
     out = []
     for i, n in enumerate(r.names):
-        if n not in prior:
+        if n not in prior or n in skip:
             continue
         p = prior[n]
         x, a, b = _edge_coords(np.asarray(r.samples[:, i], float), float(p["lo"]), float(p["hi"]), p["form"])
@@ -428,7 +433,8 @@ def quality_lines(q: Mapping[str, Any]) -> list[str]:
     if q["noise"]:
         lines.append("noise: " + ", ".join(f"{n} {v['median']:.4g} [{v['lower']:.4g}, {v['upper']:.4g}]"
                                            for n, v in q["noise"].items()))
-    lines.append(f"best fit (MAP, from the {q['map_source']}s, log-likelihood {q['map_log_likelihood']:.3f}): "
+    src = "CMA-ES optima" if q["map_source"] == "optimum" else "posterior samples"
+    lines.append(f"best fit (MAP, best of the {src}, log-likelihood {q['map_log_likelihood']:.3f}): "
                  + ", ".join(f"{k}={v:.5g}" for k, v in q["map"].items()))
     if q["combinations"]:
         lines.append("identified combinations (median [90% interval]): "

@@ -63,27 +63,33 @@ def test_at_bounds_known_fractions():
     n = 1000
     # A in [0, 4]: 300 samples within 2 % (0.08) of the upper edge, the rest in the middle
     a = np.r_[4.0 - 0.07 * rng.random(300), 1.0 + 2.0 * rng.random(700)]
-    # sigma loguniform [1e-4, 1]: log width 9.21, 2 % = 0.184 -> 150 samples below 1e-4 * e^0.18 (< 20 %)
+    # GF loguniform [1e-4, 1]: log width 9.21, 2 % = 0.184 -> 150 samples below 1e-4 * e^0.18 (< 20 %)
     s = np.r_[1e-4 * np.exp(0.18 * rng.random(150)), 1e-2 * np.exp(rng.random(850))]
     ll = np.zeros(n)
-    ll[0] = 1.0  # the MAP: a sample with A at the edge, sigma at its lower edge
-    r = SpecimenResult(specimen_id="edge", names=["A", "sigma"], samples=np.c_[a, s], log_likelihood=ll,
+    ll[0] = 1.0  # the MAP: a sample with A at the edge, GF at its lower edge
+    r = SpecimenResult(specimen_id="edge", names=["A", "GF"], samples=np.c_[a, s], log_likelihood=ll,
                        log_evidence=0.0, log_evidence_se=0.0, bounds=np.array([[0.0, 4.0], [1e-4, 1.0]]),
                        prior={"A": {"lo": 0.0, "hi": 4.0, "form": "uniform"},
-                              "sigma": {"lo": 1e-4, "hi": 1.0, "form": "loguniform"}})
+                              "GF": {"lo": 1e-4, "hi": 1.0, "form": "loguniform"}})
     got = at_bounds(r)
     assert got == [{"parameter": "A", "side": "upper", "edge": 4.0, "fraction": 0.3, "map_at_edge": True},
-                   {"parameter": "sigma", "side": "lower", "edge": 1e-4, "fraction": 0.15, "map_at_edge": True}]
-    # sigma uniform on the same box: 2 % of the width -> the draws below 1e-4 + 0.02 (1 - 1e-4)
-    r.prior["sigma"]["form"] = "uniform"
+                   {"parameter": "GF", "side": "lower", "edge": 1e-4, "fraction": 0.15, "map_at_edge": True}]
+    # GF uniform on the same box: 2 % of the width -> the draws below 1e-4 + 0.02 (1 - 1e-4)
+    r.prior["GF"]["form"] = "uniform"
     g2 = {x["parameter"]: x for x in at_bounds(r)}
-    assert g2["sigma"]["fraction"] == pytest.approx(np.mean(s <= 1e-4 + 0.02 * (1 - 1e-4)))
+    assert g2["GF"]["fraction"] == pytest.approx(np.mean(s <= 1e-4 + 0.02 * (1 - 1e-4)))
     # nothing at an edge: empty; a 20 % pile (not more) without the MAP there is not reported
     r.samples[:, 0] = np.r_[np.full(200, 3.99), np.full(800, 2.0)]
     r.log_likelihood = np.r_[np.zeros(200), np.ones(800)]
-    r.prior["sigma"]["form"] = "loguniform"
+    r.prior["GF"]["form"] = "loguniform"
     r.samples[:, 1] = 0.01
     assert at_bounds(r) == []
+    # noise parameters only on request: a sigma piled on its floor
+    r.names = ["A", "sigma"]
+    r.prior["sigma"] = r.prior.pop("GF")
+    r.samples[:, 1] = 1e-4
+    assert at_bounds(r) == []
+    assert [x["parameter"] for x in at_bounds(r, noise=True)] == ["sigma"]
     table = summary_table(_tiny(prior=None))
     assert "prior: A U[0, 4], sigma U[0, 1]" in table
 
