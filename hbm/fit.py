@@ -14,6 +14,7 @@ child 3    Sobol sampling (hbm.sensitivity)
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -26,14 +27,25 @@ from . import sensitivity as _sens
 from ._version import __version__
 from .errors import HbmError
 from . import seeds
-from .io import SpecimenResult, write_specimen_result
+from .io import SpecimenResult, json_default, write_specimen_result
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, identifiable_combinations, spyrou_model
+from .noise import get_noise
+from .prior import Prior, PriorError, load_prior
 from .optimization import optimize as _cma
 from .samplers import tmcmc as _tmcmc
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
-           "posterior_predictive", "parse_sweep", "COMBINATIONS"]
+           "posterior_predictive", "parse_sweep", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
+           "format_at_bounds", "map_prediction", "quality_lines", "EDGE_TOL", "EDGE_MASS", "RIDGE_NOTE"]
+
+#: a value lies "at" a box edge within this fraction of the box width (log width for loguniform)
+EDGE_TOL = 0.02
+#: posterior mass near one edge above which the edge is reported
+EDGE_MASS = 0.2
+#: why the raw-parameter table is not a parameter set (printed right above it)
+RIDGE_NOTE = ("raw parameters: posterior means are NOT a parameter set -- along non-identified directions the "
+              "posterior is a curved ridge whose means lie off it; use the MAP or the combinations above")
 
 
 
@@ -65,7 +77,13 @@ def pointwise_log_likelihood(likelihood, theta: np.ndarray, model_stress: np.nda
     factorisation of the joint Gaussian), as PSIS-LOO expects.
     """
     m = likelihood.predict(theta) if model_stress is None else model_stress
-    return likelihood.noise_model.pointwise(np.asarray(theta, float)[:, likelihood.n_model:], m)
+    return likelihood.noise_model.pointwise(_natural(likelihood, theta)[:, likelihood.n_model:], m)
+
+
+def _natural(likelihood, theta) -> np.ndarray:
+    """Working rows -> natural units (likelihoods without priors: unchanged)."""
+    conv = getattr(likelihood, "to_natural", None)
+    return np.asarray(theta, float) if conv is None else conv(theta)
 
 
 def posterior_predictive(likelihood, theta: np.ndarray, seed, model_stress: np.ndarray | None = None
@@ -74,11 +92,12 @@ def posterior_predictive(likelihood, theta: np.ndarray, seed, model_stress: np.n
 
     The noise is drawn by the noise model (:meth:`hbm.noise.NoiseModel.simulate`, AR(1)
     correlation included) from ``numpy.random.default_rng(seed)``; ``model_stress`` must be the
-    prediction at ``theta`` when given.
+    prediction at ``theta`` when given.  ``theta`` is in the likelihood's working coordinates
+    (as :func:`pointwise_log_likelihood`).
     """
     rng = np.random.default_rng(seed)
     m = likelihood.predict(theta) if model_stress is None else model_stress
-    return m, m + likelihood.noise_model.simulate(rng, np.asarray(theta, float)[:, likelihood.n_model:], m)
+    return m, m + likelihood.noise_model.simulate(rng, _natural(likelihood, theta)[:, likelihood.n_model:], m)
 
 
 def _normalise_optima(res: Any, names: Sequence[str], kind: str) -> list[dict]:
@@ -174,7 +193,8 @@ def summarize(result: SpecimenResult, *, prob: float = 0.9) -> dict[str, dict[st
 
 
 def summary_table(result: SpecimenResult, *, prob: float = 0.9) -> str:
-    """Plain-text table of :func:`summarize` plus the log-evidence."""
+    """Plain-text table of :func:`summarize` plus the log-evidence, the prior and box-edge warnings."""
+    result = _spec(result)
     s = summarize(result, prob=prob)
     pc = int(round(prob * 100))
     lines = [f"specimen {result.specimen_id}: {result.n_samples} posterior samples, "
@@ -186,7 +206,242 @@ def summary_table(result: SpecimenResult, *, prob: float = 0.9) -> str:
         lines.append(f"{k:<14}{v['mean']:>12.5g}{v['sd']:>12.4g}{v['lower']:>12.5g}{v['upper']:>12.5g}")
     if result.fixed:
         lines.append("fixed: " + ", ".join(f"{k}={v:g}" for k, v in result.fixed.items()))
+    lines.append(_prior_line(result))
+    lines += format_at_bounds(result.at_bounds if result.at_bounds is not None else at_bounds(result))
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- fit quality
+def _spec(result) -> SpecimenResult:
+    """The stored result of a :class:`FitResult` or a :class:`SpecimenResult` itself."""
+    return result.result if isinstance(result, FitResult) else result
+
+
+def _prior_of(r: SpecimenResult) -> dict[str, dict[str, Any]]:
+    return r.prior_dict()
+
+
+def _map_row(r: SpecimenResult) -> tuple[np.ndarray, float, str, int | None]:
+    """(free-parameter vector in ``r.names`` order, its log-likelihood, source, sample index).
+
+    The highest-likelihood point among the posterior samples and the CMA-ES optima (whose
+    objective is −log-likelihood).  The prior is uniform in the sampler's coordinates, so this
+    is the posterior mode there (for an all-uniform prior: the MAP in natural units).
+    """
+    ll = np.asarray(r.log_likelihood, float)
+    j = int(np.nanargmax(np.where(np.isfinite(ll), ll, -np.inf))) if ll.size and np.isfinite(ll).any() else 0
+    best = (np.asarray(r.samples[j], float), float(ll[j]) if ll.size else -np.inf, "sample", j)
+    for o in r.optima or []:
+        p = o.get("params", {})
+        f = float(o.get("objective", np.nan))
+        if all(n in p for n in r.names) and np.isfinite(f) and -f > best[1]:
+            best = (np.array([float(p[n]) for n in r.names]), -f, "optimum", None)
+    return best
+
+
+def map_estimate(result) -> dict[str, float]:
+    """The best fit as a usable parameter set ``{name: value}`` (natural units).
+
+    The highest-likelihood point among the posterior samples and the CMA-ES optima, with the
+    fixed parameters added: model parameters (model order of the result) then noise parameters.
+    Unlike the posterior means, this vector lies on the posterior ridge.
+
+    Parameters
+    ----------
+    result : FitResult or SpecimenResult
+
+    Returns
+    -------
+    dict
+    """
+    r = _spec(result)
+    row, _, _, _ = _map_row(r)
+    out = {k: float(v) for k, v in r.fixed.items()}
+    out.update({n: float(v) for n, v in zip(r.names, row)})
+    return out
+
+
+def _edge_coords(x: np.ndarray, lo: float, hi: float, form: str) -> tuple[np.ndarray, float, float]:
+    """Values and box in the coordinates where the prior is flat (log for loguniform)."""
+    if form == "loguniform":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.log(x), float(np.log(lo)), float(np.log(hi))
+    return x, lo, hi
+
+
+def at_bounds(result, *, tol: float = EDGE_TOL, mass: float = EDGE_MASS, noise: bool = False) -> list[dict[str, Any]]:
+    """Parameters whose best fit or posterior mass sits on a box edge.
+
+    An edge is reported when the MAP (:func:`map_estimate`) lies within ``tol`` of the box width
+    of it (log width for loguniform parameters), or when more than ``mass`` of the posterior
+    samples do.
+
+    Parameters
+    ----------
+    result : FitResult or SpecimenResult
+    tol : float
+        Distance to the edge, as a fraction of the (log) box width.
+    mass : float
+        Posterior fraction near one edge above which it is reported.
+    noise : bool
+        Check the noise parameters too.  Off by default: their box runs from a numerical floor
+        (1e-4) to half the peak stress, so a well-determined sigma of a clean curve lies
+        "within 2 % of the width" of the floor without anything being cut off.
+
+    Returns
+    -------
+    list of dict
+        One per (parameter, edge): ``parameter``, ``side`` ("lower"/"upper"), ``edge`` (the
+        edge value, natural units), ``fraction`` (posterior mass within ``tol`` of it) and
+        ``map_at_edge`` (bool).  Empty when nothing is at an edge.
+    """
+    r = _spec(result)
+    prior = _prior_of(r)
+    row, _, _, _ = _map_row(r)
+    skip = () if noise else set(_noise_names(r))
+    out = []
+    for i, n in enumerate(r.names):
+        if n not in prior or n in skip:
+            continue
+        p = prior[n]
+        x, a, b = _edge_coords(np.asarray(r.samples[:, i], float), float(p["lo"]), float(p["hi"]), p["form"])
+        xm, _, _ = _edge_coords(np.asarray([row[i]], float), float(p["lo"]), float(p["hi"]), p["form"])
+        w = tol * (b - a)
+        for side, near, near_map, edge in (("lower", x <= a + w, xm[0] <= a + w, p["lo"]),
+                                           ("upper", x >= b - w, xm[0] >= b - w, p["hi"])):
+            frac = float(np.mean(near)) if x.size else 0.0
+            if frac > mass or bool(near_map):
+                out.append({"parameter": n, "side": side, "edge": float(edge), "fraction": frac,
+                            "map_at_edge": bool(near_map)})
+    return out
+
+
+def format_at_bounds(items: Sequence[Mapping[str, Any]]) -> list[str]:
+    """One warning line per :func:`at_bounds` entry."""
+    return [f"warning: {a['parameter']} at its {a['side']} bound {a['edge']:g}: "
+            f"{100 * a['fraction']:.0f}% of the posterior within {100 * EDGE_TOL:g}% of the box width"
+            + ("; the best fit is there too" if a.get("map_at_edge") else "")
+            + " -- widen the prior (--prior / --bounds) if the physics allows" for a in items]
+
+
+def _noise_names(r: SpecimenResult, likelihood=None) -> list[str]:
+    if likelihood is not None:
+        return list(likelihood.noise_names)
+    try:
+        cand = get_noise(str(r.config.get("noise", "iid"))).names
+    except HbmError:
+        cand = ()
+    return [n for n in r.names if n in cand]
+
+
+def _map_prediction(r: SpecimenResult, likelihood, row, source, j) -> np.ndarray | None:
+    """Noise-free model stress at the MAP: from the likelihood, else the stored sample prediction."""
+    if likelihood is not None:
+        return np.asarray(likelihood.predict(likelihood.from_natural(np.asarray(row, float))[None])[0], float)
+    if r.predictive_model is None:
+        return None
+    if source != "sample":  # no model at hand: the best *sample* stands in for the optimum
+        ll = np.asarray(r.log_likelihood, float)
+        j = int(np.nanargmax(np.where(np.isfinite(ll), ll, -np.inf)))
+    return np.asarray(r.predictive_model[j], float)
+
+
+def map_prediction(result, likelihood=None) -> np.ndarray | None:
+    """Noise-free model stress (p,) at the MAP (:func:`map_estimate`).
+
+    Evaluated with ``likelihood`` (a :class:`FitResult` brings its own); from a stored result
+    alone, the best posterior sample's stored prediction (None without one).
+    """
+    r = _spec(result)
+    if likelihood is None and isinstance(result, FitResult):
+        likelihood = result.likelihood
+    row, _, source, j = _map_row(r)
+    return _map_prediction(r, likelihood, row, source, j)
+
+
+def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dict[str, Any]:
+    """How well the fit reproduces the data -- the numbers to read before any parameter.
+
+    Parameters
+    ----------
+    result : FitResult or SpecimenResult
+        A :class:`FitResult` brings its likelihood (the MAP curve is then evaluated exactly);
+        from a stored :class:`SpecimenResult` the best posterior sample's stored prediction is
+        used when the best optimum cannot be evaluated.
+    data : xarray.Dataset, optional
+        Observed curve (variable ``stress``); default the data stored in the result.
+    likelihood : Likelihood, optional
+        Overrides the FitResult's.
+    prob : float
+        Central mass of the predictive band and of the combinations' intervals (0.9).
+
+    Returns
+    -------
+    dict
+        ``rmse`` (MPa, MAP curve vs data), ``rmse_rel`` (percent of the peak |stress|),
+        ``coverage90`` (fraction of observed points inside the central ``prob`` band of the
+        noisy posterior predictive; None without a stored predictive), ``n_points``,
+        ``noise`` ({name: {"map", "median", "lower", "upper"}}), ``map`` ({name: value}, a usable
+        parameter set), ``map_source`` ("sample" or "optimum"), ``map_log_likelihood``,
+        ``combinations`` ({name: {"median", "lower", "upper"}}), ``log_evidence``,
+        ``log_evidence_se``, ``at_bounds`` (:func:`at_bounds`), ``prior``.
+    """
+    r = _spec(result)
+    if likelihood is None and isinstance(result, FitResult):
+        likelihood = result.likelihood
+    raw = data["stress"].values if data is not None else r.stress
+    obs = np.asarray(raw if raw is not None else [], float).ravel()
+    if obs.size == 0:
+        raise HbmError(f"fit_quality: specimen {r.specimen_id}: no observed stress (pass data=)")
+    _, ll_map, source, _ = _map_row(r)
+    pred = map_prediction(r, likelihood)
+    if pred is not None and pred.shape != obs.shape:
+        raise HbmError(f"fit_quality: specimen {r.specimen_id}: data have {obs.size} points, "
+                       f"the fit {pred.size}")
+    rmse = float(np.sqrt(np.mean((pred - obs) ** 2))) if pred is not None else float("nan")
+    peak = float(np.max(np.abs(obs)))
+    cov = None
+    if r.predictive is not None and np.shape(r.predictive)[-1] == obs.size:
+        lo, hi = np.quantile(np.asarray(r.predictive, float), [(1 - prob) / 2, (1 + prob) / 2], axis=0)
+        cov = float(np.mean((obs >= lo) & (obs <= hi)))
+    s = summarize(r, prob=prob)
+    mp = map_estimate(r)
+    noise = {n: {"map": mp[n], "median": s[n]["median"], "lower": s[n]["lower"], "upper": s[n]["upper"]}
+             for n in _noise_names(r, likelihood)}
+    combos = {k: {"median": v["median"], "lower": v["lower"], "upper": v["upper"]}
+              for k, v in s.items() if k in COMBINATIONS}
+    return {"specimen_id": r.specimen_id, "n_points": int(obs.size), "rmse": rmse,
+            "rmse_rel": 100.0 * rmse / peak if peak > 0 else float("nan"), "coverage90": cov,
+            "noise": noise, "map": mp, "map_source": source, "map_log_likelihood": float(ll_map),
+            "combinations": combos, "log_evidence": float(r.log_evidence),
+            "log_evidence_se": float(r.log_evidence_se),
+            "at_bounds": r.at_bounds if r.at_bounds is not None else at_bounds(r), "prior": _prior_of(r)}
+
+
+def _prior_line(r: SpecimenResult) -> str:
+    items = [f"{n} {'log' if p['form'] == 'loguniform' else ''}U[{p['lo']:g}, {p['hi']:g}]"
+             for n, p in _prior_of(r).items()]
+    return "prior: " + ", ".join(items)
+
+
+def quality_lines(q: Mapping[str, Any]) -> list[str]:
+    """The :func:`fit_quality` numbers as text lines (fit quality first, then the best fit)."""
+    cov = "n/a" if q["coverage90"] is None else f"{100 * q['coverage90']:.0f}% of {q['n_points']} points"
+    lines = [f"fit quality: RMSE {q['rmse']:.4g} MPa ({q['rmse_rel']:.2f}% of peak |stress|), "
+             f"90% predictive coverage {cov}",
+             f"log-evidence {q['log_evidence']:.3f} ± {q['log_evidence_se']:.3f}"]
+    if q["noise"]:
+        lines.append("noise: " + ", ".join(f"{n} {v['median']:.4g} [{v['lower']:.4g}, {v['upper']:.4g}]"
+                                           for n, v in q["noise"].items()))
+    src = "CMA-ES optima" if q["map_source"] == "optimum" else "posterior samples"
+    lines.append(f"best fit (MAP, best of the {src}, log-likelihood {q['map_log_likelihood']:.3f}): "
+                 + ", ".join(f"{k}={v:.5g}" for k, v in q["map"].items()))
+    if q["combinations"]:
+        lines.append("identified combinations (median [90% interval]): "
+                     + ", ".join(f"{k} {v['median']:.4g} [{v['lower']:.4g}, {v['upper']:.4g}]"
+                                 for k, v in q["combinations"].items()))
+    lines += format_at_bounds(q["at_bounds"])
+    return lines
 
 
 # ----------------------------------------------------------------------------- driver
@@ -235,6 +490,44 @@ class FitResult:
     def table(self, prob: float = 0.9) -> str:
         return summary_table(self.result, prob=prob)
 
+    def quality(self, data=None, prob: float = 0.9) -> dict[str, Any]:
+        """:func:`fit_quality` of this fit (with its likelihood)."""
+        return fit_quality(self, data, prob=prob)
+
+    def map(self) -> dict[str, float]:
+        """:func:`map_estimate`: the best fit as a usable parameter set."""
+        return map_estimate(self.result)
+
+    def report(self, prob: float = 0.9) -> str:
+        """Text report: fit quality, noise, MAP, combinations, evidence and edge warnings FIRST,
+        then one line on why raw-parameter means are not a parameter set, then the raw table."""
+        r = self.result
+        head = [f"specimen {r.specimen_id}: {r.n_samples} posterior samples"]
+        raw = summarize(r, prob=prob)
+        pc = int(round(prob * 100))
+        rows = [RIDGE_NOTE, f"{'parameter':<14}{'mean':>12}{'sd':>12}{f'{pc}% lower':>12}{f'{pc}% upper':>12}"]
+        rows += [f"{k:<14}{v['mean']:>12.5g}{v['sd']:>12.4g}{v['lower']:>12.5g}{v['upper']:>12.5g}"
+                 for k, v in raw.items() if k not in COMBINATIONS]
+        if r.fixed:
+            rows.append("fixed: " + ", ".join(f"{k}={v:g}" for k, v in r.fixed.items()))
+        rows.append(_prior_line(r))
+        return "\n".join(head + quality_lines(self.quality(prob=prob)) + rows)
+
+    def to_json(self, prob: float = 0.9) -> dict[str, Any]:
+        """One JSON-able dict: :func:`fit_quality` plus identification of the run.
+
+        Keys include ``rmse``, ``rmse_rel`` (percent of peak |stress|), ``coverage90``,
+        ``log_evidence``, ``log_evidence_se``, ``map`` (name -> value), ``combinations``,
+        ``at_bounds`` (list of {parameter, side, edge, fraction, map_at_edge}), ``noise``,
+        ``prior``, ``names``, ``n_samples``, ``summary`` (raw-parameter statistics) and ``path``.
+        """
+        q = self.quality(prob=prob)
+        r = self.result
+        q.update({"names": list(r.names), "n_samples": r.n_samples, "fixed": dict(r.fixed),
+                  "summary": {k: v for k, v in summarize(r, prob=prob).items() if k not in COMBINATIONS},
+                  "path": None if self.path is None else str(self.path)})
+        return json.loads(json.dumps(q, default=json_default))
+
 
 def _specimen_id(data) -> str:
     return str(getattr(data, "attrs", {}).get("id", "specimen"))
@@ -249,7 +542,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
                  optimize_options: Mapping[str, Any] | None = None,
                  sigma_bounds: tuple[float, float] | None = None,
                  config_extra: Mapping[str, Any] | None = None,
-                 on_phase: Callable[[str], None] | None = None) -> FitResult:
+                 on_phase: Callable[[str], None] | None = None,
+                 prior: Prior | str | os.PathLike | Mapping | None = None) -> FitResult:
     """CMA-ES optima, TMCMC posterior, posterior predictive and (optionally) Sobol for one specimen.
 
     Parameters
@@ -265,7 +559,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     noise : {"iid", "weighted", "proportional", "ar1"}
         Noise model (:func:`hbm.likelihood.make_likelihood`).
     fix, bounds : dict, optional
-        Parameters held fixed / narrowed prior boxes.
+        Parameters held fixed / narrowed prior boxes (inside the prior's box; to widen the
+        thesis box pass ``prior=resolve_prior(model, file, bounds)``).
     seed : int or SeedSequence
         Root seed; the four phases get spawned children (module docstring).
     restarts : int
@@ -294,10 +589,16 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         Extra JSON-able entries for the stored ``config`` attribute (e.g. a settings hash).
     on_phase : callable, optional
         Called with the phase name when a phase starts (progress reporting).
+    prior : Prior, TOML path or mapping, optional
+        User prior (:mod:`hbm.prior`); default the thesis box, uniform (bitwise the outputs of a
+        fit without this argument).  Loguniform parameters are sampled in log coordinates; the
+        stored posterior, optima, predictive and Sobol box are in natural units.
 
     Returns
     -------
     FitResult
+        ``result.prior`` and ``result.at_bounds`` (box-edge warnings, :func:`at_bounds`) are
+        stored in the file too.
     """
     t_start = time.perf_counter()
     model = spyrou_model() if model is None else model
@@ -306,9 +607,14 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     if int(samples) < 4:
         raise HbmError(f"samples must be >= 4, got {samples}")
     sid = _specimen_id(data)
-    lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds)
+    prior = load_prior(prior)
+    lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)
     s_opt, s_tm, s_pred, s_sob = seeds.child_ints(seed, len(seeds.PHASES))  # the phase streams of hbm.seeds
     sweep_t = parse_sweep(sweep)
+    if sweep_t is not None and sweep_t[0] in lik.names and lik.forms[lik.index(sweep_t[0])] == "loguniform":
+        # the sweep's windows are cut in the optimiser's (log) coordinates; a width in natural
+        # units would be misread there
+        raise PriorError(f"sweep: {sweep_t[0]} has a loguniform prior; sweep a uniform parameter")
     timings: dict[str, float] = {}
     phase = on_phase or (lambda name: None)
 
@@ -335,17 +641,21 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
 
     phase("predictive")
     t = time.perf_counter()
-    theta = np.asarray(tr.samples, float)
-    m = lik.predict(theta)
-    pll = pointwise_log_likelihood(lik, theta, m)
-    pred_model, pred = posterior_predictive(lik, theta, s_pred, m)
+    y = np.asarray(tr.samples, float)  # sampler (working) coordinates
+    theta = lik.to_natural(y)  # what the user sees: natural units
+    m = lik.predict(y)
+    pll = pointwise_log_likelihood(lik, y, m)
+    pred_model, pred = posterior_predictive(lik, y, s_pred, m)
     timings["predictive"] = time.perf_counter() - t
 
     sob = None
     if sobol_n:
         phase("sobol")
         t = time.perf_counter()
-        sob = run_sobol(model, data, n=int(sobol_n), seed=s_sob, fix=fix, bounds=bounds)
+        sbounds = bounds
+        if prior is not None:  # the Sobol input box is the prior's natural box
+            sbounds = {n: tuple(map(float, lik.natural_bounds[j])) for j, n in enumerate(lik.model_names)}
+        sob = run_sobol(model, data, n=int(sobol_n), seed=s_sob, fix=fix, bounds=sbounds)
         timings["sobol"] = time.perf_counter() - t
 
     strain = np.asarray(data["strain"].values, float)
@@ -358,6 +668,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
               "seeds": {"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
               "n_evaluations": int(tr.n_evaluations), "n_stages": len(tr.stages),
               "source_file": str(data.attrs.get("source_file", ""))}
+    if prior is not None:
+        config["prior"] = prior.to_dict()
     config.update(dict(config_extra or {}))
     if isinstance(seed, np.random.SeedSequence):
         root_seed = int(seed.entropy)
@@ -367,13 +679,15 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     res = SpecimenResult(
         specimen_id=sid, names=list(lik.names), samples=theta, log_likelihood=np.asarray(tr.log_likelihood, float),
         log_evidence=float(tr.log_evidence), log_evidence_se=float(tr.log_evidence_se),
-        bounds=np.asarray(lik.bounds, float), stages=list(tr.stages), strain=strain,
+        bounds=np.asarray(lik.natural_bounds, float), stages=list(tr.stages), strain=strain,
         stress=np.asarray(data["stress"].values, float),
         time=np.asarray(data["time"].values, float) if "time" in data else None,
         test=np.asarray(data["test"].values) if "test" in data else None,
         pointwise_log_likelihood=pll, predictive=pred, predictive_model=pred_model, optima=optima, sobol=sob,
         model=model.name, effects=list(model.effect_names), config=config, seed=root_seed,
-        fixed=dict(lik.fixed), version=__version__)
+        fixed=dict(lik.fixed), version=__version__,
+        prior={n: lik.prior[n].to_dict() for n in lik.names})
+    res.at_bounds = at_bounds(res)
     path = None
     if out is not None:
         t = time.perf_counter()

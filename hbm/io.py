@@ -25,8 +25,10 @@ file with groups, written with :class:`xarray.DataTree`):
                           ``relevance`` (+ per-point ``S1_point``/``ST_point``).
 
 Root attributes: ``specimen_id``, ``model``, ``effects`` (JSON list), ``config`` (JSON),
-``seed`` (int), ``hbm_version``, ``timings`` (JSON), ``complete`` (int, set to 1 last, after
-every group is on disk).  netCDF attributes cannot hold bool/None/dict, hence ints and JSON.
+``seed`` (int), ``hbm_version``, ``timings`` (JSON), ``prior`` (JSON ``{name: {"lo", "hi",
+"form"}}``: the prior each free parameter was sampled under, natural units), ``at_bounds`` (JSON
+list of ``{"parameter", "side", "edge", "fraction", "map_at_edge"}``, see
+:func:`hbm.fit.at_bounds`), ``complete`` (int, set to 1 last, after every group is on disk).  netCDF attributes cannot hold bool/None/dict, hence ints and JSON.
 
 Hierarchical file ``<out>/hierarchical.nc``: ``posterior`` (chain, draw) with ``mu_<P>`` and
 ``sd_<P>`` (hyper-parameters), ``updated`` (chain, draw, specimen) one variable per parameter
@@ -127,6 +129,11 @@ class SpecimenResult:
     model, effects, config, seed, timings, complete, version : metadata
     fixed : dict
         Parameters held fixed (name -> value), recorded so model thetas can be rebuilt.
+    prior : dict or None
+        ``{name: {"lo", "hi", "form"}}`` per free parameter (natural units); None means uniform
+        on ``bounds`` (files written before priors were stored read back that way).
+    at_bounds : list of dict or None
+        Box-edge warnings (:func:`hbm.fit.at_bounds`); None when not computed.
     """
 
     specimen_id: str
@@ -154,6 +161,15 @@ class SpecimenResult:
     fixed: dict = field(default_factory=dict)
     complete: bool = True
     version: str = __version__
+    prior: dict | None = None
+    at_bounds: list[dict] | None = None
+
+    def prior_dict(self) -> dict[str, dict[str, Any]]:
+        """``{name: {"lo", "hi", "form"}}`` per free parameter (uniform on ``bounds`` when not recorded)."""
+        if self.prior:
+            return {n: dict(self.prior[n]) for n in self.names if n in self.prior}
+        b = np.asarray(self.bounds, float)
+        return {n: {"lo": float(b[i, 0]), "hi": float(b[i, 1]), "form": "uniform"} for i, n in enumerate(self.names)}
 
     @property
     def n_samples(self) -> int:
@@ -289,6 +305,8 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
         "seed": int(r.seed),
         "hbm_version": str(r.version),
         "timings": _dumps(r.timings),
+        "prior": _dumps(r.prior_dict()),
+        "at_bounds": _dumps(r.at_bounds if r.at_bounds is not None else []),
         "inference_library": "hbm",
         "complete": 0,
     })
@@ -356,7 +374,7 @@ def read_attrs(path: str | os.PathLike) -> dict:
             attrs = {k: nc.getncattr(k) for k in nc.ncattrs()}
     except Exception:
         return {}
-    for k in ("config", "effects", "timings", "fixed", "extra"):
+    for k in ("config", "effects", "timings", "fixed", "extra", "prior", "at_bounds"):
         if isinstance(attrs.get(k), str):
             try:
                 attrs[k] = json.loads(attrs[k])
@@ -420,7 +438,9 @@ def read_specimen_result(path: str | os.PathLike) -> SpecimenResult:
         model=str(attrs.get("model", "")), effects=json.loads(attrs.get("effects", "[]")),
         config=json.loads(attrs.get("config", "{}")), seed=int(attrs.get("seed", 0)),
         timings=json.loads(attrs.get("timings", "{}")), fixed=json.loads(attrs.get("fixed", "{}")),
-        complete=int(attrs.get("complete", 0)) == 1, version=str(attrs.get("hbm_version", "")))
+        complete=int(attrs.get("complete", 0)) == 1, version=str(attrs.get("hbm_version", "")),
+        prior=json.loads(attrs["prior"]) if "prior" in attrs else None,
+        at_bounds=json.loads(attrs["at_bounds"]) if "at_bounds" in attrs else None)
     obs = _ds(tree, G_OBS)
     if obs is not None:
         res.stress = obs["stress"].values

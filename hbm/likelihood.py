@@ -12,6 +12,17 @@ The noise model (``r = data − model``) is an object from :mod:`hbm.noise` (``"
 parameters' box, the marginal sd, the log-likelihood, the simulation and the noise part of the
 gradient/Fisher information.  :class:`Likelihood` handles the parameters and the model calls.
 
+Priors and working coordinates
+------------------------------
+The prior is uniform on :attr:`Likelihood.bounds` -- the thesis box, or a user
+:class:`hbm.prior.Prior` (``prior=``).  A *loguniform* parameter is handled by a coordinate
+transform: ``theta`` rows (what samplers and optimisers see, the *working* coordinates) hold
+``y = log θ`` in its column and ``bounds`` holds ``[log lo, log hi]``; the model gets ``exp(y)``.
+A uniform prior in ``y`` is the loguniform prior in ``θ``, so TMCMC's evidence stays exact.
+:meth:`Likelihood.to_natural` / :meth:`Likelihood.from_natural` convert rows; ``natural_bounds``
+is the box in natural units.  With no loguniform parameter both coordinate systems coincide
+(the transforms are the identity and every output is bitwise that of the plain box).
+
 Gradients and Fisher information
 --------------------------------
 :meth:`Likelihood.gradient_fim` returns the exact gradient of the log-likelihood and the
@@ -29,6 +40,7 @@ from .errors import DataError, HbmError
 from .model.core import Loading, Model
 from .model.spyrou import compression_check, model_form
 from .noise import NoiseModel, eq120_weights, get_noise, noise_model_names
+from .prior import Prior, PriorError, load_prior
 
 
 def __getattr__(name: str):
@@ -70,7 +82,15 @@ class Likelihood:
     names : tuple of str
         Free parameters: free model parameters in model order, then the noise parameters.
     bounds : ndarray (d, 2)
-        Box of the free parameters (the uniform prior's support).
+        Box of the free parameters in working coordinates (the sampler's uniform prior support;
+        ``[log lo, log hi]`` for loguniform parameters).
+    natural_bounds : ndarray (d, 2)
+        The same box in natural units.
+    forms : tuple of str
+        Prior form per free parameter ("uniform" or "loguniform").
+    prior : Prior
+        The effective prior: natural box and form of every model parameter (fixed ones
+        included) and noise parameter.
     model : Model
     data : xarray.Dataset
     noise : str
@@ -91,7 +111,8 @@ class Likelihood:
     def __init__(self, model: Model, data, *, noise: str = "iid",
                  fix: Mapping[str, float] | None = None,
                  bounds: Mapping[str, tuple[float, float]] | None = None,
-                 sigma_bounds: tuple[float, float] | None = None) -> None:
+                 sigma_bounds: tuple[float, float] | None = None,
+                 prior: Prior | str | Mapping | None = None) -> None:
         noise_cls = get_noise(noise)
         strain, stress, time, test, label = _dataset_arrays(data)
         try:
@@ -111,6 +132,13 @@ class Likelihood:
 
         names = model.parameter_names
         box = model.bounds.copy()
+        user_prior = load_prior(prior)
+        forms = {n: "uniform" for n in names}
+        if user_prior is not None:  # the user's prior replaces the thesis box (it may widen it)
+            for n in names:
+                if n in user_prior:
+                    box[model.index(n)] = user_prior[n].lo, user_prior[n].hi
+                    forms[n] = user_prior[n].form
         fix = dict(fix or {})
         bounds = dict(bounds or {})
         for kind, d in (("fix", fix), ("bounds", bounds)):
@@ -126,6 +154,8 @@ class Likelihood:
             if lo < box[i, 0] or hi > box[i, 1]:
                 raise HbmError(f"bounds: {k}={lo}:{hi} is outside the prior box "
                                f"[{box[i, 0]:g}, {box[i, 1]:g}]")
+            if forms[k] == "loguniform" and lo <= 0:
+                raise PriorError(f"bounds: {k} is loguniform and needs LO > 0, got {lo:g}")
             box[i] = lo, hi
         for k, v in fix.items():
             v = float(v)
@@ -145,10 +175,23 @@ class Likelihood:
         if clash:
             raise HbmError(f"noise model {self.noise!r}: parameter(s) {', '.join(clash)} "
                            "clash with model parameters")
+        if user_prior is not None:
+            user_prior.check_names(list(names) + list(nb), what=f"the model with {self.noise!r} noise")
+            for n in nb:
+                if n in user_prior:
+                    nb[n] = (user_prior[n].lo, user_prior[n].hi)
+                    forms[n] = user_prior[n].form
         self.noise_names = tuple(nb)
         self.names = self.model_names + self.noise_names
-        self.bounds = np.vstack([box[self.free_index].reshape(-1, 2), np.array(list(nb.values()), float)])
+        self.natural_bounds = np.vstack([box[self.free_index].reshape(-1, 2), np.array(list(nb.values()), float)])
+        self.forms = tuple(forms.get(n, "uniform") for n in self.names)
+        self._log = np.array([f == "loguniform" for f in self.forms], dtype=bool)
+        self._any_log = bool(self._log.any())
+        self.bounds = self.from_natural(self.natural_bounds.T).T if self._any_log else self.natural_bounds
         self.d = len(self.names)
+        allb = {n: tuple(box[i]) for i, n in enumerate(names)}
+        allb.update({n: tuple(self.natural_bounds[self.n_model + j]) for j, n in enumerate(self.noise_names)})
+        self.prior = Prior({n: (*allb[n], forms.get(n, "uniform")) for n in allb}, source="likelihood")
 
     # -- parameter handling ----------------------------------------------------------------
     def __repr__(self) -> str:
@@ -163,12 +206,17 @@ class Likelihood:
             raise HbmError(f"{name!r} is not a free parameter; free parameters are {', '.join(self.names)}") from None
 
     def with_bounds(self, **bounds: tuple[float, float]) -> "Likelihood":
-        """A copy with some model-parameter boxes narrowed (noise boxes unchanged)."""
-        cur = {n: tuple(self._model_box[i]) for i, n in enumerate(self.model.parameter_names)
-               if n not in self.fixed}
-        cur.update(bounds)
-        new = Likelihood(self.model, self.data, noise=self.noise, fix=self.fixed, bounds=cur)
-        new.bounds[new.n_model:] = self.bounds[self.n_model:]
+        """A copy with some model-parameter boxes replaced (natural units; forms and noise boxes kept).
+
+        Narrowing inside the current box is the common use (bound sweeps); a box outside it is
+        accepted too and replaces it (a user prior may widen the thesis box).
+        """
+        unknown = [k for k in bounds if k not in self.model.parameter_names]
+        if unknown:
+            raise HbmError(f"bounds: unknown parameter(s) {', '.join(unknown)}; "
+                           f"the model has {', '.join(self.model.parameter_names)}")
+        new = Likelihood(self.model, self.data, noise=self.noise, fix=self.fixed,
+                         prior=self.prior.override(bounds))
         return new
 
     def _as2d(self, theta) -> tuple[np.ndarray, bool]:
@@ -180,13 +228,43 @@ class Likelihood:
                            f"got {np.shape(theta)}")
         return theta, single
 
-    def model_theta(self, theta) -> np.ndarray:
-        """Full model parameter rows (n, model.n_params): free columns plus fixed values."""
-        theta, _ = self._as2d(theta)
-        out = np.empty((theta.shape[0], self.model.n_params))
-        out[:] = self._fixed_row
-        out[:, self.free_index] = theta[:, : self.n_model]
+    def to_natural(self, theta) -> np.ndarray:
+        """Working rows (sampler/optimiser coordinates) -> natural units (exp of loguniform columns).
+
+        Any shape whose last axis has length ``d``; the identity (same values) without
+        loguniform parameters.
+        """
+        theta = np.asarray(theta, dtype=float)
+        if not self._any_log:
+            return theta
+        out = theta.copy()
+        with np.errstate(over="ignore"):
+            out[..., self._log] = np.exp(theta[..., self._log])
         return out
+
+    def from_natural(self, theta) -> np.ndarray:
+        """Natural-unit rows -> working coordinates (log of loguniform columns); inverse of :meth:`to_natural`."""
+        theta = np.asarray(theta, dtype=float)
+        if not self._any_log:
+            return theta
+        out = theta.copy()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[..., self._log] = np.log(theta[..., self._log])
+        return out
+
+    def _model_rows(self, nat: np.ndarray) -> np.ndarray:
+        out = np.empty((nat.shape[0], self.model.n_params))
+        out[:] = self._fixed_row
+        out[:, self.free_index] = nat[:, : self.n_model]
+        return out
+
+    def model_theta(self, theta) -> np.ndarray:
+        """Full model parameter rows (n, model.n_params) in natural units: free columns plus fixed values.
+
+        ``theta`` is in working coordinates (see :meth:`to_natural`).
+        """
+        theta, _ = self._as2d(theta)
+        return self._model_rows(self.to_natural(theta))
 
     def predict(self, theta) -> np.ndarray:
         """Model stress (n, n_points) at each parameter row."""
@@ -208,7 +286,7 @@ class Likelihood:
         m = model_stress
         if m is None and self.noise_model.needs_model_stress:
             m = self.predict(theta)
-        return self.noise_model.sd(theta[:, self.n_model:], m)
+        return self.noise_model.sd(self.to_natural(theta)[:, self.n_model:], m)
 
     # -- log-likelihood ----------------------------------------------------------------------
     def __call__(self, theta) -> np.ndarray:
@@ -222,10 +300,11 @@ class Likelihood:
             sub = theta[ok]
         else:
             return out[0] if single else out
+        nat = self.to_natural(sub)
         with np.errstate(all="ignore"):
-            m = self.model.stress(self.loading, self.model_theta(sub))
+            m = self.model.stress(self.loading, self._model_rows(nat))
             # overwrite: m is a temporary of ours, the residual may reuse its memory
-            val = self.noise_model.loglik(sub[:, self.n_model:], m, overwrite=True)
+            val = self.noise_model.loglik(nat[:, self.n_model:], m, overwrite=True)
         val = np.where(np.isfinite(val), val, -np.inf)  # NaN/inf from the model -> -inf
         if sub is theta:
             out = val
@@ -234,7 +313,7 @@ class Likelihood:
         return out[0] if single else out
 
     def log_density(self, theta) -> np.ndarray:
-        """Alias of ``__call__`` (the uniform prior adds only a constant on the box)."""
+        """Alias of ``__call__`` (the prior is uniform in working coordinates: a constant on the box)."""
         return self(theta)
 
     # -- weighted least squares (thesis eq. 1.19) --------------------------------------------
@@ -264,8 +343,9 @@ class Likelihood:
     def gradient_fim(self, theta) -> tuple[np.ndarray, np.ndarray]:
         """Gradient (n, d) of the log-likelihood and Fisher information (n, d, d).
 
-        Exact gradient; expected (Gaussian) Fisher information.  Rows that are out of the box or
-        not finite get NaN so that callers (e.g. the manifold kernel) can fall back.
+        Exact gradient; expected (Gaussian) Fisher information, both with respect to the working
+        coordinates (chain rule dθ/dy = θ for loguniform columns).  Rows that are out of the box
+        or not finite get NaN so that callers (e.g. the manifold kernel) can fall back.
         """
         theta, _ = self._as2d(theta)
         n, d = theta.shape[0], self.d
@@ -274,12 +354,16 @@ class Likelihood:
         ok = self.in_box(theta)
         if not ok.any():
             return grad, fim
-        t = theta[ok]
-        full = self.model_theta(t)
+        t = self.to_natural(theta[ok])
+        full = self._model_rows(t)
         with np.errstate(all="ignore"):
             m = self.model.stress(self.loading, full)
             jac = self.model.stress_jacobian(self.loading, full)[..., self.free_index]  # (n, P, k)
             g, f = self.noise_model.grad_fim(t[:, self.n_model:], m, jac)
+            if self._any_log:  # d/dy = θ d/dθ for y = log θ
+                s = np.where(self._log, t, 1.0)
+                g = g * s
+                f = f * s[:, :, None] * s[:, None, :]
         bad = ~(np.isfinite(g).all(1) & np.isfinite(f).all((1, 2)))
         g[bad] = np.nan
         f[bad] = np.nan
@@ -296,9 +380,12 @@ class Likelihood:
         return lo + np.asarray(x, dtype=float) * (hi - lo)
 
     def as_dict(self, row) -> dict[str, float]:
-        """Free parameters of one row plus the fixed ones, as {name: value} (model order, then noise)."""
-        row = np.asarray(row, dtype=float).ravel()
-        full = self.model_theta(row[None])[0]
+        """Free parameters of one (working-coordinate) row plus the fixed ones, as {name: natural value}.
+
+        Model order, then noise parameters.
+        """
+        row = self.to_natural(np.asarray(row, dtype=float).ravel())
+        full = self._model_rows(row[None])[0]
         out = {n: float(full[i]) for i, n in enumerate(self.model.parameter_names)}
         out.update({n: float(row[self.n_model + j]) for j, n in enumerate(self.noise_names)})
         return out
@@ -306,7 +393,8 @@ class Likelihood:
 
 def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str, float] | None = None,
                     bounds: Mapping[str, tuple[float, float]] | None = None,
-                    sigma_bounds: tuple[float, float] | None = None) -> Likelihood:
+                    sigma_bounds: tuple[float, float] | None = None,
+                    prior: Prior | str | Mapping | None = None) -> Likelihood:
     """Build the vectorised log-likelihood of one specimen.
 
     Parameters
@@ -321,10 +409,15 @@ def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str,
     fix : dict, optional
         ``{name: value}`` model parameters held fixed (removed from the free set).
     bounds : dict, optional
-        ``{name: (lo, hi)}`` narrowed boxes (must lie inside the model's prior box).
+        ``{name: (lo, hi)}`` narrowed boxes (must lie inside the prior box: the model's, or
+        ``prior``'s).  To widen the thesis box use ``prior`` (:func:`hbm.prior.resolve_prior`).
     sigma_bounds : (lo, hi), optional
         Box of the first noise parameter (``sigma``, or ``scale`` for "weighted").  Default for
         ``sigma``: [1e-4, max(0.05, 0.5·max|stress|)] MPa; for ``scale``: [1e-4, 10].
+        A noise parameter named in ``prior`` takes the prior's box instead.
+    prior : Prior, TOML path or mapping, optional
+        User prior (:mod:`hbm.prior`): boxes (may be wider than the thesis box) and forms; a
+        loguniform parameter is sampled in log coordinates (module docstring).
 
     Returns
     -------
@@ -344,4 +437,4 @@ def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str,
         msg = compression_check(strain, "thesis", time=time, test=test, name=label)
         if msg is not None:
             raise DataError(msg)
-    return Likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds)
+    return Likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)

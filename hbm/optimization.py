@@ -129,10 +129,15 @@ def _record(lik: Likelihood, objective: str, xbest, fbest, **extra) -> dict[str,
         theta[: lik.n_model] = lik.from_unit(np.r_[xbest, np.zeros(lik.d - lik.n_model)])[: lik.n_model]
         # report the iid-like noise estimate implied by the fit where it is closed-form
         r = lik.observed - lik.predict(np.r_[theta[: lik.n_model], lik.bounds[lik.n_model:, 0]][None])[0]
+        # the closed-form noise estimate is in natural units; theta is in the likelihood's
+        # working coordinates (log for a loguniform noise prior)
+        nat = lik.to_natural(theta)
         if lik.noise == "iid":
-            theta[lik.n_model:] = np.clip(np.sqrt(np.mean(r * r)), *lik.bounds[-1])
+            nat[lik.n_model:] = np.clip(np.sqrt(np.mean(r * r)), *lik.natural_bounds[-1])
+            theta = lik.from_natural(nat)
         elif lik.noise == "weighted":
-            theta[lik.n_model:] = np.clip(np.sqrt(np.mean((r / lik.weights) ** 2)), *lik.bounds[-1])
+            nat[lik.n_model:] = np.clip(np.sqrt(np.mean((r / lik.weights) ** 2)), *lik.natural_bounds[-1])
+            theta = lik.from_natural(nat)
         else:
             theta[lik.n_model:] = lik.bounds[lik.n_model:].mean(axis=1)
     params = lik.as_dict(theta)

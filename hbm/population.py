@@ -359,6 +359,11 @@ def _run_hierarchical(cfg: PopulationConfig, results: Mapping[str, io.SpecimenRe
         if list(r.names) != names or not np.allclose(r.bounds, first.bounds):
             raise HbmError(f"hierarchical: specimen {sid} was fitted with other parameters/boxes than "
                            f"{first.specimen_id}; re-run all specimens with the same settings")
+        # stage-1 posteriors are reweighted by their prior, taken as uniform on the box
+        logu = [n for n, p in (getattr(r, "prior", None) or {}).items() if p.get("form", "uniform") != "uniform"]
+        if logu:
+            raise HbmError(f"hierarchical: specimen {sid} was fitted with a non-uniform prior on "
+                           f"{', '.join(logu)}; the population layer needs uniform stage-1 priors")
     model_names = [n for n in names if n in model.parameter_names]
     transforms = {n: DEFAULT_TRANSFORMS.get(n, "logit") for n in model_names}
     transforms.update({k: v for k, v in dict(cfg.transforms or {}).items() if k in model_names})

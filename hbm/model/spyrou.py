@@ -414,7 +414,8 @@ def compression_check(strain, form: str = "thesis", *, time=None, test=None,
 def model_form(model: Model) -> str | None:
     """``"thesis"`` or ``"energy"``: the collagen form of a model built on the Spyrou collagen,
     ``None`` for a model without it (then no compression check applies)."""
-    kinds = [e for e in model.effects if isinstance(e, HelicalCollagen)]
+    # duck-typed models (a user's own object with .stress) have no effects list: no check
+    kinds = [e for e in getattr(model, "effects", ()) if isinstance(e, HelicalCollagen)]
     if not kinds:
         return None
     return "energy" if any(isinstance(e, EnergyHelicalCollagen) for e in kinds) else "thesis"
