@@ -222,8 +222,12 @@ def _refine_collapsed(cfg: PopulationConfig, h, collapsed: Sequence[str], datase
     for k, sid in enumerate(h.specimens):
         if sid not in collapsed:
             continue
-        lik = make_likelihood(model, datasets[sid], noise=cfg.noise, fix=cfg.fix, bounds=cfg.bounds,
-                              sigma_bounds=sigma_bounds)
+        # the refit samples the box the stage-1 fit used: a recorded user prior (possibly wider
+        # than the thesis box), otherwise the run's --bounds as before
+        recorded = getattr(results[sid], "prior", None)
+        lik = make_likelihood(model, datasets[sid], noise=cfg.noise, fix=cfg.fix,
+                              bounds=None if recorded else cfg.bounds, sigma_bounds=sigma_bounds,
+                              prior=results[sid].prior_dict() if recorded else None)
         rs = seeds.seed_int(seeds.stream(int(cfg.seed), "refine", k))
         args = (h_ref, sid, lik, min(int(cfg.samples), int(cfg.stage1_samples)), rs, n_up, int(cfg.max_steps))
         kw = {"augment": augment} if augment is not None else {}

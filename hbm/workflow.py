@@ -81,6 +81,8 @@ class RunConfig:
     retries: int = 1
     quick: bool = False
     tmcmc_options: dict | None = None
+    #: user prior (:meth:`hbm.prior.Prior.to_dict`), or None for the model's box (uniform)
+    prior: dict | None = None
 
     def __post_init__(self) -> None:
         if self.quick:  # a smoke run: every phase, small budgets
@@ -101,7 +103,9 @@ class RunConfig:
                 "seed": int(self.seed), "sobol_n": int(self.sobol_n) if self.sobol else 0,
                 "restarts": int(self.restarts), "sweep": self.sweep, "maxfevals": int(self.maxfevals),
                 "fix": self.fix or None, "bounds": {k: list(map(float, v)) for k, v in (self.bounds or {}).items()}
-                or None, "tmcmc_options": self.tmcmc_options or None, "version": __version__}
+                or None, "tmcmc_options": self.tmcmc_options or None, "version": __version__,
+                # only when set, so that default runs keep their settings hash (and their reuse)
+                **({"prior": self.prior} if self.prior else {})}
 
     def population_config(self) -> PopulationConfig:
         """The settings of the population layer (:func:`hbm.population.run_population`)."""
@@ -210,7 +214,8 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     options = {"model": model, "samples": cfg.samples, "kernel": cfg.kernel, "noise": cfg.noise,
                "fix": cfg.fix, "bounds": cfg.bounds, "restarts": cfg.restarts, "sweep": cfg.sweep,
                "sobol_n": cfg.sobol_n if cfg.sobol else None, "tmcmc_options": cfg.tmcmc_options,
-               "optimize_options": {"maxfevals": cfg.maxfevals}, "sigma_bounds": sigma_box}
+               "optimize_options": {"maxfevals": cfg.maxfevals}, "sigma_bounds": sigma_box,
+               **({"prior": cfg.prior, "bounds": None} if cfg.prior else {})}
     timings: dict[str, float] = {}
     if client is not None:
         ctx = contextlib.nullcontext(client)

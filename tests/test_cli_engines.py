@@ -72,7 +72,6 @@ def test_sobol_json(specimen, capsys):
     (["optimize", "{s}", "--fix", "VOLF=2"], ["--fix", "inside the box"]),
     (["optimize", "{s}", "--bounds", "VOLF=0.7"], ["--bounds", "NAME=LO:HI"]),
     (["optimize", "{s}", "--bounds", "VOLF=0.8:0.7"], ["--bounds", "LO < HI"]),
-    (["optimize", "{s}", "--bounds", "VOLF=0.1:0.7"], ["--bounds", "prior box"]),
     (["optimize", "{s}", "--sweep", "VOLF"], ["--sweep", "NAME:WIDTH"]),
     (["optimize", "{s}", "--sweep", "XX:0.1"], ["--sweep", "free model parameter"]),
     (["optimize", "{s}", "--restarts", "0"], ["--restarts"]),

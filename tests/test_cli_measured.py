@@ -91,3 +91,26 @@ def test_hbm_warnings_print_as_one_line(capsys):
     _show_warning("a prior edge\nsecond line", HbmWarning, "x.py", 1)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hbm: warning: a prior edge")
+
+
+def test_bounds_may_widen_the_thesis_box_with_a_notice(capsys):
+    rc = main(["optimize", "data/specimens/calvo2010_rat1.csv", "--bounds", "VOLF=0.1:0.7", "--restarts", "1",
+               "--maxfevals", "200", "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    notice = [l for l in cap.err.splitlines() if "departs from the thesis box" in l]
+    assert notice == ["hbm: warning: prior departs from the thesis box: VOLF [0.5, 0.99] -> [0.1, 0.7]"]
+    best = json.loads(cap.out)["optima"][0]["params"]["VOLF"]
+    assert 0.1 <= best <= 0.7
+    # narrowing alone is the old path: no notice
+    assert main(["optimize", "data/specimens/calvo2010_rat1.csv", "--bounds", "VOLF=0.6:0.7", "--restarts", "1",
+                 "--maxfevals", "200", "--json"]) == 0
+    assert "departs" not in capsys.readouterr().err
+
+
+def test_prior_file_errors_are_one_line(tmp_path, capsys):
+    bad = tmp_path / "p.toml"
+    bad.write_text("[P1]\nlo = 0\nhi = 1\nform = 'loguniform'\n")
+    rc = main(["fit", "data/specimens/calvo2010_rat1.csv", "--prior", str(bad)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--prior" in err[0] and "loguniform" in err[0], err

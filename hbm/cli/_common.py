@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
@@ -21,7 +22,8 @@ import numpy as np
 
 from ..data import load_specimen
 from ..effects import resolve_effect
-from ..errors import DataError, HbmError, SettingError
+from ..errors import DataError, HbmError, HbmWarning, SettingError
+from ..prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
 from ..utils import format_bytes, require_memory
 
@@ -276,7 +278,11 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     add_data_arguments(parser)
     add_fix(parser)
     parser.add_argument("--bounds", action=UniqueNames, type=bounds_item, default={}, metavar="NAME=LO:HI",
-                        help="narrow a parameter's box, e.g. --bounds VOLF=0.5:0.75; repeatable")
+                        help="a parameter's prior box, e.g. --bounds VOLF=0.5:0.75 (may also widen the "
+                             "thesis box, with a notice); repeatable")
+    parser.add_argument("--prior", type=prior_file, default=None, metavar="FILE.toml",
+                        help="prior per parameter: [NAME] lo = .., hi = .., form = 'uniform'|'loguniform' "
+                             "(--bounds override its boxes); stored in every result file")
 
 
 # ----------------------------------------------------------------------- checks needing the model
@@ -288,18 +294,25 @@ def check_names(model, names: Iterable[str], option: str) -> None:
                            f"{', '.join(model.parameter_names)}")
 
 
-def check_fix_bounds(model, fix: dict, bounds: dict) -> None:
-    """--fix / --bounds against the model: known names, sub-ranges of the prior box, fixed
-    values inside their box, and at least one parameter left free."""
+def prior_file(text: str) -> Prior:
+    """``--prior FILE.toml``: read and checked at parse time (:meth:`hbm.prior.Prior.from_toml`)."""
+    try:
+        return Prior.from_toml(text)
+    except HbmError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def check_fix_bounds(model, fix: dict, bounds: dict, prior: Prior | None = None) -> None:
+    """--fix / --bounds / --prior against the model: known names, fixed values inside their box
+    (the prior's, after --bounds), and at least one parameter left free."""
     check_names(model, fix, "--fix")
     check_names(model, bounds, "--bounds")
-    box = model.bounds
-    for k, (lo, hi) in bounds.items():
-        a, b = box[model.index(k)]
-        if lo < a or hi > b:
-            raise SettingError(f"--bounds {k}={lo:g}:{hi:g}: expected a sub-range of the prior box [{a:g}, {b:g}]")
+    box = {n: tuple(model.bounds[i]) for i, n in enumerate(model.parameter_names)}
+    if prior is not None:
+        box.update({n: (prior[n].lo, prior[n].hi) for n in model.parameter_names if n in prior})
+    box.update(bounds)
     for k, v in fix.items():
-        a, b = bounds.get(k, box[model.index(k)])
+        a, b = box[k]
         if not a <= v <= b:
             raise SettingError(f"--fix {k}={v:g}: expected a value inside the box [{a:g}, {b:g}]")
     if len(fix) >= model.n_params:
@@ -328,9 +341,29 @@ def build_model(args: argparse.Namespace):
         model = model.with_effects(*[resolve_effect(e) for e in effects])
     fix = dict(getattr(args, "fix", None) or {})
     bounds = dict(getattr(args, "bounds", None) or {})
-    check_fix_bounds(model, fix, bounds)
+    check_fix_bounds(model, fix, bounds, getattr(args, "prior", None))
     check_sweep(model, fix, getattr(args, "sweep", None))
     return model, fix, bounds
+
+
+def build_prior(model, args: argparse.Namespace) -> Prior | None:
+    """The prior of a run: the thesis box, then ``--prior``, then ``--bounds`` (which may widen).
+
+    ``None`` when neither option departs from the thesis box (the default path, bitwise as
+    before); otherwise a one-line :class:`~hbm.errors.HbmWarning` says how the prior departs.
+    """
+    file, bounds = getattr(args, "prior", None), dict(getattr(args, "bounds", None) or {})
+    if file is None and not bounds:
+        return None
+    if file is None and all(n in model.parameter_names and
+                            model.bounds[model.index(n)][0] <= lo and hi <= model.bounds[model.index(n)][1]
+                            for n, (lo, hi) in bounds.items()):
+        return None  # only narrowing --bounds: the likelihood's own narrowing, as before
+    prior = resolve_prior(model, file, bounds)
+    notice = prior.notice(model)
+    if notice:
+        warnings.warn(notice, HbmWarning, stacklevel=2)
+    return prior
 
 
 def check_domain(model, ds) -> None:

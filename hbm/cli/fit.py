@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
-from ..fit import fit_specimen
+from ..errors import HbmWarning
+from ..fit import fit_specimen, format_at_bounds
 from ..io import specimen_path
 from ..utils import prepare_output_dir, prepare_output_file, remove_stale_temps
-from ._common import (add_model_arguments, add_seed, build_model, check_population_memory, check_sobol_memory,
+from ._common import (add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
                       power_of_two_or_zero, sample_size, sweep, value_range)
 
@@ -53,12 +55,19 @@ def register(subparsers) -> None:
     p.add_argument("--checkpoint-dir", metavar="DIR",
                    help="TMCMC checkpoint folder: an interrupted fit resumes from its last stage")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (rmse, rmse_rel, coverage90, log_evidence(_se), map, "
+                        "combinations, at_bounds, ...) instead of the text report")
+    p.add_argument("--plot", type=plot_path, default=None, metavar="FILE",
+                   help="figure of data, best-fit curve and 90%% band (default: next to --out, .png)")
+    p.add_argument("--no-plot", action="store_true", help="no figure")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Check settings, sizes and paths, then fit and print the summary."""
     model, fix, bounds = build_model(args)
+    prior = build_prior(model, args)
     data = load_specimen_arg(args.specimen, args.sl0, model)
     points = n_points(data)
     check_population_memory(f"--samples {args.samples}", args.samples, points, model.n_params + 2)
@@ -68,18 +77,31 @@ def run(args: argparse.Namespace) -> int:
     sid = str(data.attrs.get("id", Path(args.specimen).stem))
     out = Path(args.out) if args.out else specimen_path("results", sid)
     checked = prepare_output_file(out, "--out")
+    figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
+    if figure is not None:
+        prepare_output_file(figure, "--plot")
     remove_stale_temps(checked.parent, recursive=False, target=out.name)  # of this file, left by a killed fit
     if args.checkpoint_dir is not None:
         ckdir = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
         remove_stale_temps(ckdir, recursive=False, target=f"{sid}.npz")
     res = fit_specimen(data, model=model, samples=args.samples, kernel=args.kernel, noise=args.noise,
-                       fix=fix or None, bounds=bounds or None, seed=args.seed, restarts=args.restarts,
+                       fix=fix or None, bounds=None if prior is not None else (bounds or None),
+                       prior=prior, seed=args.seed, restarts=args.restarts,
                        sweep=(args.sweep.name, args.sweep.width) if args.sweep else None,
                        sobol_n=args.sobol or None, checkpoint_dir=args.checkpoint_dir,
                        out=out, progress=not args.no_progress,
                        optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds)
-    print(res.table())
+    for item in res.quality(data)["at_bounds"]:
+        line = format_at_bounds([item])[0].removeprefix("warning: ")
+        warnings.warn(f"{res.result.specimen_id}: {line}", HbmWarning, stacklevel=1)
+    if figure is not None:
+        from ..plots.fit import fit_plot  # matplotlib is heavy: only when a figure is drawn
+        fit_plot(res, data, path=figure)
+    if args.json:
+        print_json(res.to_json())
+        return 0
+    print(res.report())
     t = res.timings
     print("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
-    print(f"wrote {res.path}")
+    print(f"wrote {res.path}" + (f" and {figure}" if figure is not None else ""))
     return 0

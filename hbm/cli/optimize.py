@@ -6,7 +6,7 @@ import argparse
 
 from ..likelihood import make_likelihood
 from ..optimization import optimize
-from ._common import (add_model_arguments, add_seed, build_model, check_population_memory, format_table,
+from ._common import (add_model_arguments, add_seed, build_model, build_prior, check_population_memory, format_table,
                       integer, load_specimen_arg, n_points, positive_int, print_json, sweep, value_range)
 
 DESCRIPTION = """\
@@ -56,13 +56,15 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the optimisation and print the optima."""
     model, fix, bounds = build_model(args)
+    prior = build_prior(model, args)
     ds = load_specimen_arg(args.specimen, args.sl0, model)
     if args.popsize is not None:  # IPOP doubles the population at every restart
         largest = args.popsize * 2 ** (args.restarts - 1)
         check_population_memory(f"--popsize {args.popsize} with --restarts {args.restarts} (IPOP: up to {largest})",
                                 largest, n_points(ds), model.n_params + 2)
     sweep_spec = (args.sweep.name, args.sweep.width) if args.sweep else None
-    lik = make_likelihood(model, ds, noise=args.noise, fix=fix, bounds=bounds, sigma_bounds=args.sigma_bounds)
+    lik = make_likelihood(model, ds, noise=args.noise, fix=fix, bounds=None if prior is not None else bounds,
+                          sigma_bounds=args.sigma_bounds, prior=prior)
     res = optimize(lik, restarts=args.restarts, seed=args.seed, objective=args.objective, sweep=sweep_spec,
                    popsize=args.popsize, maxfevals=args.maxfevals, progress=args.progress)
     out = res.to_dict()

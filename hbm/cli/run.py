@@ -10,7 +10,7 @@ from ..errors import SettingError
 from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
 from ..workflow import RunConfig, run_workflow
-from ._common import (add_model_arguments, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
+from ._common import (add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
                       sample_size, sweep)
 
@@ -130,6 +130,7 @@ def _check_sizes(cfg: RunConfig, datasets, model, fix: dict) -> None:
 def run(args: argparse.Namespace) -> int:
     """Check every setting, path and size, lock --out, then run the workflow."""
     model, fix, bounds = build_model(args)
+    prior = build_prior(model, args)
     pool = _pool(args.pool, free_parameters(model, fix))
     datasets = load_specimens(args.data, sl0=args.sl0)  # a bad or missing data folder fails before any fit
     for ds in datasets.values():
@@ -140,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
                     sweep=args.sweep.text if args.sweep else None, maxfevals=args.maxfevals,
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
-                    retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool)
+                    retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
+                    prior=prior.to_dict() if prior is not None else None)
     _check_sizes(cfg, datasets, model, fix)
     hooks = []
     if getattr(args, "geometry", None):

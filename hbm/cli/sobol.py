@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..sensitivity import sobol
-from ._common import (add_model_arguments, add_seed, build_model, check_sobol_memory, format_table,
+from ._common import (add_model_arguments, add_seed, build_model, build_prior, check_sobol_memory, format_table,
                       free_parameters, load_specimen_arg, n_points, power_of_two, print_json)
 
 DESCRIPTION = """\
@@ -54,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
     """Compute and print the indices."""
     n = args.n
     model, fix, bounds = build_model(args)
+    prior = build_prior(model, args)
+    if prior is not None:  # Sobol varies each parameter uniformly over its (natural) prior box
+        bounds = {n: (prior[n].lo, prior[n].hi) for n in model.parameter_names if n in prior}
     ds = load_specimen_arg(args.specimen, args.sl0, model)
     check_sobol_memory(f"--n {n}", n, len(free_parameters(model, fix)), model.n_params, n_points(ds))
     res = sobol(model, data=ds, bounds=bounds, fix=fix, n=n, qoi=args.qoi, seed=args.seed,
