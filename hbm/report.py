@@ -20,7 +20,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ._version import __version__
-from .fit import summarize
+from .fit import at_bounds, fit_quality, format_at_bounds, summarize
 from .identify import compare_manifolds
 from .model import COMBINATIONS, SHAPE_PARAMETERS
 from .utils import atomic_write_text
@@ -131,6 +131,32 @@ def _specimen(wres, sid: str, base: Path) -> str:
 def _specimens(wres, base: Path) -> str:
     """## Specimens: one subsection per specimen (:func:`_specimen`)."""
     return "\n\n".join(["## Specimens"] + [_specimen(wres, sid, base) for sid in sorted(wres.results)])
+
+
+def _fit_quality(wres, base: Path) -> str:
+    """## Fit quality and box edges: RMSE, predictive coverage and parameters on a prior edge."""
+    results = wres.results
+    if not results:
+        return ""
+    rows, edges = [], []
+    for sid in sorted(results):
+        r = results[sid]
+        try:
+            q = fit_quality(r)
+        except Exception as exc:  # a quality table is a bonus; never lose the report over it
+            rows.append([sid, f"(failed: {exc})", "", ""])
+            continue
+        rows.append([sid, fmt(q["rmse"]), f"{q['rmse_rel']:.2f}", f"{100 * q['coverage90']:.0f}%"])
+        edges += [f"- {sid}: " + line.removeprefix("warning: ") for line in format_at_bounds(at_bounds(r))]
+    text = ("## Fit quality and box edges\n\nRMSE of the best fit (MAP) and the fraction of points inside "
+            "the 90% posterior-predictive band.\n\n"
+            + _table(["specimen", "RMSE (MPa)", "RMSE (% of peak)", "90% coverage"], rows))
+    if edges:
+        text += ("\n\nParameters whose best fit, or more than 20% of whose posterior, lies within 2% of a box "
+                 "edge: the result there rests on the prior box, not on the data.\n\n" + "\n".join(edges))
+    else:
+        text += "\n\nNo parameter sits on a box edge."
+    return text
 
 
 def _combinations(wres, base: Path) -> str:
@@ -269,7 +295,8 @@ def _population_figures(wres, base: Path) -> str:
 
 
 #: the report's sections in order: ``f(workflow_result, base) -> markdown`` ("" leaves it out)
-SECTIONS: tuple[Callable[[Any, Path], str], ...] = (_header, _settings, _timings, _specimens, _combinations,
+SECTIONS: tuple[Callable[[Any, Path], str], ...] = (_header, _settings, _timings, _specimens, _fit_quality,
+                                                    _combinations,
                                                     _manifolds, _population, _variability, _population_figures)
 
 

@@ -204,13 +204,41 @@ def test_render_joins_sections_and_hooks(wres, tmp_path):
     wres.hierarchical = None
     txt = report.render_report(wres, extra_sections=[lambda w: "  ## Extra\n\nhello  ", broken])
     heads = [ln for ln in txt.splitlines() if ln.startswith("## ")]
-    assert heads == ["## Run settings", "## Timings (seconds)", "## Specimens",
+    assert heads == ["## Run settings", "## Timings (seconds)", "## Specimens", "## Fit quality and box edges",
                      "## Identifiable combinations (posterior mean [90% interval], MPa)",
                      "## VOLF–T1 manifolds across specimens", "## Specimen variability", "## Figures across specimens",
                      "## Extra", "## broken"]
     assert txt.endswith("\n\n## Extra\n\nhello\n\n## broken\n\n(failed: ValueError: no organ)\n")
     # the sections in order, empty ones left out (the header carries the time: compared up to it)
     sections = [f(wres, tmp_path) for f in report.SECTIONS]
-    assert sections[6] == ""  # no hierarchical layer
+    assert sections[7] == ""  # no hierarchical layer (_population, after the new _fit_quality)
     assert txt.startswith(sections[0].split(" UTC")[0][:-5])
     assert "\n\n".join(s for s in sections[1:] if s) + "\n\n## Extra" in txt
+
+
+def test_fit_quality_section_rmse_and_edges():
+    """The section's RMSE equals a hand computation at the MAP; an edge-piled posterior is listed."""
+    import types
+
+    import numpy as np
+
+    from hbm.data import synthetic_specimen
+    from hbm.fit import fit_specimen, map_prediction
+    from hbm.model import spyrou_model
+    from hbm.report import _fit_quality
+
+    model = spyrou_model()
+    theta = dict(VOLF=0.9, EOPT=0.1, P1=0.13, T1=1.5, T2=9.3, THETA=59.9, GF=0.012, GM=0.009)
+    ds = synthetic_specimen(model, theta, np.linspace(0, 0.4, 25), 0.002, seed=3)
+    res = fit_specimen(ds, model=model, samples=200, restarts=0, progress=False, seed=1)
+    r = res.result
+    mu = map_prediction(res)
+    rmse = float(np.sqrt(np.mean((np.asarray(ds["stress"]) - mu) ** 2)))
+    text = _fit_quality(types.SimpleNamespace(results={"s": r}), None)
+    row = [line for line in text.splitlines() if line.startswith("| s |")][0]
+    assert float(row.split("|")[2]) == pytest.approx(rmse, rel=1e-3)
+    from hbm.fit import at_bounds
+    edges = at_bounds(r)
+    assert edges  # THETA = 59.9 / T2 near the edges of the thesis box (tested with known fractions in test_fit_quality)
+    for e in edges:
+        assert f"s: {e['parameter']} at its {e['side']} bound {e['edge']:g}: {100 * e['fraction']:.0f}%" in text
