@@ -36,7 +36,7 @@ from .optimization import optimize as _cma
 from .samplers import tmcmc as _tmcmc
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
-           "posterior_predictive", "parse_sweep", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
+           "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
            "format_at_bounds", "map_prediction", "quality_lines", "EDGE_TOL", "EDGE_MASS", "RIDGE_NOTE"]
 
 #: a value lies "at" a box edge within this fraction of the box width (log width for loguniform)
@@ -296,16 +296,35 @@ def at_bounds(result, *, tol: float = EDGE_TOL, mass: float = EDGE_MASS, noise: 
         ``map_at_edge`` (bool).  Empty when nothing is at an edge.
     """
     r = _spec(result)
-    prior = _prior_of(r)
     row, _, _, _ = _map_row(r)
     skip = () if noise else set(_noise_names(r))
+    return edges(r.names, _prior_of(r), row, r.samples, tol=tol, mass=mass, skip=skip)
+
+
+def edges(names: Sequence[str], prior: Mapping[str, Mapping[str, Any]], best, samples, *,
+          tol: float = EDGE_TOL, mass: float = EDGE_MASS, skip: Sequence[str] = ()) -> list[dict[str, Any]]:
+    """The rule of :func:`at_bounds` for any fit: a best point, samples and per-parameter boxes.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Columns of ``best`` and ``samples``.
+    prior : {name: {"lo", "hi", "form"}}
+        Boxes (and forms) of the parameters to check; names not listed are skipped.
+    best : array (d,)
+        The best fit (natural units).
+    samples : array (n, d) or None
+        Posterior samples (natural units); ``None`` checks the best fit only.
+    """
+    best = np.asarray(best, float)
+    samples = np.empty((0, len(names))) if samples is None else np.asarray(samples, float)
     out = []
-    for i, n in enumerate(r.names):
+    for i, n in enumerate(names):
         if n not in prior or n in skip:
             continue
         p = prior[n]
-        x, a, b = _edge_coords(np.asarray(r.samples[:, i], float), float(p["lo"]), float(p["hi"]), p["form"])
-        xm, _, _ = _edge_coords(np.asarray([row[i]], float), float(p["lo"]), float(p["hi"]), p["form"])
+        x, a, b = _edge_coords(samples[:, i], float(p["lo"]), float(p["hi"]), p["form"])
+        xm, _, _ = _edge_coords(best[i:i + 1], float(p["lo"]), float(p["hi"]), p["form"])
         w = tol * (b - a)
         for side, near, near_map, edge in (("lower", x <= a + w, xm[0] <= a + w, p["lo"]),
                                            ("upper", x >= b - w, xm[0] >= b - w, p["hi"])):

@@ -114,3 +114,24 @@ def test_prior_file_errors_are_one_line(tmp_path, capsys):
     rc = main(["fit", "data/specimens/calvo2010_rat1.csv", "--prior", str(bad)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "--prior" in err[0] and "loguniform" in err[0], err
+
+
+def test_diagnose_reports_base_parameters_on_a_box_edge():
+    import types
+
+    from hbm.detective import _base_at_bounds
+    model = spyrou_model()
+    box = np.asarray(model.bounds, float)
+    names = list(model.parameter_names) + ["sigma"]
+    lik = types.SimpleNamespace(bounds=np.vstack([box, [[1e-4, 0.05]]]))
+    best = box.mean(axis=1).tolist() + [1e-4]
+    best[names.index("THETA")] = 59.95          # within 2 % of the 5-degree THETA box
+    rng = np.random.default_rng(0)
+    samples = np.tile(best, (1000, 1))
+    samples[:, names.index("THETA")] = rng.uniform(55.0, 60.0, 1000)  # 2 % of the posterior at each edge
+    base = types.SimpleNamespace(model=model, names=names, likelihood=lik, theta_max=np.array(best),
+                                 samples=samples)
+    with pytest.warns(HbmWarning, match="THETA at its upper bound 60"):
+        found = _base_at_bounds(base, "spec")
+    assert [(e["parameter"], e["side"], e["map_at_edge"]) for e in found] == [("THETA", "upper", True)]
+    assert found[0]["fraction"] == pytest.approx(0.02, abs=0.01)  # uniform draws: 2 % near the edge

@@ -30,10 +30,14 @@ Results and their text/JSON renderings live in :mod:`.results`, thresholds in :m
 from __future__ import annotations
 
 import time as _time
+import warnings
 from contextlib import contextmanager
 from typing import Mapping, Sequence
 
-from ..errors import HbmError
+import numpy as np
+
+from ..errors import HbmError, HbmWarning
+from ..fit import edges, format_at_bounds
 from ..model.core import Effect
 from .decision import decide
 from .fitting import Fitter
@@ -117,6 +121,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     with _stopwatch(timings, "refits"):       # ... and refit the best
         refit_candidates(results, ctrl, base, fitter, noise_models, top, seed)
     verdict = decide(results, ctrl, check.windows)  # 4. decision
+    edges_found = _base_at_bounds(base, d.name)
 
     timings["total"] = _time.perf_counter() - t_start
     timings["cpu"] = _time.process_time() - cpu_start
@@ -128,7 +133,22 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                      suggested_experiment=verdict.experiment, message=verdict.message, base=base,
                      coverage={k: v for k, v in cov.items() if k in ("band", "overall", "per_test", "along_strain")},
                      window_detail=[dict(w) for w in check.windows], timings=timings, data=d, skipped=skipped,
-                     residual_curve=check.residual_curve(cov, d.segment))
+                     residual_curve=check.residual_curve(cov, d.segment), at_bounds=edges_found)
+
+
+def _base_at_bounds(base: FitSummary, name: str) -> list[dict]:
+    """Base-model parameters on a box edge (best fit or > 20 % of the posterior), each also a
+    one-line :class:`~hbm.errors.HbmWarning`: the verdict is conditional on that box."""
+    model_names = set(base.model.parameter_names) if base.model is not None else set(base.names)
+    lik_box = np.asarray(base.likelihood.bounds, float) if base.likelihood is not None else None
+    if lik_box is None:
+        return []
+    boxes = {n: {"lo": float(lik_box[i, 0]), "hi": float(lik_box[i, 1]), "form": "uniform"}
+             for i, n in enumerate(base.names) if n in model_names}
+    found = edges(base.names, boxes, base.theta_max, base.samples)
+    for line in format_at_bounds(found):
+        warnings.warn(f"{name}: base fit: {line.removeprefix('warning: ')}", HbmWarning, stacklevel=3)
+    return found
 
 
 def _checked_fix(fix: Mapping[str, float] | None, names: Sequence[str]) -> dict[str, float]:

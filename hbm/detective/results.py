@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..fit import format_at_bounds
 from ..model.core import Effect, Model
 from .rules import BAND, DELTA_LOGZ_MIN
 
@@ -141,6 +142,9 @@ class Diagnosis:
         Prediction, residuals, standardised and smoothed residuals, band (for the figure).
     skipped : dict
         Candidate -> why it could not be screened (e.g. no time column).
+    at_bounds : list of dict
+        Base-model parameters whose best fit or posterior sits on a box edge
+        (:func:`hbm.fit.edges`): the verdict is conditional on that box.
     """
 
     verdict: str
@@ -158,6 +162,7 @@ class Diagnosis:
     data: Any = None
     residual_curve: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
+    at_bounds: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The JSON object of ``hbm diagnose --json`` (issue 5 shape plus detail keys)."""
@@ -179,6 +184,7 @@ class Diagnosis:
             "misfit_window_detail": jsonable(self.window_detail),
             "timings": jsonable(self.timings),
             "skipped_candidates": dict(self.skipped),
+            "at_bounds": jsonable(self.at_bounds),
         }
 
     def to_json(self) -> str:
@@ -190,6 +196,7 @@ class Diagnosis:
         lines = [f"model: {' + '.join(b.effects) or 'base'}   noise: {_noise_text(self.noise)}",
                  f"fit: RMSE {b.rmse:.4g} MPa, log Z {b.log_evidence:.2f} ± {b.log_evidence_se:.2f}, "
                  f"{int(BAND * 100)}% predictive coverage {self.coverage.get('overall', NAN):.2f}"]
+        lines += [f"base fit: {line.removeprefix('warning: ')}" for line in format_at_bounds(self.at_bounds)]
         mf = self.noise.get("model_free", {})
         if mf:
             lines.append(f"model-free noise: sigma {mf.get('sigma', NAN):.3g} MPa, "
