@@ -34,11 +34,12 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from . import io
+from . import identity, io
 from ._version import __version__
 from .data import load_specimens
 from .errors import HbmError
 from .fit import fit_specimen
+from .model import spyrou_model
 from .parallel import dask_client, map_specimens
 from .population import DEFAULT_SD_RANGE, PopulationConfig, run_population
 from .report import write_report
@@ -83,6 +84,8 @@ class RunConfig:
     tmcmc_options: dict | None = None
     #: user prior (:meth:`hbm.prior.Prior.to_dict`), or None for the model's box (uniform)
     prior: dict | None = None
+    #: reference sarcomere length (µm) for files with a sarcomere_length_um column (``--sl0``)
+    sl0: float | None = None
 
     def __post_init__(self) -> None:
         if self.quick:  # a smoke run: every phase, small budgets
@@ -120,11 +123,14 @@ def _settings_hash(settings: Mapping) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
-def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, options: Mapping) -> str:
+def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, options: Mapping,
+             identity_parts: Mapping[str, str] | None = None) -> str:
     """One dask task: fit one specimen and write ``out_path``; returns the path.
 
-    A retried task (worker lost) resumes from the TMCMC checkpoint.  A file that is already
-    complete with the same settings is returned untouched (idempotent).
+    ``settings_hash`` is the specimen's content key (:mod:`hbm.identity`), stored with the
+    result together with its components ``identity_parts``.  A retried task (worker lost)
+    resumes from the TMCMC checkpoint.  A file that is already complete with the same key is
+    returned untouched (idempotent).
     """
     for k, v in (("OMP_NUM_THREADS", "1"), ("OPENBLAS_NUM_THREADS", "1"), ("MKL_NUM_THREADS", "1")):
         os.environ.setdefault(k, v)
@@ -135,12 +141,18 @@ def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, 
     opts.setdefault("tmcmc_options", None)
     # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
     fit_specimen(data, seed=seed, out=out_path, checkpoint_dir=ck.parent, progress=False,
-                 config_extra={"settings_hash": settings_hash}, **opts)
+                 config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})}, **opts)
     return out_path
 
 
 def _stored_hash(path) -> str | None:
+    """The content key a finished specimen file was computed under (None for older files)."""
     return io.read_attrs(path).get("config", {}).get("settings_hash")
+
+
+def _stored_identity(path) -> dict | None:
+    """The key's components stored with a finished specimen file (None for older files)."""
+    return io.read_attrs(path).get("config", {}).get("identity")
 
 
 # ----------------------------------------------------------------------------- the run
@@ -194,20 +206,30 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     t_all = time.perf_counter()
     out = Path(cfg.out)
     (out / "specimens").mkdir(parents=True, exist_ok=True)
-    datasets = load_specimens(cfg.data)
+    datasets = load_specimens(cfg.data, sl0=cfg.sl0)
     ids = sorted(datasets)
+    model = model if model is not None else spyrou_model()
     settings = cfg.fit_settings()
     sigma_box = _common_sigma_box(datasets)
     settings["sigma_bounds"] = list(sigma_box)
     shash = _settings_hash(settings)
+    # one content key per specimen (hbm.identity): its data, the model, the settings (seed included)
+    parts = {sid: {"data": identity.data_key(datasets[sid]), "model": identity.model_key(model),
+                   "settings": shash} for sid in ids}
+    keys = {sid: identity.content_key(parts[sid]) for sid in ids}
     paths = {sid: io.specimen_path(out, sid) for sid in ids}
-    ckpts = {sid: out / "checkpoints" / f"{sid}-{shash}" / f"{sid}.npz" for sid in ids}
+    # a checkpoint is keyed by the content key: one made on other data or another model is never resumed
+    ckpts = {sid: out / "checkpoints" / f"{sid}-{keys[sid]}" / f"{sid}.npz" for sid in ids}
     todo, skipped = {}, []
     for sid in ids:
-        if io.is_complete(paths[sid]) and _stored_hash(paths[sid]) == shash:
+        complete = io.is_complete(paths[sid])
+        if complete and _stored_hash(paths[sid]) == keys[sid]:
             skipped.append(sid)
-        else:
-            todo[sid] = datasets[sid]
+            continue
+        todo[sid] = datasets[sid]
+        if complete:  # say why a finished result is not reused
+            what = identity.changed(_stored_identity(paths[sid]), parts[sid])
+            _log(f"{sid}: {', '.join(what) if what else 'result'} changed -- refitting", cfg.progress)
     _log(f"{len(ids)} specimens in {cfg.data}: {len(skipped)} complete (skipped), {len(todo)} to fit"
          + (f" ({sum(c.exists() for c in ckpts.values())} resuming from checkpoints)"
             if any(ckpts[s].exists() for s in todo) else ""), cfg.progress)
@@ -224,7 +246,8 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     else:
         ctx = dask_client(cfg.workers, cfg.scheduler)
     with ctx as cl:
-        wres = _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, shash, options, out, model, timings)
+        wres = _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, (keys, parts), options, out, model,
+                       timings)
 
     # ---- report
     t = time.perf_counter()
@@ -239,14 +262,16 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     return wres
 
 
-def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, shash, options, out, model, timings):
+def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, options, out, model, timings):
     """Fits (dask), hierarchical layer, identifiability, figures (dask) -> WorkflowResult."""
     t = time.perf_counter()
     errors: dict[str, str] = {}
     task_times: dict[str, float] = {}
     if todo:
-        mres = map_specimens(_fit_one, {sid: (todo[sid], str(paths[sid]), str(ckpts[sid])) for sid in todo},
-                             seed=cfg.seed, client=cl, kwargs={"settings_hash": shash, "options": options},
+        keys, parts = identities
+        mres = map_specimens(_fit_one, {sid: (todo[sid], str(paths[sid]), str(ckpts[sid]), keys[sid], parts[sid])
+                                        for sid in todo},
+                             seed=cfg.seed, client=cl, kwargs={"options": options},
                              prefix="fit", retries=cfg.retries, progress=cfg.progress,
                              checkpoints={sid: ckpts[sid] for sid in todo}, all_ids=ids)
         errors, task_times = mres.errors, mres.task_times
@@ -272,9 +297,25 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, shash, options,
     # ---- hierarchical layer
     if cfg.hierarchical and len(results) >= 2:
         t = time.perf_counter()
-        _log(f"hierarchical layer over {len(results)} specimens", cfg.progress)
-        wres.hierarchical, wres.hierarchical_path = run_population(results, datasets, model,
-                                                                   config=cfg.population_config(), out=out, client=cl)
+        hpath = out / "hierarchical.nc"
+        # keyed over the specimen results it pools and its own settings: reused when none changed
+        pop_cfg = cfg.population_config()
+        hkey = identity.content_key({
+            "specimens": identity.settings_key({sid: _stored_hash(paths[sid]) for sid in sorted(results)}),
+            "population": identity.settings_key({k: v for k, v in dataclasses.asdict(pop_cfg).items()
+                                                 if k not in ("progress", "retries")}),
+            "model": identity.model_key(model), "version": __version__})
+        stored = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
+        if stored is not None and stored.attrs.get("content_key") == hkey:
+            _log("hierarchical layer: reused (unchanged specimens and settings)", cfg.progress)
+            wres.hierarchical, wres.hierarchical_path = stored, hpath
+        else:
+            _log(f"hierarchical layer over {len(results)} specimens", cfg.progress)
+            wres.hierarchical, wres.hierarchical_path = run_population(results, datasets, model, config=pop_cfg,
+                                                                       out=out, client=cl)
+            if wres.hierarchical is not None and wres.hierarchical_path is not None:
+                wres.hierarchical.attrs["content_key"] = hkey
+                io.write_hierarchical(wres.hierarchical, wres.hierarchical_path)
         timings["hierarchical"] = time.perf_counter() - t
 
     # ---- identifiability and manifolds
@@ -320,8 +361,8 @@ def _figures_task(path: str, fig_dir: str, model=None) -> list[str]:
     return [str(p) for p in pspec.specimen_figures(r, fig_dir, model=model)]
 
 
-def _fit_one(item, *, seed, settings_hash: str, options: Mapping) -> str:
-    """map_specimens adapter: item = (dataset, out_path, checkpoint_path)."""
-    data, out_path, ckpt = item
-    return fit_task(data, seed=seed, out_path=out_path, checkpoint=ckpt, settings_hash=settings_hash,
-                    options=options)
+def _fit_one(item, *, seed, options: Mapping) -> str:
+    """map_specimens adapter: item = (dataset, out_path, checkpoint_path, content key, its parts)."""
+    data, out_path, ckpt, key, parts = item
+    return fit_task(data, seed=seed, out_path=out_path, checkpoint=ckpt, settings_hash=key, options=options,
+                    identity_parts=parts)

@@ -142,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
                     retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
-                    prior=prior.to_dict() if prior is not None else None)
+                    prior=prior.to_dict() if prior is not None else None, sl0=args.sl0)
     _check_sizes(cfg, datasets, model, fix)
     hooks = []
     if getattr(args, "geometry", None):
