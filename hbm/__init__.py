@@ -12,7 +12,7 @@ The main entry points, by role:
 """
 
 from ._version import __version__
-from ._import_guard import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
+from ._process import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
 from .model import Effect, Loading, Model, Parameter, State, spyrou_model
 from .data import load_specimen, load_specimens, save_specimen, synthetic_specimen
 from .likelihood import Likelihood, make_likelihood

@@ -13,21 +13,11 @@ Hierarchy::
     └── OutputError (OSError)     an output/checkpoint path that cannot be created, written or
         │                         replaced, or a full disk (names the file)
         └── OutputLockedError     the output folder is in use by another ``hbm run``
-
-This module imports nothing heavy: ``hbm/__init__.py`` calls :func:`exit_on_interrupt` before it
-imports numpy, scipy and xarray.
 """
 
 from __future__ import annotations
 
-import os
-import signal
-import sys
-import threading
-from typing import Callable
-
-__all__ = ["HbmError", "DataError", "SettingError", "TooLargeError", "OutputError", "OutputLockedError",
-           "exit_on_interrupt"]
+__all__ = ["HbmError", "DataError", "SettingError", "TooLargeError", "OutputError", "OutputLockedError"]
 
 
 class HbmError(Exception):
@@ -52,40 +42,3 @@ class OutputError(HbmError, OSError):
 
 class OutputLockedError(OutputError):
     """The output folder is locked by another running ``hbm run``."""
-
-
-def _running_as_command() -> bool:
-    """True in the process of the ``hbm`` command (console script or ``python -m hbm``)."""
-    argv0 = os.path.basename(sys.argv[0]) if sys.argv else ""
-    if os.path.splitext(argv0)[0] in ("hbm", "hbm-script"):
-        command = True
-    else:  # ``python [options] -m hbm ...``: while the package imports, sys.argv[0] is "-m"
-        orig = list(getattr(sys, "orig_argv", []))
-        command = "-mhbm" in orig or any(a == "-m" and b == "hbm" for a, b in zip(orig, orig[1:]))
-    if not command:
-        return False
-    import multiprocessing  # cheap; only on this path
-
-    # dask worker processes inherit the command's sys.argv but are not the command
-    return multiprocessing.parent_process() is None
-
-
-def exit_on_interrupt() -> Callable[[], None]:
-    """While the ``hbm`` command is still importing, Ctrl-C ends it as ``hbm: interrupted``.
-
-    Installs a SIGINT handler that prints that line and raises ``SystemExit(130)`` (no traceback)
-    -- only in the process of the ``hbm`` command, from its main thread, when SIGINT has Python's
-    default handler.  Returns the function that puts the previous handler back.  Anywhere else
-    (``import hbm`` in a script or notebook) nothing changes and KeyboardInterrupt propagates.
-    """
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler or not _running_as_command()):
-        return lambda: None
-
-    def interrupted(signum, frame):
-        sys.stderr.write("hbm: interrupted\n")
-        sys.stderr.flush()
-        raise SystemExit(130)
-
-    previous = signal.signal(signal.SIGINT, interrupted)
-    return lambda: signal.signal(signal.SIGINT, previous)
