@@ -12,7 +12,7 @@ The main entry points, by role:
 """
 
 from ._version import __version__
-from ._import_guard import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
+from ._process import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
 from .model import Effect, Loading, Model, Parameter, State, spyrou_model
 from .data import load_specimen, load_specimens, save_specimen, synthetic_specimen
 from .likelihood import Likelihood, make_likelihood
@@ -27,7 +27,7 @@ from .organ_report import predict_organ
 from . import data, effects, errors, io, organ
 from .detective import Diagnosis, diagnose, extend
 from .optimization import OptimizeResult, optimize
-from .errors import DataError, HbmError, OutputError, OutputLockedError, SettingError, TooLargeError
+from .errors import DataError, HbmError, HbmWarning, OutputError, OutputLockedError, SettingError, TooLargeError
 
 _restore_sigint()
 
@@ -38,4 +38,4 @@ __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "s
            "volf_t1_manifold", "FusiformGeometry", "load_geometry", "organ_response",
            "predict_organ", "FitResult", "fit_specimen", "RunConfig", "run_workflow", "Diagnosis", "diagnose", "extend",
            "data", "effects", "io", "organ", "errors", "HbmError", "DataError", "SettingError",
-           "TooLargeError", "OutputError", "OutputLockedError"]
+           "TooLargeError", "OutputError", "OutputLockedError", "HbmWarning"]

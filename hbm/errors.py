@@ -13,21 +13,12 @@ Hierarchy::
     └── OutputError (OSError)     an output/checkpoint path that cannot be created, written or
         │                         replaced, or a full disk (names the file)
         └── OutputLockedError     the output folder is in use by another ``hbm run``
-
-This module imports nothing heavy: ``hbm/__init__.py`` calls :func:`exit_on_interrupt` before it
-imports numpy, scipy and xarray.
 """
 
 from __future__ import annotations
 
-import os
-import signal
-import sys
-import threading
-from typing import Callable
-
 __all__ = ["HbmError", "DataError", "SettingError", "TooLargeError", "OutputError", "OutputLockedError",
-           "HbmWarning", "exit_on_interrupt"]
+           "HbmWarning"]
 
 
 class HbmError(Exception):
@@ -57,40 +48,3 @@ class OutputLockedError(OutputError):
 class HbmWarning(UserWarning):
     """A result rests on an assumption the user did not choose (a prior edge, few points, a
     departure from the thesis box); the ``hbm`` command prints it as one ``hbm: warning:`` line."""
-
-
-def _running_as_command() -> bool:
-    """True in the process of the ``hbm`` command (console script or ``python -m hbm``)."""
-    argv0 = os.path.basename(sys.argv[0]) if sys.argv else ""
-    if os.path.splitext(argv0)[0] in ("hbm", "hbm-script"):
-        command = True
-    else:  # ``python [options] -m hbm ...``: while the package imports, sys.argv[0] is "-m"
-        orig = list(getattr(sys, "orig_argv", []))
-        command = "-mhbm" in orig or any(a == "-m" and b == "hbm" for a, b in zip(orig, orig[1:]))
-    if not command:
-        return False
-    import multiprocessing  # cheap; only on this path
-
-    # dask worker processes inherit the command's sys.argv but are not the command
-    return multiprocessing.parent_process() is None
-
-
-def exit_on_interrupt() -> Callable[[], None]:
-    """While the ``hbm`` command is still importing, Ctrl-C ends it as ``hbm: interrupted``.
-
-    Installs a SIGINT handler that prints that line and raises ``SystemExit(130)`` (no traceback)
-    -- only in the process of the ``hbm`` command, from its main thread, when SIGINT has Python's
-    default handler.  Returns the function that puts the previous handler back.  Anywhere else
-    (``import hbm`` in a script or notebook) nothing changes and KeyboardInterrupt propagates.
-    """
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler or not _running_as_command()):
-        return lambda: None
-
-    def interrupted(signum, frame):
-        sys.stderr.write("hbm: interrupted\n")
-        sys.stderr.flush()
-        raise SystemExit(130)
-
-    previous = signal.signal(signal.SIGINT, interrupted)
-    return lambda: signal.signal(signal.SIGINT, previous)

@@ -47,28 +47,31 @@ _SHUTDOWN_LOGGERS = ("distributed", "tornado", "asyncio")
 
 
 @contextlib.contextmanager
-def _workers_ignore_sigint() -> Iterator[None]:
-    """Start worker processes that ignore SIGINT: Ctrl-C in a terminal reaches every process of
-    the foreground group, and the workers' KeyboardInterrupt tracebacks would bury the one line
-    of the main process, which shuts the cluster down itself.
+def _sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C back while the cluster and client start, then raise it: an interrupted
+    constructor would leave half-built objects whose finalizers print tracebacks at exit.
 
-    SIGINT is ignored (which the spawned workers inherit) and blocked (so that a Ctrl-C meanwhile
-    stays pending rather than being lost) while the cluster starts; afterwards the handler is
-    restored and a pending Ctrl-C is delivered as KeyboardInterrupt.
+    (The worker processes of the ``hbm`` command ignore SIGINT: :mod:`hbm._process`.)
     """
     import signal
     import threading
 
-    if threading.current_thread() is not threading.main_thread():
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
         yield
         return
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    old_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    received = []
+    signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
     try:
         yield
+    except BaseException:
+        if received:  # whatever failed meanwhile (a worker hit by the same Ctrl-C), the user interrupted
+            raise KeyboardInterrupt from None
+        raise
     finally:
-        signal.signal(signal.SIGINT, old_handler)
-        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is raised here
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if received:
+        raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
@@ -106,9 +109,9 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
                 dashboard: bool = False, silence_logs: bool = True) -> Iterator[Any]:
     """A ``distributed.Client``; closes what it created on exit.
 
-    The embedded cluster's workers ignore SIGINT (Ctrl-C interrupts the main process only, which
-    closes the cluster); when the body raises (KeyboardInterrupt included) the cluster is closed
-    with dask's logging silenced, so that the caller's one-line message stays the last word.
+    A Ctrl-C while the cluster starts is raised once it is up (and then closed); when the body
+    raises (KeyboardInterrupt included) the cluster is closed with dask's logging silenced, so
+    that the caller's one-line message stays the last word.
 
     Parameters
     ----------
@@ -139,12 +142,13 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
         else:
             for k, v in BLAS_ENV.items():  # also for anything spawned from this process
                 os.environ.setdefault(k, v)
-            with _workers_ignore_sigint():
+            # both objects exist before a Ctrl-C during startup is raised, so both get closed
+            with _sigint_deferred():
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                        dashboard_address=":8787" if dashboard else ":0",
                                        silence_logs=logging.ERROR if silence_logs else logging.WARNING,
                                        env=dict(BLAS_ENV), preload=["hbm._dask_worker"])
-            client = Client(cluster)
+                client = Client(cluster)
         yield client
     except BaseException:
         failed = True
