@@ -26,6 +26,7 @@ from typing import Any, Callable, Iterator, Mapping
 import numpy as np
 
 from . import seeds
+from ._dask_worker import drop_dask_unraisables
 from .errors import HbmError, OutputError
 from .samplers.tmcmc import checkpoint_progress
 
@@ -85,18 +86,8 @@ def _quiet_shutdown() -> Iterator[None]:
     for lg in loggers:
         lg.setLevel(logging.CRITICAL + 1)
     # a Client garbage-collected after its event loop closed reports "IOLoop is closed" through
-    # sys.unraisablehook (not logging), possibly after this block: drop those of dask's own
-    # objects for the rest of the (ending) process, keep all others
-    previous = sys.unraisablehook
-
-    def hook(unraisable) -> None:
-        obj = getattr(unraisable, "object", None)
-        module = getattr(obj, "__module__", None) or type(obj).__module__
-        if str(module).split(".")[0] in ("distributed", "tornado"):
-            return
-        previous(unraisable)
-
-    sys.unraisablehook = hook
+    # sys.unraisablehook (not logging), possibly after this block (the process is ending)
+    drop_dask_unraisables()
     try:
         yield
     finally:
