@@ -55,7 +55,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     add_data_arguments(p)
     add_seed(p, "seed of every random step (default 0)")
     p.add_argument("--samples", type=sample_size, default=None, metavar="N",
-                   help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; shrinks for slow models)")
+                   help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; use fewer for slow models)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
                    help="write the figure (PNG/PDF/SVG/...; into an existing folder)")

@@ -20,7 +20,7 @@ from ..optimization import optimize
 from ..samplers.tmcmc import tmcmc
 from .inputs import SpecimenData, added_effects
 from .results import FitSummary
-from .rules import BAND, TMCMC_BUDGET, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES
+from .rules import BAND, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES
 
 __all__ = ["Fitter", "coverage"]
 
@@ -71,11 +71,14 @@ def global_fit(lik, seed: int, restarts: int) -> tuple[np.ndarray, float]:
     return x, float(np.asarray(lik(x[None, :]))[0])
 
 
-def sample(lik, n_samples: int, seed: int, budget: float | None = TMCMC_BUDGET):
-    """TMCMC evidence run; the population shrinks for expensive models to keep the budget.
+def sample(lik, n_samples: int, seed: int, budget: float | None = None):
+    """TMCMC evidence run of ``n_samples`` particles.
 
-    The cost per particle evaluation is measured on a small batch; a run costs about
-    N · (steps per stage) · (≈ 15 stages) evaluations.
+    With a time ``budget`` (seconds, opt-in) the population shrinks for expensive models: the
+    cost per particle evaluation is measured on a small batch and a run costs about
+    N · (steps per stage) · (≈ 15 stages) evaluations.  Off by default, because a wall-clock
+    measurement makes N -- and so every TMCMC number -- depend on the machine's load: the same
+    seed must give the same diagnosis (shrink N for slow models with ``n_samples``/``--samples``).
     """
     n = int(n_samples)
     if budget:

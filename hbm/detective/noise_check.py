@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats as _stats
-from scipy.signal import lfilter
 
+from ..noise import make_noise
 from .inputs import SpecimenData
 from .results import FitSummary, jsonable
 from .rules import WINDOW_ALPHA
@@ -35,7 +35,7 @@ _DIFF = np.array([1.0, -3.0, 3.0, -1.0]) / np.sqrt(20.0)
 def _diff_var_factor(rho: float, lag: int) -> float:
     """Var(Σ a_j y_{i+j·lag}) / σ² for AR(1) noise with coefficient rho."""
     j = np.arange(_DIFF.size)
-    return float(_DIFF @ (rho ** (lag * np.abs(j[:, None] - j[None, :]))) @ _DIFF)
+    return float(_DIFF @ _AR1.autocorrelation((1.0, rho), lag * np.abs(j[:, None] - j[None, :])) @ _DIFF)
 
 
 def model_free_noise(stress: np.ndarray, segment: np.ndarray | None = None, max_lag: int = 4) -> dict:
@@ -98,47 +98,39 @@ def noise_prior_box(model_free: dict, stress: np.ndarray) -> tuple[float, float]
 # =========================================================================================
 # the AR(1) noise process and its whitening
 # =========================================================================================
-def _innovation_scale(rho: float) -> float:
-    """sd of the AR(1) innovations for unit marginal variance, √(1 − ρ²)."""
-    return math.sqrt(max(1.0 - rho * rho, 1e-12))
+#: the AR(1) noise model, for its autocorrelation rho**|lag| (hbm.noise)
+_AR1 = make_noise("ar1", history_starts=np.array([True]))  # autocorrelation needs no curve
+
+
+def _single_history(n: int) -> np.ndarray:
+    starts = np.zeros(int(n), bool)
+    starts[0] = True
+    return starts
 
 
 def simulate_ar1(rng: np.random.Generator, shape: tuple[int, ...], rho: float) -> np.ndarray:
-    """Stationary AR(1) noise with unit marginal variance along the last axis.
+    """Stationary AR(1) noise with unit marginal variance along the last axis of ``shape``
+    (rows × points): :meth:`hbm.noise.AR1Noise.standard_draws`, the one implementation.
 
     x_0 = e_0, x_t = ρ·x_{t−1} + √(1 − ρ²)·e_t with e iid N(0, 1) drawn from ``rng`` (one
-    ``standard_normal(shape)`` call, also for ρ = 0, so the stream does not depend on ρ).
+    ``standard_normal`` call, also for ρ = 0, so the stream does not depend on ρ).
     :func:`whitener` inverts it exactly.
     """
-    # TODO(noise): replace with hbm.noise
-    e = rng.standard_normal(shape)
-    if rho != 0.0:
-        e[..., 1:] *= _innovation_scale(rho)
-        e = lfilter([1.0], [1.0, -rho], e, axis=-1)   # the vectorised recursion
-    return e
+    rows, n = int(np.prod(shape[:-1], dtype=int)), int(shape[-1])
+    draws = make_noise("ar1", history_starts=_single_history(n)).standard_draws(rng, (1.0, float(rho)), n=rows)
+    return draws.reshape(shape)
 
 
 def whitener(sd: np.ndarray, rho: float, first: np.ndarray):
-    """Function mapping (n,) or (n, k) arrays to noise-whitened units.
+    """Function mapping (n,) or (n, k) arrays to noise-whitened units
+    (:meth:`hbm.noise.AR1Noise.whiten` with the given marginal sd).
 
     Divides by the marginal sd, then for AR(1) takes innovations (u_t = (z_t − ρ z_{t−1})/√(1−ρ²),
     u = z where the process restarts, ``first``), which makes the noise iid N(0, 1).
     """
-    # TODO(noise): replace with hbm.noise
+    noise = make_noise("ar1", history_starts=np.asarray(first, bool))
     sd = np.asarray(sd, float)
-    c = _innovation_scale(rho)
-
-    def w(a):
-        a = np.asarray(a, float)
-        z = a / (sd if a.ndim == 1 else sd[:, None])
-        if rho == 0.0:
-            return z
-        out = np.empty_like(z)
-        out[1:] = (z[1:] - rho * z[:-1]) / c
-        out[first] = z[first]
-        return out
-
-    return w
+    return lambda a: noise.whiten(a, (np.nan, float(rho)), sd=sd)
 
 
 # =========================================================================================
@@ -160,7 +152,7 @@ def _window_z(z: np.ndarray, rho: float, scales: list[int]) -> list[tuple[int, n
         if w > z.shape[-1]:
             continue
         k = np.arange(1, w)
-        var = (w + 2.0 * np.sum((w - k) * rho ** k)) / (w * w)   # variance of a w-point mean
+        var = (w + 2.0 * np.sum((w - k) * _AR1.autocorrelation((1.0, rho), k))) / (w * w)  # var of a w-point mean
         m = (cs[..., w:] - cs[..., :-w]) / w
         out.append((w, m / math.sqrt(var)))
     return out
