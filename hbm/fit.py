@@ -287,7 +287,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
                  optimize_options: Mapping[str, Any] | None = None,
                  sigma_bounds: tuple[float, float] | None = None,
                  config_extra: Mapping[str, Any] | None = None,
-                 on_phase: Callable[[str], None] | None = None) -> FitResult:
+                 on_phase: Callable[[str], None] | None = None,
+                 max_evaluations: int | None = None) -> FitResult:
     """CMA-ES optima, TMCMC posterior, posterior predictive and (optionally) Sobol for one specimen.
 
     Parameters
@@ -332,6 +333,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         Extra JSON-able entries for the stored ``config`` attribute (e.g. a settings hash).
     on_phase : callable, optional
         Called with the phase name when a phase starts (progress reporting).
+    max_evaluations : int, optional
+        Cap on TMCMC log-likelihood evaluations (:func:`hbm.samplers.tmcmc`); None = no cap.
 
     Returns
     -------
@@ -369,6 +372,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         ckpt = Path(checkpoint_dir) / f"{sid}.npz"
         ckpt.parent.mkdir(parents=True, exist_ok=True)
     opts = dict(tmcmc_options or {})
+    if max_evaluations is not None:
+        opts["max_evaluations"] = int(max_evaluations)
     if kernel == "manifold":
         opts.setdefault("gradient_fim", lik.gradient_fim)
     tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,
