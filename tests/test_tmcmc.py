@@ -614,3 +614,12 @@ def test_recycled_run_resumes_bitwise(tmp_path):
     res = tmcmc(ll, b, 300, seed=4, progress=False, preset="frugal", checkpoint=ck)
     assert res.resumed_from_stage > 0
     assert res.log_evidence == full.log_evidence and np.array_equal(res.samples, full.samples)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("problem", [GAUSS9, BANANA], ids=["gauss9", "banana"])
+def test_slow_accuracy_frugal(problem):
+    # the frugal preset (N = 1000, recycled stages, fitted-mixture moves) on the analytic checks
+    f, b, truth = problem
+    runs = [tmcmc(f, b, seed=s, progress=False, preset="frugal") for s in SEEDS]
+    _check_accuracy_and_se(runs, truth)
