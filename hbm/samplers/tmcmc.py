@@ -132,7 +132,9 @@ class TMCMCConfig:
         Hard cap on log-likelihood evaluations (particles, including the N of the initial
         population).  A stage's MH loop stops before a step that could exceed it, and once fewer
         than N evaluations remain the next stage jumps to β = 1 without moves; the result is then
-        flagged ``budget_exhausted`` (its SE reflects the cruder last stages).  None = no cap.
+        flagged ``budget_exhausted``.  The SE then comes from the crude forced last stage and is
+        only a lower bound: on the muscle benchmark a 120k budget on the frugal preset gave log Ẑ
+        errors of 26–37 nats with SE ≤ 1.  None = no cap.
     recycle : bool
         Keep the population of every stage (after its moves) and estimate the evidence and the
         posterior from all of them at once with the multistate bridge / MBAR equations
@@ -246,9 +248,10 @@ _LATE_FIELDS = {"max_evaluations": None, "recycle": False, "proposal": "rw", "mi
 #: Named settings for :func:`tmcmc` (``preset=``); explicit arguments override them.
 #: "frugal" (experimental): a smaller population whose stages are all recycled into the evidence
 #: and posterior (MBAR), moved by a fitted t-mixture independence proposal mixed with a
-#: cluster-local random walk, at most 30 steps per stage.  On the muscle benchmark it spends ~9x
-#: fewer evaluations than the defaults but is NOT yet as accurate there (log Ẑ ~2–3 nats low;
-#: workflows/benchmarks/evaluations_to_accuracy.py); on the Gaussian / bimodal checks it is.
+#: cluster-local random walk, at most 30 steps per stage.  On the muscle benchmark it spends ~8x
+#: fewer evaluations than the defaults (3.2e5 vs 2.4e6) but is NOT as accurate there (log Ẑ
+#: median 2.9 nats low, its island SE ~0.2 does not cover that; results/benchmarks/
+#: evaluations_to_accuracy.md); on the 9-D Gaussian / banana checks mean |error| 0.16 / 0.08.
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "frugal": {"n_samples": 1000, "recycle": True, "proposal": "mixture", "n_islands": 8,
