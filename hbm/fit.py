@@ -562,7 +562,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
                  sigma_bounds: tuple[float, float] | None = None,
                  config_extra: Mapping[str, Any] | None = None,
                  on_phase: Callable[[str], None] | None = None,
-                 prior: Prior | str | os.PathLike | Mapping | None = None) -> FitResult:
+                 prior: Prior | str | os.PathLike | Mapping | None = None,
+                 max_evaluations: int | None = None) -> FitResult:
     """CMA-ES optima, TMCMC posterior, posterior predictive and (optionally) Sobol for one specimen.
 
     Parameters
@@ -612,6 +613,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         User prior (:mod:`hbm.prior`); default the thesis box, uniform (bitwise the outputs of a
         fit without this argument).  Loguniform parameters are sampled in log coordinates; the
         stored posterior, optima, predictive and Sobol box are in natural units.
+    max_evaluations : int, optional
+        Cap on TMCMC log-likelihood evaluations (:func:`hbm.samplers.tmcmc`); None = no cap.
 
     Returns
     -------
@@ -652,6 +655,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         ckpt = Path(checkpoint_dir) / f"{sid}.npz"
         ckpt.parent.mkdir(parents=True, exist_ok=True)
     opts = dict(tmcmc_options or {})
+    if max_evaluations is not None:
+        opts["max_evaluations"] = int(max_evaluations)
     if kernel == "manifold":
         opts.setdefault("gradient_fim", lik.gradient_fim)
     tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,

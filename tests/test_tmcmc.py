@@ -500,3 +500,131 @@ def test_slow_mixture():
     # component means within 0.05 sd (sd = 0.1)
     hi = np.array([r.samples[r.samples[:, 0] > 0].mean(axis=0) for r in runs])
     assert np.all(np.abs(hi.mean(axis=0) - 0.5) <= 0.005)
+
+
+# ----------------------------------------------------------------------------------------
+# issue 16: recycling (MBAR), evaluation budget, fitted-mixture proposal
+# ----------------------------------------------------------------------------------------
+def _gauss_problem(d=3, s=0.3, mu=1.0, half=5.0):
+    """Gaussian likelihood exp(−|x−μ|²/2s²) (unnormalised) on a box: Z = (√(2π)s)^d/(2·half)^d."""
+    b = np.array([[-half, half]] * d)
+
+    def ll(x):
+        return -0.5 * np.sum((x - mu) ** 2, axis=1) / s**2
+
+    log_z = d * (0.5 * np.log(2 * np.pi) + np.log(s)) - d * np.log(2 * half)
+    return ll, b, log_z
+
+
+def test_mbar_log_evidence_exact_draws_match_closed_form():
+    # exact draws of the prior and of every tempered Gaussian p_β ∝ U(box)·L^β (β ≥ 0.3 keeps them
+    # > 4 sd inside the box); Z_β = (√(2π)s/√β)^d/(2·half)^d in closed form, Z_0 = 1
+    from hbm.samplers.tmcmc import mbar_log_evidence
+    d, s, half = 2, 0.5, 5.0
+    betas = np.array([0.0, 0.3, 0.6, 1.0])
+    rng = np.random.default_rng(0)
+    n = 4000
+    xs = [rng.uniform(-half, half, (n, d))] + [1.0 + rng.standard_normal((n, d)) * s / np.sqrt(b) for b in betas[1:]]
+    x = np.concatenate(xs)
+    ll = -0.5 * np.sum((x - 1.0) ** 2, axis=1) / s**2
+    f = mbar_log_evidence(ll, betas, np.full(len(betas), n))
+    truth = d * (0.5 * np.log(2 * np.pi) + np.log(s) - 0.5 * np.log(betas[1:])) - d * np.log(2 * half)
+    assert f[0] == 0.0
+    assert np.all(np.abs(f[1:] - truth) < 0.04), (f, truth)
+    # the single-stage importance estimate from the prior draws alone is much noisier: MBAR must
+    # be at least as close at β = 1
+    assert abs(f[-1] - truth[-1]) <= abs(np.log(np.mean(np.exp(ll[:n]))) - truth[-1]) + 0.01
+
+
+def test_recycled_tmcmc_evidence_and_posterior_on_gaussian():
+    ll, b, log_z = _gauss_problem()
+    errs = []
+    for seed in range(3):
+        r = tmcmc(ll, b, 800, seed=seed, progress=False, recycle=True, n_islands=8)
+        errs.append(r.log_evidence - log_z)
+        assert abs(r.log_evidence - log_z) < 3 * r.log_evidence_se + 0.05
+        assert np.allclose(r.samples.mean(axis=0), 1.0, atol=0.05)
+        assert np.allclose(r.samples.std(axis=0), 0.3, rtol=0.1)
+        assert np.isfinite(r.log_evidence_classic)
+    assert np.mean(np.abs(errs)) < 0.15
+
+
+@pytest.mark.parametrize("kw", [{}, {"preset": "frugal"}, {"transform": "none"}])
+def test_max_evaluations_is_respected_exactly(kw):
+    ll, b, _ = _gauss_problem()
+    rows = [0]
+
+    def counted(x):
+        rows[0] += len(x)
+        return ll(x)
+
+    budget = 7 * 400 + 123
+    r = tmcmc(counted, b, 400, seed=1, progress=False, max_evaluations=budget, **kw)
+    assert rows[0] == r.n_evaluations <= budget
+    assert r.budget_exhausted
+    assert r.beta[-1] == 1.0 and np.isfinite(r.log_evidence) and r.log_evidence_se > 0
+    free = tmcmc(ll, b, 400, seed=1, progress=False, **kw)
+    assert not free.budget_exhausted and free.n_evaluations > budget
+
+
+def test_max_evaluations_below_population_is_an_error():
+    ll, b, _ = _gauss_problem()
+    with pytest.raises(HbmError, match="max_evaluations"):
+        tmcmc(ll, b, 400, seed=1, progress=False, max_evaluations=399)
+    with pytest.raises(HbmError, match="preset"):
+        tmcmc(ll, b, seed=1, progress=False, preset="nope")
+
+
+def test_mixture_proposal_on_bimodal_target():
+    # two equal Gaussian modes: the fitted-mixture independence moves must find both (weights 1/2)
+    b = np.array([[-6.0, 6.0]] * 2)
+
+    def ll(x):
+        a = -0.5 * np.sum((x - 2.5) ** 2, axis=1) / 0.2**2
+        c = -0.5 * np.sum((x + 2.5) ** 2, axis=1) / 0.2**2
+        return np.logaddexp(a, c)
+
+    log_z = np.log(2) + 2 * (0.5 * np.log(2 * np.pi) + np.log(0.2)) - 2 * np.log(12.0)
+    r = tmcmc(ll, b, 1000, seed=2, progress=False, preset="frugal")
+    share = np.mean(r.samples[:, 0] > 0)
+    assert 0.4 < share < 0.6
+    assert abs(r.log_evidence - log_z) < max(3 * r.log_evidence_se, 0.15)
+
+
+def test_recycled_run_resumes_bitwise(tmp_path):
+    ll, b, _ = _gauss_problem()
+    ck = tmp_path / "c.npz"
+    n_calls = [0]
+
+    def counted(x):
+        n_calls[0] += 1
+        return ll(x)
+
+    full = tmcmc(counted, b, 300, seed=4, progress=False, preset="frugal")
+    calls = [0]
+
+    def dying(x):
+        calls[0] += 1
+        if calls[0] == (2 * n_calls[0]) // 3:  # late in the run: several stages checkpointed
+            raise KeyboardInterrupt
+        return ll(x)
+
+    with pytest.raises(KeyboardInterrupt):
+        tmcmc(dying, b, 300, seed=4, progress=False, preset="frugal", checkpoint=ck)
+    res = tmcmc(ll, b, 300, seed=4, progress=False, preset="frugal", checkpoint=ck)
+    assert res.resumed_from_stage > 0
+    assert res.log_evidence == full.log_evidence and np.array_equal(res.samples, full.samples)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("problem", [GAUSS9, BANANA], ids=["gauss9", "banana"])
+def test_slow_accuracy_frugal(problem):
+    # the frugal preset (N = 1000, recycled stages, fitted-mixture moves) on the analytic checks;
+    # measured 2026-11-23 on the 9-D Gaussian: mean |log Ẑ error| 0.157 with ~124k evaluations,
+    # spread/SE 0.92 (the default's 0.1 bound is not met: an honest, looser guard here)
+    f, b, truth = problem
+    runs = [tmcmc(f, b, seed=s, progress=False, preset="frugal") for s in SEEDS]
+    z = np.array([r.log_evidence for r in runs])
+    se = np.array([r.log_evidence_se for r in runs])
+    assert np.mean(np.abs(z - truth)) <= 0.25, (z.mean(), truth)
+    assert 0.5 <= z.std(ddof=1) / se.mean() <= 2.0
