@@ -22,6 +22,7 @@ from .sensitivity import SobolResult, sobol
 from .identify import identifiable_directions, volf_t1_manifold
 from .organ import FusiformGeometry, load_geometry, organ_response
 from .fit import FitResult, fit_specimen
+from .prior import Prior, resolve_prior
 from .workflow import RunConfig, run_workflow
 from .organ_report import predict_organ
 from . import data, effects, errors, io, organ
@@ -36,6 +37,6 @@ __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "s
            "Likelihood", "make_likelihood", "TMCMCResult", "tmcmc", "HierarchicalResult", "hierarchical",
            "SobolResult", "sobol", "OptimizeResult", "optimize", "identifiable_directions",
            "volf_t1_manifold", "FusiformGeometry", "load_geometry", "organ_response",
-           "predict_organ", "FitResult", "fit_specimen", "RunConfig", "run_workflow", "Diagnosis", "diagnose", "extend",
+           "predict_organ", "FitResult", "fit_specimen", "Prior", "resolve_prior", "RunConfig", "run_workflow", "Diagnosis", "diagnose", "extend",
            "data", "effects", "io", "organ", "errors", "HbmError", "DataError", "SettingError",
            "TooLargeError", "OutputError", "OutputLockedError", "HbmWarning"]
