@@ -78,6 +78,8 @@ def _effect_description(e) -> dict:
 def model_key(model) -> str:
     """Hash of a model: name, effects (id, class, options), parameter names and prior box."""
     return _sha(_json({"name": getattr(model, "name", type(model).__name__),
+                       # explicit, so the key does not rely on the name spelling out the form
+                       "form": getattr(model, "form", None),
                        "effects": [_effect_description(e) for e in getattr(model, "effects", ())],
                        "parameters": list(getattr(model, "parameter_names", ())),
                        "bounds": np.asarray(getattr(model, "bounds", []), float)}))

@@ -47,6 +47,18 @@ def test_model_key_distinguishes_models():
     assert identity.model_key(spyrou_model()) == identity.model_key(spyrou_model())
 
 
+def test_model_key_sees_form_attribute_and_box():
+    class M:  # a model whose name does not spell out its form or box
+        name, effects, parameter_names = "m", (), ("A",)
+
+        def __init__(self, form, hi):
+            self.form, self.bounds = form, [[0.0, hi]]
+
+    assert identity.model_key(M("thesis", 1.0)) == identity.model_key(M("thesis", 1.0))
+    assert identity.model_key(M("thesis", 1.0)) != identity.model_key(M("energy", 1.0))
+    assert identity.model_key(M("thesis", 1.0)) != identity.model_key(M("thesis", 1.0 + 1e-12))
+
+
 def test_changed_names_the_parts():
     old = {"data": "1", "model": "2", "settings": "3"}
     assert identity.changed(old, {**old, "data": "x"}) == ["data"]
