@@ -71,24 +71,17 @@ def global_fit(lik, seed: int, restarts: int) -> tuple[np.ndarray, float]:
     return x, float(np.asarray(lik(x[None, :]))[0])
 
 
-def sample(lik, n_samples: int, seed: int, budget: float | None = None):
+def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None):
     """TMCMC evidence run of ``n_samples`` particles.
 
-    With a time ``budget`` (seconds, opt-in) the population shrinks for expensive models: the
-    cost per particle evaluation is measured on a small batch and a run costs about
-    N · (steps per stage) · (≈ 15 stages) evaluations.  Off by default, because a wall-clock
-    measurement makes N -- and so every TMCMC number -- depend on the machine's load: the same
-    seed must give the same diagnosis (shrink N for slow models with ``n_samples``/``--samples``).
+    With an evaluation budget ``max_evaluations`` (opt-in) the population shrinks to what the
+    budget affords: a run costs about N · (steps per stage) · (≈ 15 stages) likelihood
+    evaluations.  The size depends only on the inputs (never on a wall-clock measurement), so
+    the same seed gives the same diagnosis under any machine load.
     """
     n = int(n_samples)
-    if budget:
-        rng = np.random.default_rng(seed)
-        b = np.asarray(lik.bounds, float)
-        x = b[:, 0] + rng.uniform(0.2, 0.8, (128, b.shape[0])) * (b[:, 1] - b[:, 0])
-        t0 = _time.perf_counter()
-        lik(x)
-        per = (_time.perf_counter() - t0) / 128
-        n = int(np.clip(budget / max(per * 15 * TMCMC_MAX_STEPS, 1e-12), TMCMC_MIN_SAMPLES, n))
+    if max_evaluations:
+        n = int(np.clip(int(max_evaluations) // (15 * TMCMC_MAX_STEPS), TMCMC_MIN_SAMPLES, n))
     return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
                  max_steps=TMCMC_MAX_STEPS)
 
@@ -244,9 +237,7 @@ class Fitter:
             # new noise parameters start from moment estimates of the previous residuals
             # (CMA-ES started on a bound, e.g. rho = 0, tends to stay there)
             r = self.data.stress - np.asarray(prev["lik"].predict(prev["x"][None, :]))[0]
-            cont = ~self.data.ar_first[1:]
-            r1 = float(np.sum(r[1:][cont] * r[:-1][cont]) / max(np.sum(r * r), 1e-300))
-            guess = {"rho": float(np.clip(r1, 0.05, 0.9)), "sigma_rel": 0.05}
+            guess = lik.noise_model.moment_guess(r)
             x0 = np.array([vals.get(n, guess.get(n, np.nan)) for n in lik.names])
             x0s = [fill_nan(x0, b)] + x0s[:1]
             x, f = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=800)

@@ -22,7 +22,6 @@ SCREEN_STEPS = (1e-4, 0.1, 0.3)  # derivative and secant steps (fractions of the
 
 # --- evidence runs
 TMCMC_MAX_STEPS = 25      # MH steps per stage cap: the time budget of a diagnosis (≤ 60 s)
-TMCMC_BUDGET = 6.0        # seconds per evidence run when a caller opts into the time budget (fitting.sample)
 TMCMC_MIN_SAMPLES = 250
 MIN_POINTS = 5            # the smallest curve diagnose/extend accept (as hbm fit)
 FEW_POINTS = 10           # below this a one-line warning says the detective has little power
