@@ -46,7 +46,9 @@ from .decision import Verdict, decide, gain
 from .fitting import Fitter
 from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
 from .noise_check import NoiseCheck, check_noise, misfit_windows, model_free_noise, noise_prior_box
+from .power import detection_power
 from .refits import refit_candidates
+from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
 from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, RUNNER_UP_MARGIN
 from .screen import local_refit_screen, score_screen, screen_candidates
@@ -211,11 +213,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     edges_found = _base_at_bounds(first.base, d.name)
     extra = {}
     if removal and problem is None:
-        from .removal import removal_test  # noqa: PLC0415 - sibling module, imported on demand
         with _stopwatch(timings, "removal"):
             extra["removal"] = removal_test(first.base, fitter, seed + 9000)
     if power:
-        from .power import detection_power  # noqa: PLC0415 - sibling module, imported on demand
         with _stopwatch(timings, "power"):
             extra["power"] = detection_power(current, d, cands, seed + 9100)
 

@@ -127,29 +127,32 @@ class LocalMisfit(_StrainControl):
         return np.exp(-0.5 * z * z)
 
 
-class StepMisfit(_StrainControl):
+class _SharpControl(_StrainControl):
+    """A strain control whose transition can be sharp (a few points wide)."""
+
+    width = (0.003, 0.1)
+    reach = 4.0
+
+
+class StepMisfit(_SharpControl):
     """A smooth step in strain, ``A / (1 + exp(−(ε − C)/W))``: extra load engaging (or lost) at C."""
 
     name = "local_step"
     prefix = "STEP"
     strength = "STEP_A"
-    width = (0.003, 0.1)
-    reach = 4.0
     description = "non-physical control: smooth stress step in strain (amplitude, centre, width)"
 
     def shape(self, loading, q):
         return 0.5 * (1.0 + np.tanh(0.5 * self._z(loading, q)))
 
 
-class KinkMisfit(_StrainControl):
+class KinkMisfit(_SharpControl):
     """A change of slope at strain C, ``A·W·softplus((ε − C)/W)/span``: A is the stress change
     the new slope adds over the whole strain span."""
 
     name = "local_kink"
     prefix = "KINK"
     strength = "KINK_A"
-    width = (0.003, 0.1)
-    reach = 4.0
     description = "non-physical control: change of slope in strain (amplitude, position, smoothness)"
 
     def shape(self, loading, q):

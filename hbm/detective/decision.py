@@ -23,17 +23,13 @@ from typing import Sequence
 
 import numpy as np
 
-from ..effects import CONFUSABLE_GROUPS, SEPARATING_EXPERIMENT
+from ..effects import CONFUSABLE_GROUPS
+from .protocols import describe_protocol, experiments_for, protocol_features
 from .refits import primary_parameters
 from .results import CandidateResult
 from .rules import DELTA_LOGZ_MIN, REMOVE_TOL, RUNNER_UP_MARGIN
 
 __all__ = ["Verdict", "decide", "gain"]
-
-#: suggested when no known group covers the tied candidates
-_GENERIC_EXPERIMENT = ("a protocol that exercises the effects differently: several strain rates and a relaxation "
-                       "hold (viscoelasticity), load-unload-reload cycles (damage), a pinned reference length (slack)")
-
 
 @dataclass(frozen=True, slots=True)
 class Verdict:
@@ -86,7 +82,7 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
                     g_best - gain(c) < max(RUNNER_UP_MARGIN, 2 * math.hypot(best.delta_log_evidence_se,
                                                                              c.delta_log_evidence_se))]
             if tied:
-                return _group(best, tied)
+                return _group(best, tied, data)
             iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
                            if k in primary_parameters(best.effect_instance))
             return Verdict("effect", [best.effect], [], "",
@@ -140,25 +136,12 @@ def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: 
                    "hold ending inside it) and a user-written candidate effect for it", msg, where)
 
 
-def _group(best: CandidateResult, tied: list[CandidateResult]) -> Verdict:
+def _group(best: CandidateResult, tied: list[CandidateResult], data) -> Verdict:
     members = [best.effect] + [c.effect for c in tied]
     # name the known confusable group of the best candidate too
     known = [tuple(g) for g in CONFUSABLE_GROUPS if best.effect in g]
-    return Verdict("group", [], members, _experiment_for(members),
+    feats = protocol_features(data)
+    return Verdict("group", [], members, experiments_for(members, feats) + f"; this file: {describe_protocol(feats)}",
                    f"{', '.join(members)} explain the misfit about equally (Δlog Z "
                    + ", ".join(f"{gain(c):.1f}" for c in [best] + tied) + ")"
                    + (f"; known confusable group: {', '.join(known[0])}" if known else ""))
-
-
-def _experiment_for(group: Sequence[str]) -> str:
-    """The experiment of the known group containing ``group`` (else of the one overlapping
-    it most; else a generic protocol)."""
-    gs = set(group)
-    best, best_overlap = "", 0
-    for members, text in SEPARATING_EXPERIMENT.items():
-        overlap = len(members & gs)
-        if members >= gs and overlap:
-            return str(text)
-        if overlap > best_overlap:
-            best, best_overlap = str(text), overlap
-    return best or _GENERIC_EXPERIMENT

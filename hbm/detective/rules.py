@@ -28,3 +28,7 @@ TMCMC_MIN_SAMPLES = 250
 MIN_POINTS = 5            # the smallest curve diagnose/extend accept (as hbm fit)
 FEW_POINTS = 10           # below this a one-line warning says the detective has little power
 PASSIVE_STRESS_RANGE = (1e-3, 2.0)  # MPa: what passive muscle reaches (a file far outside: wrong units)
+
+# --- detection power (hbm diagnose --power)
+POWER_REPLICATES = 200    # noise replicates per effect strength (linearised refits, vectorised)
+POWER_LEVEL = 0.8         # share of replicates in which an effect must be named at its detection limit
