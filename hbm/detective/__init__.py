@@ -37,6 +37,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from .. import seeds as _seeds
 from ..errors import HbmError, HbmWarning
 from ..fit import edges, format_at_bounds
 from ..model.core import Effect
@@ -66,6 +67,12 @@ def _stopwatch(timings: dict, key: str):
     t0 = _time.perf_counter()
     yield
     timings[key] = timings.get(key, 0.0) + _time.perf_counter() - t0
+
+
+def _seed(seed: int, j: int) -> int:
+    """Child ``j`` of the run's ``detective`` stream (:mod:`hbm.seeds`) as a small int seed (the
+    optimisers add offsets and CMA-ES needs seeds below 2**32 / 7919)."""
+    return int(_seeds.child(_seeds.stream(seed, "detective"), j).generate_state(1)[0] % 400_000)
 
 
 def _noise_models(noise: str | None, noise_models: Sequence[str]) -> list[str]:
@@ -190,17 +197,17 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress)
 
     with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
-        base = fitter.fit(base_model, noises, None, seed, global_restarts=2)
+        base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
     problem = unit_anomaly(d)
     rounds: list[_Step] = []
     selected: list[str] = []
     current, remaining = base, list(cands)
     if problem is not None:
-        check = check_noise(base, mf, d, seed)
+        check = check_noise(base, mf, d, _seed(seed, 1))
         rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
     else:
         for k in range(max(0, int(max_effects)) + 1):   # 2.-4., then again after each named effect
-            st = _round(current, remaining, fitter, mf, d, noises, top, seed + 5000 * k, timings)
+            st = _round(current, remaining, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
             rounds.append(st)
             if st.verdict.verdict != "effect" or len(selected) >= max_effects:
                 break
@@ -214,10 +221,10 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     extra = {}
     if removal and problem is None:
         with _stopwatch(timings, "removal"):
-            extra["removal"] = removal_test(first.base, fitter, seed + 9000)
+            extra["removal"] = removal_test(first.base, fitter, _seed(seed, 90))
     if power:
         with _stopwatch(timings, "power"):
-            extra["power"] = detection_power(current, d, cands, seed + 9100)
+            extra["power"] = detection_power(current, d, cands, _seed(seed, 91))
 
     timings["total"] = _time.perf_counter() - t_start
     timings["cpu"] = _time.process_time() - cpu_start
@@ -313,7 +320,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         raise HbmError("extend: give effects to add (--add EFFECT[,EFFECT...]) or auto=True (--auto)")
     mf = model_free_noise(d.stress, d.segment)
     fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress)
-    steps = [fitter.fit(current, list(noise_models), None, seed, global_restarts=2)]
+    steps = [fitter.fit(current, list(noise_models), None, _seed(seed, 0), global_restarts=2)]
     decisions: list = []
 
     def add_step(e: Effect, k: int, start: Mapping[str, float] | None = None):
@@ -321,7 +328,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         mc = current.with_effects(e)
         starts = fitter.warm_starts(steps[-1], mc, noise_models,
                                     [{q.name: q.null for q in e.parameters}] + ([start] if start else []))
-        steps.append(fitter.fit(mc, list(noise_models), starts, seed + 1000 * k))
+        steps.append(fitter.fit(mc, list(noise_models), starts, _seed(seed, 1 + k)))
         current = mc
 
     for k, e in enumerate(adds):               # the given effects, in order

@@ -20,7 +20,7 @@ from ..model.core import Effect
 from .fitting import Fitter, cma_maximise, laplace_occam
 from .inputs import added_effects
 from .results import CandidateResult, FitSummary
-from .rules import MIN_REFIT_SCORE, N_CONTROL_REFITS
+from .rules import MIN_REFIT_SCORE, N_CONTROL_REFITS, TMCMC_SE_FACTOR
 
 __all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains"]
 
@@ -160,27 +160,28 @@ def primary_parameters(e: Effect) -> list[str]:
 # Laplace evidence in the new parameters
 # =========================================================================================
 def _evidence_gain(c: CandidateResult, fs: FitSummary, base: FitSummary) -> None:
-    """Δlog Z of a refit: a Laplace estimate in the new parameters, cross-checked by TMCMC.
+    """Δlog Z of a refit: the TMCMC difference against the best base, with a calibrated SE.
 
-    The base and extended models share the base parameters, whose Occam factors cancel in a
-    nested comparison; so Δlog Z ≈ Δmax log L + Occam(new) − Occam(dropped) (Laplace in the
-    new parameters at the optimum, :func:`_laplace_occam`; "dropped" appears when the noise
-    model changes, e.g. AR(1) → iid).  This is the decision statistic.  The difference of the
-    two TMCMC evidences is reported next to it (``delta_log_evidence_tmcmc``) with the TMCMC
-    standard error: at the population sizes a ≤ 60 s diagnosis affords, TMCMC evidences on
-    this model scatter by several nats between seeds (measured: ±5–15 nats at N = 300–800,
-    DESIGN §6 explains why), which is the size of the decision threshold itself, whereas the
-    optimum-based estimate is reproducible.
+    One evidence number per candidate: the difference of the two TMCMC log-evidences.  Its
+    standard error is the TMCMC estimate × ``TMCMC_SE_FACTOR`` (2.5): the estimate alone
+    under-covers the seed-to-seed scatter (measured over 12 seeds on the demo's viscoelastic
+    case: sd of Δlog Z 1.69 nats against a mean reported SE of 0.68; README, detective section).
+    The Laplace estimate in the new parameters at the optimum (Δmax log L + Occam(new) −
+    Occam(dropped); "dropped" appears when the noise model changes, e.g. AR(1) → iid) is kept
+    as a screen and a fallback when no TMCMC run exists.
     """
     dz_t = fs.log_evidence - base.log_evidence
-    se = float(math.hypot(fs.log_evidence_se, base.log_evidence_se))
+    se = TMCMC_SE_FACTOR * float(math.hypot(fs.log_evidence_se, base.log_evidence_se))
     c.delta_max_log_likelihood = fs.max_log_likelihood - base.max_log_likelihood
     new = [n for n in fs.names if n not in base.names]
     gone = [n for n in base.names if n not in fs.names]
     dz_l = (c.delta_max_log_likelihood + laplace_occam(fs.likelihood, fs.theta_max, fs.names, new, fs.samples)
             - laplace_occam(base.likelihood, base.theta_max, base.names, gone, base.samples))
     c.delta_log_evidence_tmcmc, c.delta_log_evidence_laplace = dz_t, dz_l
-    c.delta_log_evidence, c.evidence_method = dz_l, "laplace"
+    if np.isfinite(dz_t):
+        c.delta_log_evidence, c.evidence_method = dz_t, "tmcmc"
+    else:
+        c.delta_log_evidence, c.evidence_method = dz_l, "laplace"
     c.delta_log_evidence_se = se
 
 

@@ -25,6 +25,7 @@ SCREEN_STEPS = (1e-4, 0.1, 0.3)  # derivative and secant steps (fractions of the
 # --- evidence runs
 TMCMC_MAX_STEPS = 25      # MH steps per stage cap: the time budget of a diagnosis (≤ 60 s)
 TMCMC_MIN_SAMPLES = 250
+TMCMC_SE_FACTOR = 2.5     # reported SE × this covers the seed-to-seed scatter of Δlog Z (12 seeds, README)
 MIN_POINTS = 5            # the smallest curve diagnose/extend accept (as hbm fit)
 FEW_POINTS = 10           # below this a one-line warning says the detective has little power
 PASSIVE_STRESS_RANGE = (1e-3, 2.0)  # MPa: what passive muscle reaches (a file far outside: wrong units)
