@@ -166,7 +166,7 @@ def _named_fraction(model: Model, eff: Effect, others: Sequence[Effect], ctrls: 
 
 def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effect], seed: int,
                     n_rep: int = POWER_REPLICATES, level: float = POWER_LEVEL, n_levels: int = 7,
-                    refine: int = 3) -> dict:
+                    refine: int = 3, with_controls: bool = True) -> dict:
     """Detection limit of every candidate effect on this specimen's protocol and fitted noise.
 
     Parameters
@@ -186,6 +186,8 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
     n_levels, refine : int
         Strengths on a geometric grid toward the far bound of the strength parameter, then
         bisection steps between the last missed and the first named strength.
+    with_controls : bool
+        Let the non-physical controls compete (the decision rule; ``False`` only for checks).
 
     Returns
     -------
@@ -213,7 +215,7 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
         except HbmError:
             continue   # e.g. viscoelasticity without a time column
         usable.append(e)
-    ctrls = controls_for(d)
+    ctrls = controls_for(d) if with_controls else []
     feats = protocol_features(d)
     rows = []
     for e in usable:

@@ -28,7 +28,7 @@ def protocol_features(d) -> dict:
     """
     e = np.asarray(d.strain, float)
     t = None if d.time is None else np.asarray(d.time, float)
-    seg = np.asarray(d.segment)
+    seg = np.asarray(d.loading.history)    # one loading path: load, unload, reload, hold
     same = seg[1:] == seg[:-1]
     de = np.diff(e)
     feats = {"time": t is not None, "rates": [], "hold": False, "unloading": False, "reload_beyond": False,
