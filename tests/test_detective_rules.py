@@ -140,6 +140,8 @@ def test_adequate_only_without_any_sign_of_misfit():
     assert decide(*quiet, [], {"consistent": False}, "iid", _data()).verdict == "unexplained"
     # AR(1) chosen, but white noise + a smooth misfit (a control at iid) gains: misfit, not noise
     ar = [_cand("offset", 1.0, 2.0)], [_cand("local_step", 2.0, 7.0, physical=False)]
+    assert decide(*ar, [], OK_NOISE, "ar1", _data()).verdict == "adequate"
+    ar[1][0].white_gain = 3.0
     v = decide(*ar, [], OK_NOISE, "ar1", _data())
     assert v.verdict == "unexplained" and "prefer white noise" in v.message
 

@@ -123,15 +123,14 @@ def _noise_preference(base: FitSummary, ctrls: list[CandidateResult]) -> str:
     if "ar1" in ev and "iid" in ev:
         d = ev["ar1"] - ev["iid"]
         parts.append(f"AR(1) vs iid noise: Δlog Z = {d:+.1f} ({'AR(1)' if d > 0 else 'iid'} preferred)")
-    best = max((c for c in ctrls if c.refit), key=gain, default=None)
-    if base.noise == "ar1" and best is not None:
-        g = gain(best)
-        if best.noise != "ar1" and g > 0:
-            parts.append(f"the data prefer white noise + a smooth misfit ({best.effect}) to AR(1) noise "
-                         f"by {g:.1f} nats")
+    white = max((c for c in ctrls if c.white_gain is not None), key=lambda c: c.white_gain, default=None)
+    if white is not None:
+        if white.white_gain > 0:
+            parts.append(f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
+                         f"by {white.white_gain:.1f} nats")
         else:
-            parts.append(f"AR(1) noise preferred to white noise + a smooth misfit ({best.effect}, "
-                         f"Δlog Z {g:.1f})")
+            parts.append(f"AR(1) noise preferred to white noise + a smooth misfit ({white.effect}) by "
+                         f"{-white.white_gain:.1f} nats")
     return "; ".join(parts)
 
 

@@ -53,16 +53,17 @@ def gain(c: CandidateResult | None) -> float:
 
 
 def misfit_signs(check_noise: dict, windows: list[dict], best_ctrl: CandidateResult | None,
-                 base_noise: str) -> list[str]:
+                 base_noise: str, controls: Sequence[CandidateResult] = ()) -> list[str]:
     """Every sign of a systematic misfit the diagnosis has, in words (empty: none)."""
     out = []
     if windows:
         out.append(f"{len(windows)} significant misfit window(s)")
     if not check_noise.get("consistent", True):
         out.append("the fitted noise disagrees with the model-free estimate")
-    if base_noise == "ar1" and best_ctrl is not None and best_ctrl.refit and best_ctrl.noise != "ar1" \
-            and gain(best_ctrl) > 0:
-        out.append(f"the data prefer white noise + a smooth misfit ({best_ctrl.effect}) to AR(1) noise")
+    white = max((c for c in controls if c.white_gain is not None), key=lambda c: c.white_gain, default=None)
+    if base_noise == "ar1" and white is not None and white.white_gain > 0:
+        out.append(f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
+                   f"by {white.white_gain:.1f} nats")
     if best_ctrl is not None and gain(best_ctrl) > DELTA_LOGZ_MIN:
         out.append(f"a generic shape ({best_ctrl.effect}) gains {gain(best_ctrl):.1f} nats")
     return out
@@ -75,7 +76,7 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
     ctrls = sorted([c for c in controls if c.refit], key=lambda c: -gain(c))
     best, ctrl = (phys[0] if phys else None), (ctrls[0] if ctrls else None)
     g_best, g_ctrl = gain(best), gain(ctrl)
-    signs = misfit_signs(noise, windows, ctrl, base_noise)
+    signs = misfit_signs(noise, windows, ctrl, base_noise, ctrls)
     if best is not None and g_best > DELTA_LOGZ_MIN:
         if _explains_like(best, ctrl) and g_best >= g_ctrl:
             tied = [c for c in phys[1:] if gain(c) > DELTA_LOGZ_MIN and

@@ -85,10 +85,29 @@ def reoptimise_base(base: FitSummary, refitted: Sequence[CandidateResult], fitte
 
 
 def evidence_gains(refitted: Sequence[CandidateResult], base: FitSummary) -> None:
-    """Every refit's gain against the (best) base: Laplace and TMCMC Δlog Z, ΔmaxlogL."""
+    """Every refit's gain against the (best) base: Laplace and TMCMC Δlog Z, ΔmaxlogL, and
+    for a base with AR(1) noise the white-noise version of the refit against it."""
     for c in refitted:
         if c.fit is not None:
             _evidence_gain(c, c.fit, base)
+            c.white_gain = white_vs_ar1(c, base)
+
+
+def white_vs_ar1(c: CandidateResult, base: FitSummary) -> float | None:
+    """Laplace Δlog Z of "white noise + ``c``'s term" against the base with AR(1) noise.
+
+    ``None`` unless the base chose AR(1) and the refit has an iid optimum.  Positive: the data
+    prefer a smooth misfit term with white noise to correlated noise -- the AR(1) is soaking up
+    a misfit.
+    """
+    white = c.fit.noise_fits.get("iid") if c.fit is not None else None
+    if base.noise != "ar1" or white is None:
+        return None
+    lik = white["lik"]
+    new = [n for n in lik.names if n not in base.names]
+    return float(white["max_log_likelihood"] + laplace_occam(lik, white["x"], lik.names, new)
+                 - base.max_log_likelihood - laplace_occam(base.likelihood, base.theta_max, base.names, ["rho"],
+                                                           base.samples))
 
 
 def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises: Sequence[str],
@@ -97,13 +116,24 @@ def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises
     e = c.effect_instance
     mc = base.model.with_effects(e)
     starts = fitter.warm_starts(base, mc, noises, [c.start, {q.name: q.null for q in e.parameters}, c.score_start])
+    if c.local_full:
+        # the local refit's optimum with its own base parameters
+        for nz, xs in starts.items():
+            x = xs[0].copy()
+            names = fitter.likelihood(mc, nz).names
+            for i, n in enumerate(names):
+                if n in c.local_full:
+                    x[i] = c.local_full[n]
+            xs.insert(0, x)
 
     def expect(f_max, d_new):
         # BIC-type expectation of the extended model's evidence relative to the base
         return (base.log_evidence + (f_max - base.max_log_likelihood)
                 - 0.5 * (d_new - len(base.names)) * math.log(fitter.n))
 
-    fs = fitter.fit(mc, noises, starts, seed, names_effects=added_effects(base.model) + [e.name],
+    # a global search besides the warm starts: absorbing the misfit may have moved the base
+    # parameters far from where the model with the new term fits best
+    fs = fitter.fit(mc, noises, starts, seed, global_restarts=1, names_effects=added_effects(base.model) + [e.name],
                     expected_log_z=expect)
     c.refit, c.fit, c.noise = True, fs, fs.noise
     c.rmse_after = fs.rmse

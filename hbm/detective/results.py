@@ -93,6 +93,10 @@ class CandidateResult:
     windows_after: int | None = None
     #: where a refitted control acts: (axis, lo, hi)
     region: tuple | None = None
+    #: the cheap local refit's whole optimum (base parameters included), a refit start
+    local_full: dict = field(default_factory=dict, repr=False)
+    #: Laplace Δlog Z of this refit at white noise against an AR(1) base (None otherwise)
+    white_gain: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready summary (one entry of ``candidates`` in ``hbm diagnose --json``)."""
@@ -111,7 +115,8 @@ class CandidateResult:
                 "intervals": {k: [_num(v) for v in t] for k, t in self.intervals.items()},
                 "excludes_null": self.excludes_null,
                 "windows_after": self.windows_after,
-                "region": list(self.region) if self.region else None}
+                "region": list(self.region) if self.region else None,
+                "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None}
 
 
 @dataclass(slots=True)

@@ -223,7 +223,10 @@ def local_refit_screen(model: Model, theta_model: np.ndarray, free: Sequence[str
     p = min(max(float(_stats.chi2.sf(chi2, dof)), 1e-300), 1.0)
     z = float(_stats.norm.isf(p)) if p < 0.5 else 0.0
     start = {n: float(v) for n, v in zip(names[len(free):], best[1][len(free):])}
-    return {"chi2": chi2, "dof": dof, "z": z, "start": start}
+    # the whole local optimum (base parameters included): the refit's best warm start when the
+    # base parameters had moved to absorb the misfit
+    full = {n: float(v) for n, v in zip(names, best[1])}
+    return {"chi2": chi2, "dof": dof, "z": z, "start": start, "full": full}
 
 
 # =========================================================================================
@@ -267,7 +270,7 @@ def screen_candidates(base: FitSummary, candidates: Sequence[Effect], check: Noi
         results.append(CandidateResult(effect=e.name, score=sc["z"], chi2=sc["chi2"], dof=sc["dof"],
                                        absorbed=sc["absorbed"], rmse_before=base.rmse, start=lr["start"],
                                        local_z=lr["z"], local_chi2=lr["chi2"], effect_instance=e,
-                                       score_start=sc["start"]))
+                                       score_start=sc["start"], local_full=lr["full"]))
     ctrls = screen_controls(controls_for(d), base_model, theta_model, free, resid, whiten, d, base.rmse)
     # rank by the stronger of the two screens (score test at the null, cheap local refit)
     results.sort(key=lambda c: -max(c.score, c.local_z))
@@ -305,11 +308,11 @@ def screen_controls(controls: Sequence[Control], model: Model, theta_model: np.n
             scored.append(((r @ f) ** 2 / ff, {ctl.amp: float(np.clip(amp, -a_max, a_max)), **g}))
         scored.sort(key=lambda t: -t[0])
         starts = [st for _, st in scored[:n_starts]] or [ctl.null_values]
-        lr = local_refit_screen(model, theta_model, free, ctl, whiten, d, starts, max_nfev=15)
+        lr = local_refit_screen(model, theta_model, free, ctl, whiten, d, starts, max_nfev=40)
         chi2_lin = scored[0][0] if scored else 0.0
         out.append(CandidateResult(effect=ctl.name, score=float(_stats.norm.isf(
             min(max(_stats.chi2.sf(chi2_lin, 1) * max(len(grid), 1), 1e-300), 0.5))), chi2=float(chi2_lin), dof=1,
             absorbed=float("nan"), physical=False, rmse_before=rmse_before, start=lr["start"], local_z=lr["z"],
-            local_chi2=lr["chi2"], effect_instance=ctl, score_start=starts[0]))
+            local_chi2=lr["chi2"], effect_instance=ctl, score_start=starts[0], local_full=lr["full"]))
     out.sort(key=lambda c: -c.local_z)
     return out
