@@ -19,6 +19,8 @@ stream                     spawn key                 draws
 ``organ_posterior`` k      ``(20000, 0, k)``         organ bands: subsample of specimen k's posterior
 ``organ_updated`` k        ``(20000, 1, k)``         organ bands: subsample of k's updated draws
 ``organ_new_specimen``     ``(20000, 2)``            organ bands: population-predictive draws
+``detective``              ``(30000,)``              hbm.diagnose/extend: child j = 0 base fit,
+                                                     1 + k greedy round k, 90 removal, 91 power
 =========================  ========================  ==============================================
 
 A single ``hbm fit --seed S`` is specimen-free: its phases use keys ``(j,)`` of ``SeedSequence(S)``.
@@ -42,6 +44,7 @@ PHASES: tuple[str, ...] = ("optima", "tmcmc", "predictive", "sobol")
 
 _HIER = 10_000
 _ORGAN = 20_000
+_DETECTIVE = 30_000
 
 #: name -> function of the stream's indices returning its spawn key (the table above).
 def _specimen_key(k: int) -> tuple[int, ...]:
@@ -58,6 +61,7 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "organ_posterior": lambda k: (_ORGAN, 0, int(k)),
     "organ_updated": lambda k: (_ORGAN, 1, int(k)),
     "organ_new_specimen": lambda: (_ORGAN, 2),
+    "detective": lambda: (_DETECTIVE,),
 }
 
 

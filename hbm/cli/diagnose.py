@@ -19,20 +19,24 @@ DEFAULT_SAMPLES = 800
 DIAGNOSE_DESCRIPTION = """\
 Compare the model with a specimen, show where it fails and name the missing effect.
 
-1. fits the model (CMA-ES, then TMCMC) with a noise model chosen from the data (iid,
-   proportional or AR(1), by BIC), cross-checked against a model-free noise estimate;
-2. finds strain windows where the smoothed standardised residual is significantly non-zero
-   (family-wise 5 %, correlated noise accounted for) and the predictive coverage;
-3. screens every candidate effect by a projected score test, refits the best few plus a
-   generic local-misfit control, each at its own best noise model (Δlog-evidence ± SE);
-4. verdict: adequate | effect (Δlog Z > 5, beats the runner-up, parameter away from null) |
-   group (confusable effects, with the experiment that separates them) | unexplained
-   (misfit in ε ∈ [a, b] that only the non-physical control explains).
+1. fits the model (CMA-ES, then TMCMC) with a noise model chosen by evidence (iid,
+   proportional or AR(1); --noise forces one), cross-checked against a model-free noise
+   estimate; a stress scale no passive muscle shows (e.g. kPa) is reported as a data problem;
+2. finds strain windows where the smoothed standardised residual is significantly non-zero,
+   under the fitted and under the model-free noise (family-wise 5 %), and the coverage;
+3. screens every candidate effect and generic controls (bump, step, kink in strain, trend in
+   time), refits the best, re-optimises the base from every refit (gains against the best base);
+4. verdict: effect (Δlog Z > 5, explains the misfit like the best control and beats it;
+   greedy: several effects, in order) | group (with the experiment that separates them) |
+   unexplained (misfit in ε or t ∈ [a, b], with its shape) | data_problem | adequate (only
+   without any sign of misfit).  --power adds the detection limit of every library effect.
 
 examples:
   hbm diagnose data/specimens/calvo_1.csv
   hbm diagnose spec.csv --candidates offset,damage --candidate my_effect.py:MyEffect --json
   hbm diagnose spec.csv --model offset --fix EOPT=0.12 --plot diagnosis.png
+  hbm diagnose spec.csv --power          # what this protocol and noise could reveal
+  hbm diagnose spec.csv --noise iid      # force white noise
 """
 
 EXTEND_DESCRIPTION = """\
@@ -60,6 +64,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
                    help="write the figure (PNG/PDF/SVG/...; into an existing folder)")
     p.add_argument("--progress", action="store_true", help="progress lines on stderr")
+    p.add_argument("--noise", default=None, metavar="iid|ar1|proportional|...",
+                   help="force one noise model for every fit (default: chosen by evidence)")
 
 
 def register(subparsers) -> None:
@@ -74,6 +80,8 @@ def register(subparsers) -> None:
                    help="a user-written effect to screen as well; repeatable")
     p.add_argument("--top", type=non_negative_int, default=3, metavar="K",
                    help="physical candidates refitted (default 3)")
+    p.add_argument("--power", action="store_true",
+                   help="also report the detection limit of every library effect on this protocol and noise")
     p.set_defaults(func=run_diagnose)
 
     q = subparsers.add_parser("extend", help="add effects one at a time and show the error fall",
@@ -114,7 +122,8 @@ def _prepare(args, extra: list[str]):
     check_population_memory(f"--samples {samples}", samples, n_points(ds), model.n_params + len(extra) + 2)
     if args.plot is not None:
         prepare_output_file(args.plot, "--plot")
-    kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress}
+    kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,
+          "noise": args.noise}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     return ds, kw
@@ -138,7 +147,7 @@ def run_diagnose(args) -> int:
     """Check everything, then diagnose and print (or plot) the verdict."""
     candidates = _candidates(args)
     ds, kw = _prepare(args, [])
-    dg = diagnose(ds, candidates=candidates, top=args.top, **kw)
+    dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, **kw)
     if args.plot:
         dg.plot(args.plot)
     if args.json:

@@ -1,27 +1,27 @@
-"""Compare a model with measurements, find where it fails, and name the missing effect.
+"""Compare a model with measurements, find where it fails, and name the missing effect(s).
 
 The detective works in four steps (DESIGN.md §2), one module each:
 
 1. **Compare** (:mod:`.fitting`) — fit the current model (CMA-ES, then TMCMC for the evidence)
-   with a noise model chosen from the data (iid, proportional or AR(1), by BIC at the optimum)
-   and cross-check it against a model-free, difference-based noise estimate (:mod:`.noise_check`).
+   with a noise model chosen by evidence (iid, proportional or AR(1); Laplace in the noise
+   parameters at each optimum) and cross-check it against a model-free, difference-based noise
+   estimate (:mod:`.noise_check`).  A stress scale no passive muscle shows is reported as a
+   data problem (:func:`.inputs.unit_anomaly`).
 2. **Where it fails** (:mod:`.noise_check`) — posterior-predictive coverage along strain and per
    test, and strain windows in which a smoothed standardised residual is significantly
-   non-zero.  The window threshold is calibrated by simulating the fitted noise process (AR(1)
-   included), so the scan over many windows and scales keeps a 5 % family-wise false-alarm rate.
-3. **What is missing** (:mod:`.screen`, :mod:`.refits`) — a cheap score screen of every candidate
-   effect: the sensitivity of the stress to the candidate's parameters at their null values,
-   with the part the base model can absorb (its Jacobian at the fit) projected out, in
-   noise-whitened units.  The best few candidates plus a generic, non-physical local-misfit
-   control (:class:`LocalMisfit`, a Gaussian bump in strain) are refitted, each at its own best
-   noise model (iid vs AR(1)).  Δlog-evidence: Laplace in the new parameters at the CMA-ES
-   optimum (the decision statistic, reproducible) next to the TMCMC difference ± SE (reported;
-   at the affordable population sizes it scatters by several nats on this model).
-4. **Decision** (:mod:`.decision`) — an effect is named only when its evidence gain is large
-   (Δlog Z > 5), it beats the runner-up clearly, and its parameter interval excludes the null;
-   near-ties inside a known confusable group give verdict ``"group"`` with the experiment that
-   would separate them; a misfit only the control explains is ``"unexplained"``; otherwise
-   ``"adequate"``.
+   non-zero, scanned twice: under the fitted noise and under the noise the data show (the
+   model-free estimate), each calibrated by simulation at half the family-wise 5 %.
+3. **What is missing** (:mod:`.screen`, :mod:`.refits`) — a cheap screen of every candidate
+   effect (projected score test, local refit) and of the generic, non-physical controls
+   (:mod:`.controls`: a bump, a step, a kink in strain, a slow trend in time).  The best few
+   candidates and the best controls are refitted, each at its own best noise model; the base
+   is then re-optimised from every refit's optimum (new parameters at their nulls) and every
+   gain is measured against the best base found.
+4. **Decision** (:mod:`.decision`) — an effect is named when it gains > 5 nats, explains the
+   misfit about as well as the best control and beats it in evidence; near-ties give verdict
+   ``"group"``; any remaining sign of misfit gives ``"unexplained"`` with where it is and its
+   shape; ``"adequate"`` only without any.  After an effect is named it is added and steps 2–4
+   are repeated (greedy, ``max_effects``), so two hidden effects can both be named.
 
 :func:`extend` refits with effects added one at a time and records the error fall.
 Results and their text/JSON renderings live in :mod:`.results`, thresholds in :mod:`.rules`.
@@ -32,42 +32,114 @@ from __future__ import annotations
 import time as _time
 import warnings
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
 
+from .. import seeds as _seeds
 from ..errors import HbmError, HbmWarning
 from ..fit import edges, format_at_bounds
 from ..model.core import Effect
-from .decision import decide
+from ..noise import noise_model_names
+from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
+from .decision import Verdict, decide, gain
 from .fitting import Fitter
-from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model
-from .noise_check import check_noise, misfit_windows, model_free_noise, noise_prior_box
+from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
+from .noise_check import NoiseCheck, check_noise, misfit_windows, model_free_noise, noise_prior_box
+from .power import detection_power
 from .refits import refit_candidates
+from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
-from .rules import CONTROL_MARGIN, DELTA_LOGZ_MIN, RUNNER_UP_MARGIN
-from .screen import LocalMisfit, local_refit_screen, score_screen, screen_candidates
+from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, RUNNER_UP_MARGIN
+from .screen import local_refit_screen, score_screen, screen_candidates
 
 __all__ = ["diagnose", "extend", "Diagnosis", "Extension", "CandidateResult", "FitSummary",
-           "LocalMisfit", "model_free_noise", "misfit_windows", "score_screen", "local_refit_screen",
-           "DELTA_LOGZ_MIN", "RUNNER_UP_MARGIN", "CONTROL_MARGIN"]
+           "LocalMisfit", "StepMisfit", "KinkMisfit", "TimeTrend", "model_free_noise", "misfit_windows",
+           "score_screen", "local_refit_screen", "DELTA_LOGZ_MIN", "RUNNER_UP_MARGIN"]
 
 NOISE_MODELS = ("iid", "proportional", "ar1")
 
 
 @contextmanager
 def _stopwatch(timings: dict, key: str):
-    """Record the wall time of the block in ``timings[key]``."""
+    """Record (accumulate) the wall time of the block in ``timings[key]``."""
     t0 = _time.perf_counter()
     yield
-    timings[key] = _time.perf_counter() - t0
+    timings[key] = timings.get(key, 0.0) + _time.perf_counter() - t0
+
+
+def _seed(seed: int, j: int) -> int:
+    """Child ``j`` of the run's ``detective`` stream (:mod:`hbm.seeds`) as a small int seed (the
+    optimisers add offsets and CMA-ES needs seeds below 2**32 / 7919)."""
+    return int(_seeds.child(_seeds.stream(seed, "detective"), j).generate_state(1)[0] % 400_000)
+
+
+def _noise_models(noise: str | None, noise_models: Sequence[str]) -> list[str]:
+    """The noise models to consider: ``noise`` alone when forced."""
+    if noise is None:
+        return list(noise_models)
+    if noise not in noise_model_names():
+        raise HbmError(f"noise: unknown noise model {noise!r}; known: {', '.join(noise_model_names())}")
+    return [noise]
+
+
+@dataclass(slots=True)
+class _Step:
+    """One round of steps 2–4 at the current model."""
+
+    base: FitSummary
+    check: NoiseCheck
+    results: list
+    controls: list
+    skipped: dict
+    verdict: Verdict
+
+
+def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, noises: list[str], top: int,
+           seed: int, timings: dict) -> _Step:
+    """Where it fails, what is missing, the decision -- at the current model ``base``."""
+    with _stopwatch(timings, "windows"):
+        check = check_noise(base, mf, d, seed)
+    with _stopwatch(timings, "screen"):
+        results, ctrls, skipped = screen_candidates(base, cands, check, d, fitter.log)
+    with _stopwatch(timings, "refits"):
+        done = refit_candidates(results, ctrls, base, fitter, noises, top, seed)
+        # the windows at the best base found, and what each refit leaves
+        check = check_noise(base, mf, d, seed)
+        for c in done:
+            c.windows_after = len(check.remaining_windows(c.fit, d))
+            if not c.physical:
+                c.region = c.effect_instance.region(dict(zip(c.fit.names, c.fit.theta_max)), d)
+    check.noise["preference"] = _noise_preference(base, ctrls)
+    verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d)
+    return _Step(base, check, results, ctrls, skipped, verdict)
+
+
+def _noise_preference(base: FitSummary, ctrls: list[CandidateResult]) -> str:
+    """Which noise description the data prefer, in words (AR(1) vs white noise + a smooth misfit)."""
+    ev = base.noise_evidence
+    parts = []
+    if "ar1" in ev and "iid" in ev:
+        d = ev["ar1"] - ev["iid"]
+        parts.append(f"AR(1) vs iid noise: Δlog Z = {d:+.1f} ({'AR(1)' if d > 0 else 'iid'} preferred)")
+    white = max((c for c in ctrls if c.white_gain is not None), key=lambda c: c.white_gain, default=None)
+    if white is not None:
+        if white.white_gain > 0:
+            parts.append(f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
+                         f"by {white.white_gain:.1f} nats")
+        else:
+            parts.append(f"AR(1) noise preferred to white noise + a smooth misfit ({white.effect}) by "
+                         f"{-white.white_gain:.1f} nats")
+    return "; ".join(parts)
 
 
 def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | None = None,
              seed: int = 0, n_samples: int = 800, top: int = 3, progress: bool = False,
-             noise_models: Sequence[str] = NOISE_MODELS,
-             sigma_bounds: tuple[float, float] | None = None) -> Diagnosis:
-    """Compare a model with a specimen, locate its misfit and name the missing effect.
+             noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
+             sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
+             power: bool = False, removal: bool = True) -> Diagnosis:
+    """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
     ----------
@@ -87,15 +159,25 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     n_samples : int
         TMCMC population size of each evidence run.
     top : int
-        Number of physical candidates refitted (best screen scores); the local-misfit control
-        is always refitted too.
+        Number of physical candidates refitted (best screen scores); the best non-physical
+        control is always refitted too.
     progress : bool
         Print progress lines to stderr.
     noise_models : sequence of str
-        Noise models considered for the base fit (chosen by BIC at the optimum).
+        Noise models considered (chosen by evidence at the optimum).
+    noise : str, optional
+        Force one noise model (``"iid"``, ``"ar1"``, ...) for every fit.
     sigma_bounds : (float, float), optional
         Prior box of the noise sd; default from the model-free estimate (×1/20 … ×20), shared
         by every fit so the evidences are comparable.
+    max_effects : int
+        Effects named at most (greedy: after each named effect the model is extended and
+        re-screened with the same rule).
+    power : bool
+        Also estimate the detection limit of every library effect on this protocol and noise
+        (:func:`hbm.detective.power.detection_power`; ``Diagnosis.power``).
+    removal : bool
+        Test whether each base part (matrix, fibers, collagen) is needed (``Diagnosis.removal``).
 
     Returns
     -------
@@ -107,33 +189,76 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     base_model = resolve_model(model)
     cands = resolve_candidates(candidates, base_model)
     fix = _checked_fix(fix, base_model.parameter_names)
+    noises = _noise_models(noise, noise_models)
     mf = model_free_noise(d.stress, d.segment)
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress)
 
     with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
-        base = fitter.fit(base_model, list(noise_models), None, seed, global_restarts=2)
-    with _stopwatch(timings, "windows"):      # 2. where it fails
-        check = check_noise(base, mf, d, seed)
-    with _stopwatch(timings, "screen"):       # 3. what is missing: screen ...
-        results, ctrl, skipped = screen_candidates(base, cands, check, d, fitter.log)
-    with _stopwatch(timings, "refits"):       # ... and refit the best
-        refit_candidates(results, ctrl, base, fitter, noise_models, top, seed)
-    verdict = decide(results, ctrl, check.windows)  # 4. decision
-    edges_found = _base_at_bounds(base, d.name)
+        base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
+    problem = unit_anomaly(d)
+    rounds: list[_Step] = []
+    selected: list[str] = []
+    current, remaining = base, list(cands)
+    if problem is not None:
+        check = check_noise(base, mf, d, _seed(seed, 1))
+        rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
+    else:
+        for k in range(max(0, int(max_effects)) + 1):   # 2.-4., then again after each named effect
+            st = _round(current, remaining, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
+            rounds.append(st)
+            if st.verdict.verdict != "effect" or len(selected) >= max_effects:
+                break
+            chosen = next(c for c in st.results if c.effect == st.verdict.selected[0])
+            selected.append(chosen.effect)
+            fitter.log(f"named {chosen.effect}: adding it and re-screening")
+            current, remaining = chosen.fit, [e for e in remaining if e.name != chosen.effect]
+    verdict = _final_verdict(rounds, selected)
+    first = rounds[0]
+    edges_found = _base_at_bounds(first.base, d.name)
+    extra = {}
+    if removal and problem is None:
+        with _stopwatch(timings, "removal"):
+            extra["removal"] = removal_test(first.base, fitter, _seed(seed, 90))
+    if power:
+        with _stopwatch(timings, "power"):
+            extra["power"] = detection_power(current, d, cands, _seed(seed, 91))
 
     timings["total"] = _time.perf_counter() - t_start
     timings["cpu"] = _time.process_time() - cpu_start
-    cov = base.predictive
+    cov = first.base.predictive
+    ck = first.check
     return Diagnosis(verdict=verdict.verdict, selected=verdict.selected, group=verdict.group,
-                     misfit_windows=[(w["eps_lo"], w["eps_hi"], w["sign"]) for w in check.windows],
-                     noise=check.noise,
-                     candidates=[c for c in results if c.refit] + [c for c in results if not c.refit] + [ctrl],
-                     suggested_experiment=verdict.experiment, message=verdict.message, base=base,
+                     misfit_windows=[(w["eps_lo"], w["eps_hi"], w["sign"]) for w in ck.windows],
+                     noise=ck.noise,
+                     candidates=[c for c in first.results if c.refit] + [c for c in first.results if not c.refit]
+                     + first.controls,
+                     suggested_experiment=verdict.experiment, message=verdict.message, base=first.base,
                      coverage={k: v for k, v in cov.items() if k in ("band", "overall", "per_test", "along_strain")},
-                     window_detail=[dict(w) for w in check.windows], timings=timings, data=d, skipped=skipped,
-                     residual_curve=check.residual_curve(cov, d.segment), at_bounds=edges_found)
+                     window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
+                     residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
+                     unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
+                     data_problem=problem, **extra)
+
+
+def _step_record(r: _Step) -> dict:
+    return {"model": added_effects(r.base.model), "verdict": r.verdict.verdict, "selected": r.verdict.selected,
+            "group": r.verdict.group, "message": r.verdict.message,
+            "windows": [(w["eps_lo"], w["eps_hi"], w["sign"]) for w in r.check.windows],
+            "candidates": {c.effect: round(float(gain(c)), 2) for c in r.results + r.controls if c.refit}}
+
+
+def _final_verdict(rounds: list[_Step], selected: list[str]) -> Verdict:
+    """The verdict over the greedy rounds: the named effects in order, and what is left."""
+    last = rounds[-1].verdict
+    if not selected:
+        return last
+    msgs = [r.verdict.message for r in rounds if r.verdict.verdict == "effect"]
+    msg = "; then ".join(msgs)
+    if last.verdict != "effect":
+        msg += f". With {' + '.join(selected)} added: {last.verdict} — {last.message}"
+    return Verdict("effect", list(selected), list(last.group), last.experiment, msg, last.unexplained)
 
 
 def _base_at_bounds(base: FitSummary, name: str) -> list[dict]:
@@ -162,7 +287,7 @@ def _checked_fix(fix: Mapping[str, float] | None, names: Sequence[str]) -> dict[
 def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidates="all",
            fix: Mapping[str, float] | None = None, seed: int = 0, n_samples: int = 800,
            top: int = 3, progress: bool = False, max_steps: int = 4,
-           noise_models: Sequence[str] = NOISE_MODELS) -> Extension:
+           noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None) -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     Parameters
@@ -172,10 +297,10 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     add : sequence
         Effects to add in this order (ids, ``"path.py:ClassName"`` or Effect instances).
     auto : bool
-        Greedy: after the given effects, repeatedly :func:`diagnose` the current model and add
-        the effect it names (verdict ``"effect"``), until nothing passes the decision rule or
-        ``max_steps`` effects were added.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models
+        Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
+        names and re-screens, with the same rule at each step) and add its ``selected`` effects
+        in order, at most ``max_steps`` effects in all.
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise
         As in :func:`diagnose`.
 
     Returns
@@ -189,11 +314,12 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     current = resolve_model(model)
     fix = dict(fix or {})
     adds = _effects_to_add(add)
+    noise_models = _noise_models(noise, noise_models)
     if not adds and not auto:
         raise HbmError("extend: give effects to add (--add EFFECT[,EFFECT...]) or auto=True (--auto)")
     mf = model_free_noise(d.stress, d.segment)
     fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress)
-    steps = [fitter.fit(current, list(noise_models), None, seed, global_restarts=2)]
+    steps = [fitter.fit(current, list(noise_models), None, _seed(seed, 0), global_restarts=2)]
     decisions: list = []
 
     def add_step(e: Effect, k: int, start: Mapping[str, float] | None = None):
@@ -201,7 +327,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         mc = current.with_effects(e)
         starts = fitter.warm_starts(steps[-1], mc, noise_models,
                                     [{q.name: q.null for q in e.parameters}] + ([start] if start else []))
-        steps.append(fitter.fit(mc, list(noise_models), starts, seed + 1000 * k))
+        steps.append(fitter.fit(mc, list(noise_models), starts, _seed(seed, 1 + k)))
         current = mc
 
     for k, e in enumerate(adds):               # the given effects, in order
@@ -209,16 +335,19 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
             raise HbmError(f"extend: effect {e.name!r} is already in the model {current.effect_names}")
         add_step(e, k + 1)
     k = len(adds)
-    while auto and k < max_steps:              # then greedily what diagnose names
-        dg = diagnose(d.ds, model=current, candidates=candidates, fix=fix, seed=seed + 17 * (k + 1),
-                      n_samples=n_samples, top=top, progress=progress, noise_models=noise_models)
-        decisions.append({"model": added_effects(current), "verdict": dg.verdict,
-                          "selected": dg.selected, "group": dg.group, "message": dg.message})
-        if dg.verdict != "effect":
-            break
-        chosen = next(c for c in dg.candidates if c.effect == dg.selected[0])
-        k += 1
-        add_step(chosen.effect_instance, k, start=dict(zip(chosen.fit.names, chosen.fit.theta_max)))
+    if auto and k < max_steps:                 # then what diagnose names, greedily, in its order
+        dg = diagnose(d.ds, model=current, candidates=candidates, fix=fix, seed=seed + 17,
+                      n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
+                      max_effects=max_steps - k, removal=False)
+        decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
+                          "group": st["group"], "message": st["message"]} for st in dg.steps)
+        by_name = {c.effect: c for c in dg.candidates}
+        for name in dg.selected:
+            chosen = by_name.get(name)
+            inst = chosen.effect_instance if chosen is not None else resolve_effect(name)
+            start = dict(zip(chosen.fit.names, chosen.fit.theta_max)) if chosen is not None and chosen.fit else None
+            k += 1
+            add_step(inst, k, start=start)
     return Extension(steps=steps, decisions=decisions, data=d,
                      timings={"total": _time.perf_counter() - t_start}, noise=mf)
 

@@ -1,9 +1,18 @@
 """The verdict (step 4 of the detective, DESIGN.md §2).
 
-An effect is named only when its evidence gain is large (Δlog Z > ``DELTA_LOGZ_MIN``), it beats
-the runner-up clearly and its parameter leaves the null; near-ties give verdict ``"group"``
-with the experiment that would separate them; a misfit only the control explains is
-``"unexplained"``; otherwise ``"adequate"``.
+One evidence number per refit -- its gain against the best base model found
+(:func:`.refits.evidence_gains`) -- and no second gate on the same evidence:
+
+* a physical effect is named when it gains more than ``DELTA_LOGZ_MIN`` nats, explains the
+  misfit about as well as the best non-physical control (it leaves no more misfit windows and
+  is within ``REMOVE_TOL`` nats of the control's likelihood) and beats that control in
+  evidence; near-ties with another physical candidate give verdict ``"group"`` with the
+  experiment that would separate them;
+* otherwise any sign of misfit -- a significant window under the fitted or the model-free
+  noise, a fitted noise that disagrees with the model-free estimate, white noise + a smooth
+  misfit preferred to AR(1) noise, or a control that gains -- gives ``"unexplained"`` with
+  where the misfit is and the best-fitting shape;
+* ``"adequate"`` only when there is no such sign.
 """
 
 from __future__ import annotations
@@ -14,117 +23,126 @@ from typing import Sequence
 
 import numpy as np
 
-from ..effects import CONFUSABLE_GROUPS, SEPARATING_EXPERIMENT
+from ..effects import CONFUSABLE_GROUPS
+from .protocols import describe_protocol, experiments_for, protocol_features
 from .refits import primary_parameters
 from .results import CandidateResult
-from .rules import CONTROL_MARGIN, DELTA_LOGZ_MIN, RUNNER_UP_MARGIN
+from .rules import DELTA_LOGZ_MIN, REMOVE_TOL, RUNNER_UP_MARGIN
 
-__all__ = ["Verdict", "decide"]
-
-#: suggested when no known group covers the tied candidates
-_GENERIC_EXPERIMENT = ("a protocol that exercises the effects differently: several strain rates and a relaxation "
-                       "hold (viscoelasticity), load-unload-reload cycles (damage), a pinned reference length (slack)")
-
+__all__ = ["Verdict", "decide", "gain"]
 
 @dataclass(frozen=True, slots=True)
 class Verdict:
-    """The decision: ``verdict`` with the named effect or group, an experiment, a message."""
+    """The decision: ``verdict`` with the named effect or group, an experiment, a message, and
+    for an unexplained misfit where it is (``{"axis", "range", "shape", "delta_log_evidence"}``)."""
 
     verdict: str
     selected: list
     group: list
     experiment: str
     message: str
+    unexplained: dict | None = None
 
 
-def _gain(c: CandidateResult) -> float:
+def gain(c: CandidateResult | None) -> float:
     """Evidence gain, capped by the likelihood gain (a noisy evidence estimate must not
     create a gain that the best fit does not show); −inf when not refitted."""
-    if not c.refit or not np.isfinite(c.delta_log_evidence):
+    if c is None or not c.refit or not np.isfinite(c.delta_log_evidence):
         return -np.inf
     return min(c.delta_log_evidence, c.delta_max_log_likelihood)
 
 
-def decide(results: list[CandidateResult], ctrl: CandidateResult, windows: list[dict]) -> Verdict:
-    """The decision rule of DESIGN.md §2 (see the module docstring)."""
-    # a candidate whose parameter interval does not exclude its null cannot be named
-    phys = sorted([c for c in results if c.refit and c.excludes_null is not False], key=lambda c: -_gain(c))
-    vague = [c for c in results if c.refit and c.excludes_null is False and _gain(c) > DELTA_LOGZ_MIN]
-    g_ctrl = _gain(ctrl)
-    best = phys[0] if phys else None
-    g_best = _gain(best) if best else -np.inf
-    if max(g_best, g_ctrl) <= DELTA_LOGZ_MIN:
-        return _adequate(vague, windows)
-    if best is None or g_ctrl - g_best > CONTROL_MARGIN or g_best <= DELTA_LOGZ_MIN:
-        return _unexplained(ctrl, windows)
-    # near-ties with the best physical candidate
-    tied = [c for c in phys[1:] if _gain(c) > DELTA_LOGZ_MIN and
-            g_best - _gain(c) < max(RUNNER_UP_MARGIN, 2 * math.hypot(best.delta_log_evidence_se,
-                                                                      c.delta_log_evidence_se))]
-    if tied:
-        return _group(best, tied)
-    iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
-                   if k in primary_parameters(best.effect_instance))
-    return Verdict("effect", [best.effect], [], "",
-                   f"missing effect: {best.effect} (Δlog Z = {best.delta_log_evidence:.1f} ± "
-                   f"{best.delta_log_evidence_se:.1f}, RMSE {best.rmse_before:.3g} → {best.rmse_after:.3g} MPa; "
-                   f"{iv})")
-
-
-def _adequate(vague: list[CandidateResult], windows: list[dict]) -> Verdict:
-    msg = "the model is adequate: no candidate gains more than {:.0f} nats of evidence".format(DELTA_LOGZ_MIN)
-    if vague:
-        msg += (" with its parameter away from the null ("
-                + ", ".join(c.effect for c in vague) + " improve the fit but their interval includes the null)")
+def misfit_signs(check_noise: dict, windows: list[dict], best_ctrl: CandidateResult | None,
+                 base_noise: str, controls: Sequence[CandidateResult] = ()) -> list[str]:
+    """Every sign of a systematic misfit the diagnosis has, in words (empty: none)."""
+    out = []
     if windows:
-        win = "; ".join(f"[{w['eps_lo']:.3f}, {w['eps_hi']:.3f}]" for w in windows[:3])
-        msg += f" (weak residual structure in eps ∈ {win} that no effect explains decisively)"
+        out.append(f"{len(windows)} significant misfit window(s)")
+    if not check_noise.get("consistent", True):
+        out.append("the fitted noise disagrees with the model-free estimate")
+    white = max((c for c in controls if c.white_gain is not None), key=lambda c: c.white_gain, default=None)
+    if base_noise == "ar1" and white is not None and white.white_gain > 0:
+        out.append(f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
+                   f"by {white.white_gain:.1f} nats")
+    if best_ctrl is not None and gain(best_ctrl) > DELTA_LOGZ_MIN:
+        out.append(f"a generic shape ({best_ctrl.effect}) gains {gain(best_ctrl):.1f} nats")
+    return out
+
+
+def decide(results: list[CandidateResult], controls: list[CandidateResult], windows: list[dict],
+           noise: dict, base_noise: str, data) -> Verdict:
+    """The decision rule (module docstring)."""
+    phys = sorted([c for c in results if c.refit], key=lambda c: -gain(c))
+    ctrls = sorted([c for c in controls if c.refit], key=lambda c: -gain(c))
+    best, ctrl = (phys[0] if phys else None), (ctrls[0] if ctrls else None)
+    g_best, g_ctrl = gain(best), gain(ctrl)
+    signs = misfit_signs(noise, windows, ctrl, base_noise, ctrls)
+    if best is not None and g_best > DELTA_LOGZ_MIN:
+        if _explains_like(best, ctrl) and g_best >= g_ctrl:
+            tied = [c for c in phys[1:] if gain(c) > DELTA_LOGZ_MIN and
+                    g_best - gain(c) < max(RUNNER_UP_MARGIN, 2 * math.hypot(best.delta_log_evidence_se,
+                                                                             c.delta_log_evidence_se))]
+            if tied:
+                return _group(best, tied, data)
+            iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
+                           if k in primary_parameters(best.effect_instance))
+            return Verdict("effect", [best.effect], [], "",
+                           f"missing effect: {best.effect} (Δlog Z = {best.delta_log_evidence:.1f} ± "
+                           f"{best.delta_log_evidence_se:.1f}, RMSE {best.rmse_before:.3g} → {best.rmse_after:.3g} MPa; "
+                           f"{iv})")
+        return _unexplained(ctrl, windows, data, best, signs)
+    if signs:
+        return _unexplained(ctrl, windows, data, best, signs)
+    msg = "the model is adequate: no misfit window, noise as the model-free estimate, no candidate or generic " \
+          "shape gains more than {:.0f} nats of evidence".format(DELTA_LOGZ_MIN)
     return Verdict("adequate", [], [], "", msg)
 
 
-def _unexplained(ctrl: CandidateResult, windows: list[dict]) -> Verdict:
-    # a window description for the unexplained case: the control's bump ± 2 widths
-    a, b = _control_window(ctrl, windows)
-    return Verdict("unexplained", [], [], "a protocol probing the window (e.g. load-unload cycles or a relaxation "
-                   "hold ending inside it) and a user-written candidate effect for that strain range",
-                   f"unexplained misfit in ε ∈ [{a:.3f}, {b:.3f}] (no physical candidate explains it; "
-                   f"generic control Δlog Z = {ctrl.delta_log_evidence:.1f})")
+def _explains_like(c: CandidateResult, ctrl: CandidateResult | None) -> bool:
+    """Does physical candidate ``c`` remove the misfit about as well as the best control?"""
+    if ctrl is None or not ctrl.refit:
+        return True
+    fewer = (c.windows_after or 0) <= (ctrl.windows_after or 0) or not c.windows_after
+    close = c.delta_max_log_likelihood >= ctrl.delta_max_log_likelihood - REMOVE_TOL
+    return bool(fewer and close)
 
 
-def _group(best: CandidateResult, tied: list[CandidateResult]) -> Verdict:
+def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: CandidateResult | None,
+                 signs: list[str]) -> Verdict:
+    """Unexplained misfit: where (the best control's region, else the strongest window) and its shape."""
+    where = None
+    if ctrl is not None and ctrl.refit and ctrl.region is not None and gain(ctrl) > 0:
+        axis, lo, hi = ctrl.region
+        where = {"axis": axis, "range": [lo, hi], "shape": ctrl.effect_instance.description.split(": ")[-1],
+                 "control": ctrl.effect, "delta_log_evidence": float(gain(ctrl))}
+    elif windows:
+        w = windows[0]
+        where = {"axis": "strain", "range": [w["eps_lo"], w["eps_hi"]], "shape": "smoothed residual window",
+                 "control": None, "delta_log_evidence": None}
+    if where is None:
+        lo, hi = float(np.min(data.strain)), float(np.max(data.strain))
+        where = {"axis": "strain", "range": [lo, hi], "shape": "over the whole range", "control": None,
+                 "delta_log_evidence": None}
+    sym = "ε" if where["axis"] == "strain" else "t"
+    unit = "" if where["axis"] == "strain" else " s"
+    msg = (f"unexplained misfit in {sym} ∈ [{where['range'][0]:.3g}, {where['range'][1]:.3g}]{unit}"
+           f" (best-fitting shape: {where['shape']}"
+           + (f", Δlog Z = {where['delta_log_evidence']:.1f}" if where["delta_log_evidence"] is not None else "")
+           + ")")
+    if best is not None and best.refit:
+        msg += f"; best physical candidate {best.effect} Δlog Z = {gain(best):.1f} does not explain it as well"
+    if signs:
+        msg += "; evidence of misfit: " + ", ".join(signs)
+    return Verdict("unexplained", [], [], "a protocol probing that range (e.g. load-unload cycles or a relaxation "
+                   "hold ending inside it) and a user-written candidate effect for it", msg, where)
+
+
+def _group(best: CandidateResult, tied: list[CandidateResult], data) -> Verdict:
     members = [best.effect] + [c.effect for c in tied]
     # name the known confusable group of the best candidate too
     known = [tuple(g) for g in CONFUSABLE_GROUPS if best.effect in g]
-    return Verdict("group", [], members, _experiment_for(members),
+    feats = protocol_features(data)
+    return Verdict("group", [], members, experiments_for(members, feats) + f"; this file: {describe_protocol(feats)}",
                    f"{', '.join(members)} explain the misfit about equally (Δlog Z "
-                   + ", ".join(f"{_gain(c):.1f}" for c in [best] + tied) + ")"
+                   + ", ".join(f"{gain(c):.1f}" for c in [best] + tied) + ")"
                    + (f"; known confusable group: {', '.join(known[0])}" if known else ""))
-
-
-def _experiment_for(group: Sequence[str]) -> str:
-    """The experiment of the known group containing ``group`` (else of the one overlapping
-    it most; else a generic protocol)."""
-    gs = set(group)
-    best, best_overlap = "", 0
-    for members, text in SEPARATING_EXPERIMENT.items():
-        overlap = len(members & gs)
-        if members >= gs and overlap:
-            return str(text)
-        if overlap > best_overlap:
-            best, best_overlap = str(text), overlap
-    return best or _GENERIC_EXPERIMENT
-
-
-def _control_window(ctrl: CandidateResult, windows: list[dict]) -> tuple[float, float]:
-    """Where the control's bump sits (centre ± 2 widths, inside the data), else the strongest window."""
-    if ctrl.fit is not None:
-        names = ctrl.fit.names
-        x = ctrl.fit.theta_max
-        if "BUMP_C" in names and "BUMP_W" in names:
-            c, w = x[names.index("BUMP_C")], x[names.index("BUMP_W")]
-            lo, hi = c - 2 * w, c + 2 * w
-            centre = ctrl.effect_instance.parameters[1]
-            return float(max(lo, centre.lower)), float(min(hi, centre.upper))
-    if windows:
-        return windows[0]["eps_lo"], windows[0]["eps_hi"]
-    return float("nan"), float("nan")

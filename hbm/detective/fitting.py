@@ -22,7 +22,7 @@ from .inputs import SpecimenData, added_effects
 from .results import FitSummary
 from .rules import BAND, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES
 
-__all__ = ["Fitter", "coverage"]
+__all__ = ["Fitter", "coverage", "laplace_occam", "noise_evidence"]
 
 
 def cma_maximise(lik, x0s: Sequence[np.ndarray], sigma0: float, seed: int, maxfevals: int,
@@ -71,26 +71,93 @@ def global_fit(lik, seed: int, restarts: int) -> tuple[np.ndarray, float]:
     return x, float(np.asarray(lik(x[None, :]))[0])
 
 
-def sample(lik, n_samples: int, seed: int, budget: float | None = None):
+def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None):
     """TMCMC evidence run of ``n_samples`` particles.
 
-    With a time ``budget`` (seconds, opt-in) the population shrinks for expensive models: the
-    cost per particle evaluation is measured on a small batch and a run costs about
-    N · (steps per stage) · (≈ 15 stages) evaluations.  Off by default, because a wall-clock
-    measurement makes N -- and so every TMCMC number -- depend on the machine's load: the same
-    seed must give the same diagnosis (shrink N for slow models with ``n_samples``/``--samples``).
+    With an evaluation budget ``max_evaluations`` (opt-in) the population shrinks to what the
+    budget affords: a run costs about N · (steps per stage) · (≈ 15 stages) likelihood
+    evaluations.  The size depends only on the inputs (never on a wall-clock measurement), so
+    the same seed gives the same diagnosis under any machine load.
     """
     n = int(n_samples)
-    if budget:
-        rng = np.random.default_rng(seed)
-        b = np.asarray(lik.bounds, float)
-        x = b[:, 0] + rng.uniform(0.2, 0.8, (128, b.shape[0])) * (b[:, 1] - b[:, 0])
-        t0 = _time.perf_counter()
-        lik(x)
-        per = (_time.perf_counter() - t0) / 128
-        n = int(np.clip(budget / max(per * 15 * TMCMC_MAX_STEPS, 1e-12), TMCMC_MIN_SAMPLES, n))
+    if max_evaluations:
+        n = int(np.clip(int(max_evaluations) // (15 * TMCMC_MAX_STEPS), TMCMC_MIN_SAMPLES, n))
     return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
                  max_steps=TMCMC_MAX_STEPS)
+
+
+def laplace_occam(lik, x, all_names: Sequence[str], names: Sequence[str], samples: np.ndarray | None = None) -> float:
+    """Laplace Occam factor of a block of parameters at the optimum, ≤ 0.
+
+    ½·log det(2π·Σ) − Σ log(width), with Σ the inverse of the negative Hessian of the
+    log-likelihood over the block (other parameters held at the optimum; finite differences,
+    one batched likelihood call).  Local curvature, not the sampler's spread: a sampler that
+    missed a narrow mode (a bump at one location among many) would otherwise make a chance
+    improvement look free.  Directions without curvature (parameter on a bound, or not
+    identified) fall back to the posterior sd.
+    """
+    all_names = list(all_names)
+    names = [n for n in names if n in all_names]
+    if not names:
+        return 0.0
+    x0 = np.asarray(x, float)
+    b = np.asarray(lik.bounds, float)
+    idx = [all_names.index(n) for n in names]
+    w = b[idx, 1] - b[idx, 0]
+    h = 1e-3 * w
+    k = len(idx)
+    pts = [x0]
+    for a in range(k):
+        for sa in (1, -1):
+            x = x0.copy()
+            x[idx[a]] += sa * h[a]
+            pts.append(x)
+    for a in range(k):
+        for c in range(a + 1, k):
+            for sa, sc in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+                x = x0.copy()
+                x[idx[a]] += sa * h[a]
+                x[idx[c]] += sc * h[c]
+                pts.append(x)
+    X = np.array(pts)
+    X[:, idx] = np.clip(X[:, idx], b[idx, 0], b[idx, 1])
+    f = np.asarray(lik(X), float)
+    f0 = f[0]
+    H = np.zeros((k, k))
+    j = 1
+    for a in range(k):
+        H[a, a] = -(f[j] - 2 * f0 + f[j + 1]) / h[a] ** 2
+        j += 2
+    for a in range(k):
+        for c in range(a + 1, k):
+            fpp, fpm, fmp, fmm = f[j:j + 4]
+            H[a, c] = H[c, a] = -(fpp - fpm - fmp + fmm) / (4 * h[a] * h[c])
+            j += 4
+    post_sd = np.array([float(np.std(samples[:, i])) if samples is not None else wi / 3.5
+                        for i, wi in zip(idx, w)])
+    ok = np.isfinite(H).all()
+    if ok:
+        evals = np.linalg.eigvalsh(H)
+        ok = bool(evals.min() > 0)
+    if ok:
+        logdet = -float(np.linalg.slogdet(H)[1])
+        occ = 0.5 * (k * math.log(2 * math.pi) + logdet) - float(np.sum(np.log(w)))
+    else:
+        sd = np.where(np.isfinite(np.diag(H)) & (np.diag(H) > 0), 1.0 / np.sqrt(np.abs(np.diag(H)) + 1e-300),
+                      post_sd)
+        sd = np.minimum(sd, np.maximum(post_sd, 1e-12 * w))
+        occ = float(np.sum(np.log(math.sqrt(2 * math.pi) * np.maximum(sd, 1e-300) / w)))
+    return min(0.0, occ)
+
+
+def noise_evidence(entry: dict, model_names: Sequence[str]) -> float:
+    """Laplace log-evidence of one noise model's fit up to the terms shared by all noise models:
+    max log L + Occam factor of the noise parameters beyond the marginal sd (ρ of AR(1),
+    the relative sd of the proportional model).  Nested comparisons (iid ⊂ AR(1) at ρ = 0):
+    the sd and model parameters' Occam factors cancel."""
+    lik = entry["lik"]
+    extra = [n for n in lik.names if n not in model_names and n != "sigma"]
+    return float(entry["max_log_likelihood"]) + laplace_occam(lik, entry["x"], lik.names, extra)
 
 
 def rmse(lik, x: np.ndarray, data: SpecimenData) -> float:
@@ -208,15 +275,11 @@ class Fitter:
             table[noise] = self._optimum(model, noise, k, first, starts, seed, global_restarts)
         if len(noises) > 1:
             self._cross_seed(noises, table, seed)
-        best = min(noises, key=lambda n: table[n]["bic"])   # the first of equals, as a loop would
-        ch = table[best]
-        lik, x = ch["lik"], ch["x"]
         fs = FitSummary(effects=list(names_effects if names_effects is not None else added_effects(model)),
-                        noise=best, names=list(lik.names), theta_max=x,
-                        max_log_likelihood=ch["max_log_likelihood"], bic=ch["bic"],
-                        rmse=rmse(lik, x, self.data),
-                        noise_bic={k: v["bic"] for k, v in table.items()}, likelihood=lik, model=model,
-                        noise_fits=table)
+                        noise="", names=[], theta_max=np.zeros(0), max_log_likelihood=-np.inf, bic=np.inf,
+                        rmse=np.nan, model=model, noise_fits=table)
+        self.choose(fs, seed, sample=False)
+        best = fs.noise
         t_cma = _time.perf_counter() - t0
         n_stages = 0
         if sample:
@@ -227,6 +290,25 @@ class Fitter:
                  f"({fs.wall_time:.1f} s, CMA-ES {t_cma:.1f} s, TMCMC N={fs.samples.shape[0] if fs.samples is not None else 0}, "
                  f"{n_stages} stages)")
         return fs
+
+    def choose(self, fs: FitSummary, seed: int, sample: bool = True) -> None:
+        """(Re)choose ``fs``'s noise model by evidence (:func:`noise_evidence`) among its
+        ``noise_fits`` and copy that optimum into ``fs``; when the choice changes and ``sample``,
+        re-run the TMCMC (the evidence and posterior belong to the noise model)."""
+        table = fs.noise_fits
+        model_names = fs.model.parameter_names
+        score = {k: noise_evidence(v, model_names) for k, v in table.items()}
+        best = max(table, key=lambda k: score[k])   # the first of equals, as a loop would
+        ch = table[best]
+        changed = best != fs.noise
+        lik, x = ch["lik"], np.asarray(ch["x"], float)
+        fs.noise, fs.names, fs.theta_max, fs.likelihood = best, list(lik.names), x, lik
+        fs.max_log_likelihood, fs.bic = float(ch["max_log_likelihood"]), float(ch["bic"])
+        fs.rmse = rmse(lik, x, self.data)
+        fs.noise_bic = {k: v["bic"] for k, v in table.items()}
+        fs.noise_evidence = score
+        if changed and sample:
+            self._sample(fs, seed, None)
 
     def _optimum(self, model: Model, noise: str, k: int, first: dict | None, starts, seed: int,
                  global_restarts: int) -> dict:
@@ -244,9 +326,7 @@ class Fitter:
             # new noise parameters start from moment estimates of the previous residuals
             # (CMA-ES started on a bound, e.g. rho = 0, tends to stay there)
             r = self.data.stress - np.asarray(prev["lik"].predict(prev["x"][None, :]))[0]
-            cont = ~self.data.ar_first[1:]
-            r1 = float(np.sum(r[1:][cont] * r[:-1][cont]) / max(np.sum(r * r), 1e-300))
-            guess = {"rho": float(np.clip(r1, 0.05, 0.9)), "sigma_rel": 0.05}
+            guess = lik.noise_model.moment_guess(r)
             x0 = np.array([vals.get(n, guess.get(n, np.nan)) for n in lik.names])
             x0s = [fill_nan(x0, b)] + x0s[:1]
             x, f = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=800)

@@ -160,7 +160,7 @@ def _window_z(z: np.ndarray, rho: float, scales: list[int]) -> list[tuple[int, n
 
 def misfit_windows(z: np.ndarray, strain: np.ndarray, segment: np.ndarray, rho: float, *,
                    alpha: float = WINDOW_ALPHA, n_sim: int = 400, seed: int = 0,
-                   test: np.ndarray | None = None) -> tuple[list[dict], float]:
+                   test: np.ndarray | None = None, threshold: float | None = None) -> tuple[list[dict], float]:
     """Strain windows where the smoothed standardised residual is significantly non-zero.
 
     Parameters
@@ -182,6 +182,8 @@ def misfit_windows(z: np.ndarray, strain: np.ndarray, segment: np.ndarray, rho: 
         Seed of the simulation.
     test : array (n,), optional
         Test ids (reported per window; the segment id otherwise).
+    threshold : float, optional
+        A threshold calibrated before for the same sampling and ``rho`` (skips the simulation).
 
     Returns
     -------
@@ -189,18 +191,9 @@ def misfit_windows(z: np.ndarray, strain: np.ndarray, segment: np.ndarray, rho: 
         ``eps_lo, eps_hi, sign, z, test, i0, i1`` (merged overlapping windows of equal sign).
     threshold : float
     """
-    rng = np.random.default_rng(seed)
     rho = float(np.clip(rho, -0.95, 0.99))
     segs = [np.flatnonzero(segment == s) for s in np.unique(segment)]
-    # simulate the scan statistic under the noise model (vectorised over n_sim replicates)
-    sim_max = np.zeros(n_sim)
-    for idx in segs:
-        n = idx.size
-        if n < 5:
-            continue
-        for _, zz in _window_z(simulate_ar1(rng, (n_sim, n), rho), rho, _window_scales(n)):
-            sim_max = np.maximum(sim_max, np.abs(zz).max(axis=-1))
-    thr = float(np.quantile(sim_max, 1 - alpha)) if np.any(sim_max > 0) else float("inf")
+    thr = window_threshold(segs, rho, alpha, n_sim, seed) if threshold is None else float(threshold)
     found = []
     for idx in segs:
         n = idx.size
@@ -230,6 +223,20 @@ def misfit_windows(z: np.ndarray, strain: np.ndarray, segment: np.ndarray, rho: 
     return out, thr
 
 
+def window_threshold(segs: list[np.ndarray], rho: float, alpha: float, n_sim: int, seed: int) -> float:
+    """(1 − alpha) quantile of the scan's maximum |z| over simulated AR(1) noise (vectorised
+    over ``n_sim`` replicates), for segments of the given index arrays."""
+    rng = np.random.default_rng(seed)
+    sim_max = np.zeros(n_sim)
+    for idx in segs:
+        n = idx.size
+        if n < 5:
+            continue
+        for _, zz in _window_z(simulate_ar1(rng, (n_sim, n), rho), rho, _window_scales(n)):
+            sim_max = np.maximum(sim_max, np.abs(zz).max(axis=-1))
+    return float(np.quantile(sim_max, 1 - alpha)) if np.any(sim_max > 0) else float("inf")
+
+
 def smoothed_residual(z: np.ndarray, segment: np.ndarray, width: int) -> np.ndarray:
     """Moving average of z within segments (for plotting)."""
     out = np.empty_like(z)
@@ -253,11 +260,12 @@ class NoiseCheck:
     noise: dict            # what Diagnosis.noise reports (fitted, model-free, which one is used)
     pred: np.ndarray       # prediction of the base fit at its optimum
     resid: np.ndarray      # data − prediction
-    sd: np.ndarray         # marginal noise sd per point used by the windows and the screen
-    rho: float             # lag-1 noise correlation used by the windows and the screen
+    sd: np.ndarray         # marginal noise sd per point the data show (model-free level, fitted shape)
+    rho: float             # lag-1 noise correlation the data show (model-free)
     z: np.ndarray          # resid / sd
-    windows: list          # misfit windows (dicts of :func:`misfit_windows`), strongest first
-    threshold: float       # family-wise threshold of the window scan
+    windows: list          # misfit windows of both scans (dicts of :func:`misfit_windows`), strongest first
+    threshold: float       # family-wise threshold of the model-free scan
+    alpha: float = WINDOW_ALPHA
 
     def residual_curve(self, predictive: dict, segment: np.ndarray) -> dict:
         """What the diagnosis figure draws: prediction, residuals, smoothed z and the band."""
@@ -266,28 +274,52 @@ class NoiseCheck:
                 "smoothed": smoothed_residual(self.z, segment, smooth_w),
                 "lower": predictive["lower"], "upper": predictive["upper"], "rho_window": self.rho}
 
+    def remaining_windows(self, fit: FitSummary, d: SpecimenData) -> list[dict]:
+        """Misfit windows of another fit's residuals, scanned like the model-free scan."""
+        pred = np.asarray(fit.likelihood.predict(fit.theta_max[None, :]))[0]
+        w, _ = misfit_windows((d.stress - pred) / self.sd, d.strain, d.segment, self.rho, test=d.test,
+                              threshold=self.threshold)
+        return w
+
 
 def fitted_noise_parameters(lik, x) -> dict:
     """The noise parameters (not the model's) of the free vector ``x`` of ``lik``."""
     return {n: float(v) for n, v in zip(lik.names, np.asarray(x, float)) if n not in lik.model.parameter_names}
 
 
-def check_noise(base: FitSummary, model_free: dict, d: SpecimenData, seed: int) -> NoiseCheck:
+def noise_consistent(sig_fit: float, rho_fit: float, mf: dict) -> bool:
+    """Is the fitted noise free of signs of a systematic misfit?
+
+    One-sided: a misfit inflates the fitted sd (above ×1.5 the model-free σ) or correlates the
+    residuals (fitted ρ more than 0.3 above the model-free ρ).  The reverse -- a fit *less*
+    noisy than the model-free estimate -- happens on coarse, strongly curved samplings, where
+    third differences keep some of the curve; it is no sign of misfit.
+    """
+    if not np.isfinite(mf["sigma"]) or not mf["sigma"] > 0:
+        return True
+    return bool(sig_fit / mf["sigma"] < 1.5 and rho_fit - mf["rho"] < 0.3)
+
+
+def check_noise(base: FitSummary, model_free: dict, d: SpecimenData, seed: int,
+                alpha: float = WINDOW_ALPHA) -> NoiseCheck:
     """Cross-check the fitted noise with the model-free estimate, then scan for misfit windows.
 
-    The windows (and the screen after them) use the noise the *data* show: if a fitted AR(1)
-    soaks up a real misfit (fitted ρ more than 0.3 above the model-free ρ), the model-free
-    correlation and sd are used instead.
+    Two scans, each at family-wise rate ``alpha``/2: under the chosen (fitted) noise model, and
+    under the noise the *data* show -- the model-free level and ρ where they are below the fit's
+    (white noise unless the differences show correlation; the fitted shape of a
+    heteroscedastic sd).  A fitted AR(1)
+    that soaks up a real misfit therefore cannot hide it: the second scan still sees it.  The
+    screen whitens with the model-free noise too.
     """
     lik = base.likelihood
     noise_par = fitted_noise_parameters(lik, base.theta_max)
     sd = np.asarray(lik.noise_sd(base.theta_max[None, :]))[0]
     rho_fit = float(noise_par.get("rho", 0.0))
     mf = model_free
-    noise = {"model": base.noise, **noise_par, "bic": base.noise_bic, "model_free": mf}
+    noise = {"model": base.noise, **noise_par, "bic": base.noise_bic, "model_free": mf,
+             "evidence": dict(base.noise_evidence)}
     sig_fit = float(np.median(sd))
-    consistent = bool(np.isfinite(mf["sigma"]) and 0.67 < sig_fit / mf["sigma"] < 1.5
-                      and abs(rho_fit - mf["rho"]) < 0.3)
+    consistent = noise_consistent(sig_fit, rho_fit, mf)
     noise["consistent"] = consistent
     if not consistent:
         noise["note"] = ("fitted noise differs from the model-free estimate (sd {:.3g} vs {:.3g}, rho {:.2f} vs "
@@ -295,13 +327,21 @@ def check_noise(base: FitSummary, model_free: dict, d: SpecimenData, seed: int) 
                          .format(sig_fit, mf["sigma"], rho_fit, mf["rho"]))
     pred = np.asarray(lik.predict(base.theta_max[None, :]))[0]
     resid = d.stress - pred
-    rho_w, sd_w = rho_fit, sd
-    if np.isfinite(mf["rho"]) and rho_fit - mf["rho"] > 0.3:
-        rho_w = float(max(mf["rho"], 0.0))
-        sd_w = np.full_like(sd, mf["sigma"])
-    noise["windows_use"] = {"source": "fit" if rho_w == rho_fit else "model-free",
-                            "sigma": float(np.median(sd_w)), "rho": float(rho_w)}
-    zres = resid / sd_w
-    windows, thr = misfit_windows(zres, d.strain, d.segment, rho_w, seed=seed, test=d.test)
-    return NoiseCheck(noise=noise, pred=pred, resid=resid, sd=sd_w, rho=rho_w, z=zres, windows=windows,
-                      threshold=thr)
+    if np.isfinite(mf["sigma"]) and mf["sigma"] > 0:
+        # the noise cannot exceed what the residuals show: a model-free estimate above the fit's
+        # is contaminated by curvature (coarse sampling), so the smaller of the two is used
+        rho_mf = float(np.clip(min(mf["rho"], rho_fit), 0.0, 0.95))
+        sd_mf = sd * (min(mf["sigma"], sig_fit) / max(sig_fit, 1e-300))
+    else:
+        rho_mf, sd_mf = rho_fit, sd
+    noise["windows_use"] = {"source": "fit and model-free", "sigma": float(np.median(sd_mf)), "rho": rho_mf}
+    w_fit, _ = misfit_windows(resid / sd, d.strain, d.segment, rho_fit, alpha=alpha / 2, seed=seed, test=d.test)
+    zres = resid / sd_mf
+    w_mf, thr = misfit_windows(zres, d.strain, d.segment, rho_mf, alpha=alpha / 2, seed=seed + 1, test=d.test)
+    for w in w_fit:
+        w["noise"] = "fitted"
+    for w in w_mf:
+        w["noise"] = "model-free"
+    windows = sorted(w_fit + w_mf, key=lambda w: -abs(w["z"]))
+    return NoiseCheck(noise=noise, pred=pred, resid=resid, sd=sd_mf, rho=rho_mf, z=zres, windows=windows,
+                      threshold=thr, alpha=alpha)

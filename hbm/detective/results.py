@@ -39,6 +39,8 @@ class FitSummary:
     samples: np.ndarray | None = None     # posterior samples (n, d) of the free parameters
     coverage: float = NAN
     noise_bic: dict = field(default_factory=dict)
+    #: noise model -> Laplace log-evidence score that chose it (:func:`~.fitting.noise_evidence`)
+    noise_evidence: dict = field(default_factory=dict)
     wall_time: float = 0.0
     likelihood: Any = None
     model: Model | None = None
@@ -87,6 +89,14 @@ class CandidateResult:
     effect_instance: Effect | None = field(default=None, repr=False)
     #: the score test's linearised estimate of the effect's parameters (a second refit start)
     score_start: dict = field(default_factory=dict, repr=False)
+    #: misfit windows left after the refit (scanned with the model-free noise)
+    windows_after: int | None = None
+    #: where a refitted control acts: (axis, lo, hi)
+    region: tuple | None = None
+    #: the cheap local refit's whole optimum (base parameters included), a refit start
+    local_full: dict = field(default_factory=dict, repr=False)
+    #: Laplace Δlog Z of this refit at white noise against an AR(1) base (None otherwise)
+    white_gain: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready summary (one entry of ``candidates`` in ``hbm diagnose --json``)."""
@@ -103,7 +113,10 @@ class CandidateResult:
                 "delta_log_evidence_laplace": _num(self.delta_log_evidence_laplace),
                 "evidence_method": self.evidence_method,
                 "intervals": {k: [_num(v) for v in t] for k, t in self.intervals.items()},
-                "excludes_null": self.excludes_null}
+                "excludes_null": self.excludes_null,
+                "windows_after": self.windows_after,
+                "region": list(self.region) if self.region else None,
+                "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None}
 
 
 @dataclass(slots=True)
@@ -145,6 +158,17 @@ class Diagnosis:
     at_bounds : list of dict
         Base-model parameters whose best fit or posterior sits on a box edge
         (:func:`hbm.fit.edges`): the verdict is conditional on that box.
+    unexplained : dict or None
+        For an unexplained misfit: ``axis`` (strain or time), ``range``, best-fitting ``shape``.
+    steps : list of dict
+        The greedy rounds: model, verdict, message, windows and gains at each.
+    data_problem : str or None
+        A data problem found before any physics (e.g. a stress file in kPa).
+    removal : list of dict
+        Removal test of each base part (:func:`hbm.detective.removal.removal_test`).
+    power : dict or None
+        Detection limits of the library effects on this protocol
+        (:func:`hbm.detective.power.detection_power`).
     """
 
     verdict: str
@@ -163,6 +187,11 @@ class Diagnosis:
     residual_curve: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
     at_bounds: list = field(default_factory=list)
+    unexplained: dict | None = None
+    steps: list = field(default_factory=list)
+    data_problem: str | None = None
+    removal: list = field(default_factory=list)
+    power: dict | None = None
 
     def to_dict(self) -> dict:
         """The JSON object of ``hbm diagnose --json`` (issue 5 shape plus detail keys)."""
@@ -185,6 +214,11 @@ class Diagnosis:
             "timings": jsonable(self.timings),
             "skipped_candidates": dict(self.skipped),
             "at_bounds": jsonable(self.at_bounds),
+            "unexplained_window": jsonable(self.unexplained),
+            "steps": jsonable(self.steps),
+            "data_problem": self.data_problem,
+            "removal": jsonable(self.removal),
+            "power": jsonable({k: v for k, v in self.power.items() if k != "text"}) if self.power else None,
         }
 
     def to_json(self) -> str:
@@ -211,22 +245,39 @@ class Diagnosis:
         else:
             lines.append("misfit windows: none")
         lines.append("")
-        lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ':>9}"
-                     f"{'TMCMC ± SE':>15}{'RMSE before':>12}{'after':>9}  noise  interval of new parameter")
+        lines.append("Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
+                     "(Laplace: the screen's estimate)")
+        lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ ± SE':>15}"
+                     f"{'Laplace':>9}{'RMSE before':>12}{'after':>9}  noise  interval of new parameter")
         for c in self.candidates:
             iv = "; ".join(f"{k} [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in c.intervals.items())
             if c.refit:
-                tm = f"{c.delta_log_evidence_tmcmc:.1f} ± {c.delta_log_evidence_se:.1f}"
-                lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{c.delta_log_evidence:>9.2f}"
-                             f"{tm:>15}{c.rmse_before:>12.4g}{c.rmse_after:>9.4g}  "
+                tm = f"{c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f}"
+                lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{tm:>15}"
+                             f"{c.delta_log_evidence_laplace:>9.1f}{c.rmse_before:>12.4g}{c.rmse_after:>9.4g}  "
                              f"{c.noise or '':<6} {iv}")
             else:
-                lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{'—':>9}{'':>15}"
+                lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{'—':>15}{'':>9}"
                              f"{c.rmse_before:>12.4g}{'':>9}")
+        if self.noise.get("preference"):
+            lines.append(f"noise: {self.noise['preference']}")
+        if len(self.steps) > 1:
+            lines.append("greedy rounds (each named effect added, then re-screened):")
+            for k, st in enumerate(self.steps):
+                lines.append(f"  {k}: model {' + '.join(st['model']) or 'base'}: {st['verdict']} — {st['message']}")
+        for r in self.removal:
+            if not r["needed"]:
+                lines.append(f"removal test: the data do not need the {r['part']} part (removing "
+                             f"{', '.join(r['removed'])} changes log Z by {r['delta_log_evidence']:+.1f})")
+        if self.removal and all(r["needed"] for r in self.removal):
+            lines.append("removal test: every base part is needed ("
+                         + ", ".join(f"{r['part']} {r['delta_log_evidence']:+.1f}" for r in self.removal) + ")")
         lines.append("")
         lines.append(f"verdict: {self.verdict} — {self.message}")
         if self.suggested_experiment:
             lines.append(f"suggested experiment: {self.suggested_experiment}")
+        if self.power:
+            lines += ["", self.power_text()]
         t = self.timings.get("total")
         if t is not None:
             lines.append(f"(wall time {t:.1f} s, CPU time {self.timings.get('cpu', NAN):.1f} s)")
@@ -234,6 +285,10 @@ class Diagnosis:
 
     def __str__(self) -> str:
         return self.summary()
+
+    def power_text(self) -> str:
+        """The detection-limit section (``hbm diagnose --power``); empty without a power run."""
+        return self.power.get("text", "") if self.power else ""
 
     def plot(self, path):
         """Write the diagnosis figure (data, fit, band, residuals with windows) to ``path``."""

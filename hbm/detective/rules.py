@@ -9,7 +9,7 @@ from __future__ import annotations
 # --- decision (DESIGN.md §2: ΔBIC ≈ 6 raised false alarms on AR(1) noise, ≈ 10 did not)
 DELTA_LOGZ_MIN = 5.0      # evidence gain needed to name anything (≈ ΔBIC 10)
 RUNNER_UP_MARGIN = 3.0    # a named effect must beat the runner-up by this many nats (and 2 SE)
-CONTROL_MARGIN = 5.0      # the generic control must beat the best physical effect by this much
+REMOVE_TOL = 3.0          # "explains the misfit about as well as the best control": within this many nats of its max log L
 
 # --- where it fails
 WINDOW_ALPHA = 0.05       # family-wise false-alarm rate of the misfit-window scan
@@ -18,11 +18,18 @@ BAND = 0.90               # posterior-predictive band used for coverage
 # --- what is missing
 CONTROL_NAME = "local_misfit"
 MIN_REFIT_SCORE = 1.0     # screen z below which a candidate is not refitted
+N_CONTROL_REFITS = 2      # controls refitted (the best always, the next when its screen is remarkable)
+MAX_EFFECTS = 3           # greedy additions of diagnose (each with the same rule, re-screened)
 SCREEN_STEPS = (1e-4, 0.1, 0.3)  # derivative and secant steps (fractions of the box width)
 
 # --- evidence runs
 TMCMC_MAX_STEPS = 25      # MH steps per stage cap: the time budget of a diagnosis (≤ 60 s)
-TMCMC_BUDGET = 6.0        # seconds per evidence run when a caller opts into the time budget (fitting.sample)
 TMCMC_MIN_SAMPLES = 250
+TMCMC_SE_FACTOR = 2.5     # reported SE × this covers the seed-to-seed scatter of Δlog Z (12 seeds, README)
 MIN_POINTS = 5            # the smallest curve diagnose/extend accept (as hbm fit)
 FEW_POINTS = 10           # below this a one-line warning says the detective has little power
+PASSIVE_STRESS_RANGE = (1e-3, 2.0)  # MPa: what passive muscle reaches (a file far outside: wrong units)
+
+# --- detection power (hbm diagnose --power)
+POWER_REPLICATES = 200    # noise replicates per effect strength (linearised refits, vectorised)
+POWER_LEVEL = 0.8         # share of replicates in which an effect must be named at its detection limit

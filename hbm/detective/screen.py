@@ -2,13 +2,13 @@
 
 Two screens per candidate, both in noise-whitened units at the base fit: a projected score
 test at the effect's null (:func:`score_screen`) and a few Gauss–Newton steps of a local refit
-(:func:`local_refit_screen`).  The non-physical control :class:`LocalMisfit` is screened the
-same way, from a grid of starts because its centre is multimodal.
+(:func:`local_refit_screen`).  The non-physical controls (:mod:`.controls`) are screened by
+a linear fit of their amplitude over a grid of shapes (their position is multimodal), then a
+local refit from the best few shapes.
 """
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -17,59 +17,13 @@ from scipy import stats as _stats
 
 from ..errors import HbmError
 from ..model.core import Effect, Model, Parameter
+from .controls import Control, LocalMisfit, controls_for
 from .inputs import SpecimenData
 from .noise_check import NoiseCheck, whitener
 from .results import CandidateResult, FitSummary
-from .rules import CONTROL_NAME, SCREEN_STEPS
+from .rules import SCREEN_STEPS
 
-__all__ = ["LocalMisfit", "score_screen", "local_refit_screen", "screen_candidates"]
-
-
-# =========================================================================================
-# the non-physical control
-# =========================================================================================
-class LocalMisfit(Effect):
-    """Generic local misfit: a Gaussian bump in applied strain, ``A·exp(−½((ε − C)/W)²)``.
-
-    Not a physical effect: a *control*.  If the control explains a misfit much better than
-    every physical candidate, the misfit is reported as unexplained in ε ∈ [C − 2W, C + 2W]
-    instead of being absorbed by (or misattributed to) a physical effect.  The prior box is
-    set from the data (:meth:`for_data`) so that its Occam penalty is comparable across
-    specimens.
-    """
-
-    name = CONTROL_NAME
-    stage = "output"
-    strength = "BUMP_A"
-    description = "non-physical control: Gaussian stress bump in strain (amplitude, centre, width)"
-
-    def __init__(self, amplitude: float = 0.05, strain_range: tuple[float, float] = (0.0, 0.5),
-                 width_range: tuple[float, float] | None = None) -> None:
-        lo, hi = float(strain_range[0]), float(strain_range[1])
-        if not hi > lo:
-            raise HbmError(f"LocalMisfit: strain range must be increasing, got {strain_range}")
-        span = hi - lo
-        wlo, whi = width_range if width_range is not None else (span / 100.0, span / 3.0)
-        a = abs(float(amplitude))
-        self.parameters = (
-            Parameter("BUMP_A", -a, a, "MPa", "amplitude of the local misfit bump", null=0.0),
-            Parameter("BUMP_C", lo, hi, "-", "centre strain of the bump", null=0.5 * (lo + hi)),
-            Parameter("BUMP_W", float(wlo), float(whi), "-", "width (sd) of the bump in strain",
-                      null=float(np.sqrt(wlo * whi))),
-        )
-
-    @classmethod
-    def for_data(cls, strain: np.ndarray, stress: np.ndarray) -> "LocalMisfit":
-        """Control with amplitude up to half the stress range and centre inside the data."""
-        strain = np.asarray(strain, float)
-        stress = np.asarray(stress, float)
-        amp = 0.5 * float(np.ptp(stress)) or 1e-3
-        return cls(amp, (float(strain.min()), float(strain.max())))
-
-    def modify(self, state, p, stress):
-        eps = state.loading.strain
-        z = (eps - p["BUMP_C"]) / p["BUMP_W"]
-        return stress + p["BUMP_A"] * np.exp(-0.5 * z * z)
+__all__ = ["LocalMisfit", "score_screen", "local_refit_screen", "screen_candidates", "screen_controls"]
 
 
 # =========================================================================================
@@ -269,15 +223,18 @@ def local_refit_screen(model: Model, theta_model: np.ndarray, free: Sequence[str
     p = min(max(float(_stats.chi2.sf(chi2, dof)), 1e-300), 1.0)
     z = float(_stats.norm.isf(p)) if p < 0.5 else 0.0
     start = {n: float(v) for n, v in zip(names[len(free):], best[1][len(free):])}
-    return {"chi2": chi2, "dof": dof, "z": z, "start": start}
+    # the whole local optimum (base parameters included): the refit's best warm start when the
+    # base parameters had moved to absorb the misfit
+    full = {n: float(v) for n, v in zip(names, best[1])}
+    return {"chi2": chi2, "dof": dof, "z": z, "start": start, "full": full}
 
 
 # =========================================================================================
 # the step
 # =========================================================================================
 def screen_candidates(base: FitSummary, candidates: Sequence[Effect], check: NoiseCheck, d: SpecimenData,
-                      log: Callable[[str], None]) -> tuple[list[CandidateResult], CandidateResult, dict[str, str]]:
-    """Screen every candidate and the control at the base fit.
+                      log: Callable[[str], None]) -> tuple[list[CandidateResult], list[CandidateResult], dict[str, str]]:
+    """Screen every candidate and the controls at the base fit.
 
     The screen whitens with the same noise as the windows: an AR(1) fit that soaked up the
     misfit would whiten the very signature looked for away.
@@ -286,8 +243,8 @@ def screen_candidates(base: FitSummary, candidates: Sequence[Effect], check: Noi
     -------
     results : list of CandidateResult
         The physical candidates, ranked by the stronger of their two screens.
-    control : CandidateResult
-        The :class:`LocalMisfit` control.
+    controls : list of CandidateResult
+        The non-physical controls (:mod:`.controls`), ranked the same way.
     skipped : dict
         Candidate -> why it could not be screened (e.g. no time column).
     """
@@ -313,55 +270,49 @@ def screen_candidates(base: FitSummary, candidates: Sequence[Effect], check: Noi
         results.append(CandidateResult(effect=e.name, score=sc["z"], chi2=sc["chi2"], dof=sc["dof"],
                                        absorbed=sc["absorbed"], rmse_before=base.rmse, start=lr["start"],
                                        local_z=lr["z"], local_chi2=lr["chi2"], effect_instance=e,
-                                       score_start=sc["start"]))
-    control = LocalMisfit.for_data(d.strain, d.stress)
-    sc = score_screen(base_model, theta_model, free, control, resid, whiten, d)
-    lr = _control_local_refit(control, sc["start"], check, d,
-                              partial(local_refit_screen, base_model, theta_model, free, control, whiten, d,
-                                      max_nfev=15))
-    ctrl = CandidateResult(effect=CONTROL_NAME, score=sc["z"], chi2=sc["chi2"], dof=sc["dof"],
-                           absorbed=sc["absorbed"], physical=False, rmse_before=base.rmse, start=lr["start"],
-                           local_z=lr["z"], local_chi2=lr["chi2"], effect_instance=control,
-                           score_start=sc["start"])
+                                       score_start=sc["start"], local_full=lr["full"]))
+    ctrls = screen_controls(controls_for(d), base_model, theta_model, free, resid, whiten, d, base.rmse)
     # rank by the stronger of the two screens (score test at the null, cheap local refit)
     results.sort(key=lambda c: -max(c.score, c.local_z))
     log("screen: " + ", ".join(f"{c.effect} z={c.score:.1f}/{c.local_z:.1f}" for c in results)
-        + f"; control z={ctrl.score:.1f}")
-    return results, ctrl, skipped
+        + "; controls " + ", ".join(f"{c.effect} z={c.local_z:.1f}" for c in ctrls))
+    return results, ctrls, skipped
 
 
-def _control_local_refit(control: LocalMisfit, score_start: dict, check: NoiseCheck, d: SpecimenData,
-                         refit: Callable[[list[dict]], dict]) -> dict:
-    """The best cheap local refit of the control over a grid of starts.
+def screen_controls(controls: Sequence[Control], model: Model, theta_model: np.ndarray, free: Sequence[str],
+                    resid: np.ndarray, whiten, d: SpecimenData, rmse_before: float,
+                    n_starts: int = 3) -> list[CandidateResult]:
+    """Screen each control: its amplitude fitted linearly over a grid of shapes (with the base
+    model's absorbable directions projected out), then a local refit from the best shapes.
 
-    The control is multimodal in its centre: starts at the strongest misfit window, at the
-    score test's estimate and on a grid of centres and widths; ``refit([start])`` is one
-    local refit from ``start``.
+    Returns the controls as CandidateResults, the strongest (local-refit z) first.
     """
-    resid = check.resid
-    cq = control.parameters
-    # the window start: centre/width from the strongest misfit window if any
-    wstart = dict(score_start)
-    if check.windows:
-        w0 = check.windows[0]
-        c = 0.5 * (w0["eps_lo"] + w0["eps_hi"])
-        wd = max((w0["eps_hi"] - w0["eps_lo"]) / 4, cq[2].lower * 1.01)
-        i0, i1 = w0["i0"], w0["i1"]
-        wstart = {"BUMP_A": float(np.clip(np.mean(resid[i0:i1 + 1]), -cq[0].upper * 0.99, cq[0].upper * 0.99)),
-                  "BUMP_C": c, "BUMP_W": min(wd, cq[2].upper * 0.99)}
-    grid_starts = [wstart, score_start] + [
-        {"BUMP_A": 0.0, "BUMP_C": float(cc), "BUMP_W": float(ww)}
-        for cc in np.linspace(cq[1].lower, cq[1].upper, 9)[1:-1]
-        for ww in np.geomspace(cq[2].lower * 2, cq[2].upper / 2, 3)]
-    best = None
-    for st in grid_starts:
-        st = dict(st)
-        if st.get("BUMP_A", 0.0) == 0.0:
-            # amplitude from the mean residual near the centre (sign matters for the refit)
-            near = np.abs(d.strain - st["BUMP_C"]) < st["BUMP_W"]
-            st["BUMP_A"] = float(np.clip(np.mean(resid[near]) if near.any() else 0.0,
-                                         cq[0].lower * 0.9, cq[0].upper * 0.9))
-        lr = refit([st])
-        if best is None or lr["chi2"] > best["chi2"]:
-            best = lr
-    return best
+    Jb = np.asarray(model.stress_jacobian(d.loading, theta_model))
+    U, sv, _ = np.linalg.svd(whiten(Jb[:, [model.index(n) for n in free]]), full_matrices=False)
+    U = U[:, sv > sv.max() * 1e-9] if sv.size and sv.max() > 0 else U[:, :0]
+    r = whiten(resid)
+    r = r - U @ (U.T @ r)
+    out = []
+    for ctl in controls:
+        grid = ctl.grid()
+        scored = []
+        for g in grid:
+            q = {k: np.asarray(v) for k, v in g.items()}
+            f = whiten(np.asarray(ctl.shape(d.loading, q), float) * np.ones(d.stress.size))
+            f = f - U @ (U.T @ f)
+            ff = float(f @ f)
+            if ff <= 0:
+                continue
+            amp = float(r @ f) / ff
+            a_max = ctl.parameters[0].upper * 0.95
+            scored.append(((r @ f) ** 2 / ff, {ctl.amp: float(np.clip(amp, -a_max, a_max)), **g}))
+        scored.sort(key=lambda t: -t[0])
+        starts = [st for _, st in scored[:n_starts]] or [ctl.null_values]
+        lr = local_refit_screen(model, theta_model, free, ctl, whiten, d, starts, max_nfev=40)
+        chi2_lin = scored[0][0] if scored else 0.0
+        out.append(CandidateResult(effect=ctl.name, score=float(_stats.norm.isf(
+            min(max(_stats.chi2.sf(chi2_lin, 1) * max(len(grid), 1), 1e-300), 0.5))), chi2=float(chi2_lin), dof=1,
+            absorbed=float("nan"), physical=False, rmse_before=rmse_before, start=lr["start"], local_z=lr["z"],
+            local_chi2=lr["chi2"], effect_instance=ctl, score_start=starts[0], local_full=lr["full"]))
+    out.sort(key=lambda c: -c.local_z)
+    return out

@@ -1,0 +1,205 @@
+"""Fast tests of the detective's issue-17 rules against known generators: the generic controls,
+the unit check, the protocol features, the decision rule (one evidence number, no second gate;
+adequate only without any sign of misfit; a physical effect must match the best control), the
+base re-optimisation from a refit, and the detection-power scaling law."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hbm.data import cycle, hold, protocol, ramp, synthetic_specimen
+from hbm.detective.controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend, controls_for
+from hbm.detective.decision import decide
+from hbm.detective.fitting import Fitter
+from hbm.detective.inputs import as_data, unit_anomaly
+from hbm.detective.noise_check import model_free_noise, noise_prior_box
+from hbm.detective.power import detection_power
+from hbm.detective.protocols import experiments_for, protocol_features
+from hbm.detective.refits import reoptimise_base
+from hbm.detective.results import CandidateResult
+from hbm.effects import make_effect
+from hbm.model.core import Loading
+from hbm.model.spyrou import spyrou_model
+
+TH = dict(VOLF=0.82, EOPT=0.11, P1=0.16, T1=0.9, T2=12.0, THETA=58.8, GF=0.014, GM=0.009)
+BASE = np.array([TH[k] for k in spyrou_model().parameter_names])
+
+
+# ------------------------------------------------------------------------------------------
+# controls: each shape against its formula
+# ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("cls, prefix, formula", [
+    (LocalMisfit, "BUMP", lambda e, c, w: np.exp(-0.5 * ((e - c) / w) ** 2)),
+    (StepMisfit, "STEP", lambda e, c, w: 1.0 / (1.0 + np.exp(-(e - c) / w))),
+    (KinkMisfit, "KINK", lambda e, c, w: w * np.log1p(np.exp((e - c) / w)) / 0.4),
+])
+def test_strain_controls_add_their_shape(cls, prefix, formula):
+    ctl = cls(0.2, (0.0, 0.4))
+    m = spyrou_model() + ctl
+    eps = np.linspace(0, 0.4, 41)
+    th0 = m.null_theta(BASE)
+    th = th0.copy()
+    th[m.index(f"{prefix}_A")], th[m.index(f"{prefix}_C")], th[m.index(f"{prefix}_W")] = 0.03, 0.2, 0.02
+    diff = m.stress(eps, th) - m.stress(eps, th0)
+    np.testing.assert_allclose(diff, 0.03 * formula(eps, 0.2, 0.02), atol=1e-12)
+    axis, lo, hi = ctl.region({f"{prefix}_C": 0.2, f"{prefix}_W": 0.02}, Loading(eps))
+    assert axis == "strain" and lo < 0.2 < hi
+
+
+def test_time_trend_control_and_which_controls_apply():
+    ds = protocol(ramp(0.3, 1e-2, 20), ramp(0.3, 1e-3, 20))
+    d = as_data(ds.assign(stress=("point", np.linspace(0, 0.05, ds.sizes["point"]))))
+    ctl = TimeTrend.for_data(d.time, d.stress)
+    m = spyrou_model() + ctl
+    th = m.null_theta(BASE)
+    th[m.index("TREND_A")], th[m.index("TREND_P")] = 0.01, 2.0
+    diff = m.stress(d.loading, th) - m.stress(d.loading, m.null_theta(BASE))
+    np.testing.assert_allclose(diff, 0.01 * (d.time / d.time.max()) ** 2, atol=1e-12)
+    assert [c.name for c in controls_for(d)] == ["local_misfit", "local_step", "local_kink", "time_trend"]
+    no_time = as_data(ds.drop_vars(["time"]).assign(stress=("point", d.stress)))
+    assert "time_trend" not in [c.name for c in controls_for(no_time)]
+
+
+# ------------------------------------------------------------------------------------------
+# inputs and protocols
+# ------------------------------------------------------------------------------------------
+def test_unit_anomaly_flags_kpa_but_not_mpa():
+    ds = synthetic_specimen(spyrou_model(), TH, protocol(ramp(0.35, 1e-3, 40)), 0.001, seed=0)
+    assert unit_anomaly(as_data(ds)) is None
+    kpa = ds.assign(stress=ds.stress * 1000.0)
+    msg = unit_anomaly(as_data(kpa))
+    assert msg is not None and "kPa" in msg and "1e3" in msg
+    pa = ds.assign(stress=ds.stress * 1e6)
+    assert "Pa" in unit_anomaly(as_data(pa)) and "1e6" in unit_anomaly(as_data(pa))
+
+
+def test_protocol_features_and_experiments_look_at_the_file():
+    three = as_data(protocol(ramp(0.3, 1e-3, 20), ramp(0.3, 1e-2, 20), ramp(0.3, 1e-1, 20)).assign(
+        stress=lambda x: ("point", np.zeros(x.sizes["point"]))))
+    f = protocol_features(three)
+    np.testing.assert_allclose(f["rates"], [1e-3, 1e-2, 1e-1], rtol=1e-6)
+    assert not f["hold"] and not f["unloading"]
+    text = experiments_for(["viscoelastic"], f)
+    assert "already has 3 strain rates" in text and "relaxation hold" in text and "decade" not in text
+    lur = as_data(protocol(cycle(0.3, 1e-3, 15, eps_min=0.1, reload_to=0.35)).assign(
+        stress=lambda x: ("point", np.zeros(x.sizes["point"]))))
+    g = protocol_features(lur)
+    assert g["unloading"] and g["reload_beyond"]
+    assert "already has a load-unload-reload" in experiments_for(["damage"], g)
+    held = as_data(protocol([ramp(0.3, 1e-2, 20), hold(300.0, 15)]).assign(
+        stress=lambda x: ("point", np.zeros(x.sizes["point"]))))
+    assert protocol_features(held)["hold"]
+    assert "ramps at strain rates" in experiments_for(["viscoelastic"], protocol_features(held))
+
+
+# ------------------------------------------------------------------------------------------
+# the decision rule
+# ------------------------------------------------------------------------------------------
+def _cand(name, dz, dl, physical=True, windows_after=0, null_excluded=True, region=None):
+    c = CandidateResult(effect=name, score=3.0, chi2=9.0, dof=1, absorbed=0.1, refit=True, physical=physical,
+                        delta_log_evidence=dz, delta_log_evidence_se=1.0, delta_max_log_likelihood=dl,
+                        rmse_before=1.0, rmse_after=0.9, noise="iid", excludes_null=null_excluded,
+                        effect_instance=make_effect("offset") if physical else StepMisfit(0.1, (0.0, 0.4)))
+    c.windows_after, c.region = windows_after, region
+    return c
+
+
+def _data():
+    return as_data(protocol(ramp(0.4, 1e-3, 30)).assign(stress=lambda x: ("point", np.linspace(0, 0.1, 30))))
+
+
+OK_NOISE = {"consistent": True}
+
+
+def test_decision_names_on_evidence_alone():
+    """An effect with Δlog Z 6.1 whose interval does not exclude the null is named (the null
+    test no longer double-counts the evidence rule)."""
+    v = decide([_cand("offset", 6.1, 9.0, null_excluded=False)], [_cand("local_step", 1.0, 6.5, physical=False)],
+               [{"eps_lo": 0.1, "eps_hi": 0.2, "sign": 1, "z": 4.0}], OK_NOISE, "iid", _data())
+    assert v.verdict == "effect" and v.selected == ["offset"]
+
+
+def test_decision_control_that_explains_better_gives_unexplained_with_its_region():
+    phys = _cand("offset", 8.0, 12.0, windows_after=1)
+    ctrl = _cand("local_step", 9.0, 20.0, physical=False, windows_after=0, region=("strain", 0.21, 0.25))
+    v = decide([phys], [ctrl], [{"eps_lo": 0.2, "eps_hi": 0.26, "sign": -1, "z": -5.0}], OK_NOISE, "iid", _data())
+    assert v.verdict == "unexplained" and v.unexplained["range"] == [0.21, 0.25]
+    assert "ε ∈ [0.21, 0.25]" in v.message
+    # a physical effect better in evidence but leaving misfit the control removes is not named
+    phys2 = _cand("offset", 10.0, 12.0, windows_after=2)
+    v2 = decide([phys2], [ctrl], [], OK_NOISE, "iid", _data())
+    assert v2.verdict == "unexplained"
+
+
+def test_adequate_only_without_any_sign_of_misfit():
+    quiet = [_cand("offset", 1.0, 2.0)], [_cand("local_step", -3.0, 2.0, physical=False)]
+    assert decide(*quiet, [], OK_NOISE, "iid", _data()).verdict == "adequate"
+    win = [{"eps_lo": 0.1, "eps_hi": 0.2, "sign": 1, "z": 4.0}]
+    assert decide(*quiet, win, OK_NOISE, "iid", _data()).verdict == "unexplained"
+    assert decide(*quiet, [], {"consistent": False}, "iid", _data()).verdict == "unexplained"
+    # AR(1) chosen, but white noise + a smooth misfit (a control at iid) gains: misfit, not noise
+    ar = [_cand("offset", 1.0, 2.0)], [_cand("local_step", 2.0, 7.0, physical=False)]
+    assert decide(*ar, [], OK_NOISE, "ar1", _data()).verdict == "adequate"
+    ar[1][0].white_gain = 3.0
+    v = decide(*ar, [], OK_NOISE, "ar1", _data())
+    assert v.verdict == "unexplained" and "prefer white noise" in v.message
+
+
+# ------------------------------------------------------------------------------------------
+# base re-optimisation from a refit
+# ------------------------------------------------------------------------------------------
+def test_base_reoptimised_from_a_refit_optimum():
+    """A base fit left short of its optimum is improved from a refit's optimum with the new
+    parameter at its null; the refit's base-parameter point is a lower bound for the result."""
+    ds = synthetic_specimen(spyrou_model(), TH, protocol(ramp(0.35, 1e-3, 40), ramp(0.35, 1e-2, 40)), 0.0015, seed=4)
+    d = as_data(ds)
+    mf = model_free_noise(d.stress, d.segment)
+    f = Fitter(d, None, 0, 300, noise_prior_box(mf, d.stress), False)
+    good = f.fit(spyrou_model(), ["iid"], None, 1, sample=False, global_restarts=1)
+    m_off = spyrou_model() + make_effect("offset")
+    starts = f.warm_starts(good, m_off, ["iid"], [{"S0": 0.0}])
+    refit = f.fit(m_off, ["iid"], starts, 2, sample=False)
+    # a poor base: the optimum moved away in T1/T2
+    poor = f.fit(spyrou_model(), ["iid"], {"iid": [good.theta_max * np.r_[1, 1, 1, 1.6, 0.6, 1, 1, 1, 1]]}, 3,
+                 sample=False)
+    poor.noise_fits["iid"]["x"] = good.theta_max * np.r_[1, 1, 1, 1.6, 0.6, 1, 1, 1, 1]
+    lik = poor.noise_fits["iid"]["lik"]
+    poor.noise_fits["iid"]["max_log_likelihood"] = float(lik(poor.noise_fits["iid"]["x"][None, :])[0])
+    restricted = dict(zip(refit.names, refit.theta_max))
+    floor = float(lik(np.array([[restricted[n] for n in lik.names]]))[0])
+    assert floor > poor.noise_fits["iid"]["max_log_likelihood"] + 5
+    c = CandidateResult(effect="offset", score=0, chi2=0, dof=1, absorbed=0, refit=True, fit=refit)
+    assert reoptimise_base(poor, [c], f, 5)
+    assert poor.max_log_likelihood >= floor - 1e-9
+    assert poor.max_log_likelihood == pytest.approx(good.max_log_likelihood, abs=1.0)
+
+
+# ------------------------------------------------------------------------------------------
+# detection power
+# ------------------------------------------------------------------------------------------
+def test_power_limit_of_a_linear_effect_scales_with_the_noise():
+    """For an offset (linear in its parameter) the gain grows as (S0/σ)²: halving the noise
+    halves the detection limit among the physical candidates (within the bisection's 10 %
+    resolution); letting the controls compete can only raise it."""
+    prot = protocol(ramp(0.35, 1e-3, 30), ramp(0.35, 1e-2, 30))
+    ds = synthetic_specimen(spyrou_model(), TH, prot, 0.001, seed=6)
+    d = as_data(ds)
+    mf = model_free_noise(d.stress, d.segment)
+    f = Fitter(d, None, 0, 300, noise_prior_box(mf, d.stress), False)
+    fit = f.fit(spyrou_model(), ["iid"], None, 1, sample=False, global_restarts=1)
+    limits = []
+    for sd in (0.001, 0.0005):
+        # the same fitted curve with the noise sd set: only σ differs
+        fit.theta_max = fit.theta_max.copy()
+        fit.theta_max[fit.names.index("sigma")] = sd
+        p = detection_power(fit, d, [make_effect("offset"), make_effect("damage")], seed=3, n_rep=100,
+                            with_controls=False)
+        row = {r["effect"]: r for r in p["effects"]}
+        limits.append(row["offset"]["limit"])
+        assert row["damage"]["limit"] is None and "load-unload-reload" in row["damage"]["protocol"]
+        shares = [s for _, s in row["offset"]["levels"]]
+        assert shares[0] < 0.5 and shares[-1] >= 0.8
+    assert 0.4 < limits[1] / limits[0] < 0.62, limits
+    strict = detection_power(fit, d, [make_effect("offset")], seed=3, n_rep=100)["effects"][0]["limit"]
+    assert strict is not None and strict >= limits[1]
