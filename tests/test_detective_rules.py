@@ -5,6 +5,8 @@ base re-optimisation from a refit, and the detection-power scaling law."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -127,9 +129,62 @@ def test_decision_control_that_explains_better_gives_unexplained_with_its_region
     assert v.verdict == "unexplained" and v.unexplained["range"] == [0.21, 0.25]
     assert "ε ∈ [0.21, 0.25]" in v.message
     # a physical effect better in evidence but leaving misfit the control removes is not named
+    # outright: tentatively, with this round's unexplained verdict as the fallback
     phys2 = _cand("offset", 10.0, 12.0, windows_after=2)
     v2 = decide([phys2], [ctrl], [], OK_NOISE, "iid", _data())
-    assert v2.verdict == "unexplained"
+    assert v2.verdict == "partial" and v2.selected == ["offset"]
+    assert v2.fallback.verdict == "unexplained" and v2.fallback.unexplained["range"] == [0.21, 0.25]
+
+
+def test_decision_physical_effect_that_fits_better_wins_an_evidence_tie_with_a_control():
+    ctrl = _cand("time_trend", 33.1, 40.0, physical=False, windows_after=0, region=("time", 0.0, 360.0))
+    ctrl.delta_log_evidence_se = 2.8
+    phys = _cand("viscoelastic", 28.1, 60.0, windows_after=0)
+    phys.delta_log_evidence_se = 2.3          # trails by 5.0 < 2·hypot(2.3, 2.8) = 7.2, fits better
+    assert decide([phys], [ctrl], [], OK_NOISE, "iid", _data()).verdict == "effect"
+    phys.delta_max_log_likelihood = 35.0      # the generic shape fits better: it wins the tie
+    assert decide([phys], [ctrl], [], OK_NOISE, "iid", _data()).verdict == "unexplained"
+    phys.delta_max_log_likelihood, phys.delta_log_evidence = 60.0, 24.0   # trails by 9.1 > 7.2
+    assert decide([phys], [ctrl], [], OK_NOISE, "iid", _data()).verdict == "unexplained"
+
+
+def _scripted_rounds(script):
+    """A run_round for detective._greedy that plays back (verdict, selected) per round."""
+    from hbm.detective import _Step
+    from hbm.detective.decision import Verdict
+
+    def run_round(current, remaining, k):
+        verdict, sel = script[k]
+        fb = Verdict("unexplained", [], [], "", f"unexplained at round {k}") if verdict == "partial" else None
+        res = [SimpleNamespace(effect=e, fit=f"fit+{e}") for e in sel]
+        return _Step(current, None, res, [], {}, Verdict(verdict, list(sel), [], "", f"round {k}", fallback=fb))
+    return run_round
+
+
+@pytest.mark.parametrize("script, kept, selected, verdicts", [
+    # tentative offset, then viscoelastic explains the rest: both named, in order
+    ([("partial", ["offset"]), ("effect", ["viscoelastic"]), ("adequate", [])],
+     3, ["offset", "viscoelastic"], ["effect", "effect", "adequate"]),
+    # tentative effect, nothing left after it: kept
+    ([("partial", ["offset"]), ("adequate", [])], 2, ["offset"], ["effect", "adequate"]),
+    # tentative effect, the next round still unexplained: reverted to the first round's verdict
+    ([("partial", ["slack"]), ("unexplained", [])], 1, [], ["unexplained"]),
+    # two tentative rounds in a row: the first is reverted
+    ([("effect", ["damage"]), ("partial", ["slack"]), ("partial", ["offset"])],
+     2, ["damage"], ["effect", "unexplained"]),
+])
+def test_greedy_keeps_a_tentative_effect_only_when_the_next_round_settles(script, kept, selected, verdicts):
+    from hbm.detective import _greedy
+    rounds, sel, current = _greedy(_scripted_rounds(script), "base", [SimpleNamespace(name="offset")], 3)
+    assert len(rounds) == kept and sel == selected
+    assert [r.verdict.verdict for r in rounds] == verdicts
+    assert current == (f"fit+{selected[-1]}" if selected else "base")
+
+
+def test_greedy_tentative_at_the_effect_cap_is_not_named():
+    from hbm.detective import _greedy
+    rounds, sel, _ = _greedy(_scripted_rounds([("effect", ["offset"]), ("partial", ["damage"])]), "base", [], 1)
+    assert sel == ["offset"] and [r.verdict.verdict for r in rounds] == ["effect", "unexplained"]
 
 
 def test_adequate_only_without_any_sign_of_misfit():

@@ -32,7 +32,7 @@ from __future__ import annotations
 import time as _time
 import warnings
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -114,6 +114,20 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
     check.noise["preference"] = _noise_preference(base, ctrls)
     verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d)
     return _Step(base, check, results, ctrls, skipped, verdict)
+
+
+def _ar1_absorbs_misfit(step: _Step) -> str | None:
+    """Why, in words, the AR(1) noise of ``step``'s base is absorbing a misfit (None: it is not):
+    the data prefer white noise + a smooth misfit control, or the fitted AR(1) noise disagrees
+    with the model-free estimate (a correlation the neighbouring points do not show -- with
+    two misfits at once no single control absorbs both, so the evidence test alone is blind)."""
+    white = max((c for c in step.controls if c.white_gain is not None), key=lambda c: c.white_gain, default=None)
+    if white is not None and white.white_gain > 0:
+        return (f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
+                f"by {white.white_gain:.1f} nats")
+    if not step.check.noise.get("consistent", True):
+        return "the fitted AR(1) noise disagrees with the model-free noise estimate"
+    return None
 
 
 def _noise_preference(base: FitSummary, ctrls: list[CandidateResult]) -> str:
@@ -200,20 +214,26 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     problem = unit_anomaly(d)
     rounds: list[_Step] = []
     selected: list[str] = []
-    current, remaining = base, list(cands)
+    current = base
     if problem is not None:
         check = check_noise(base, mf, d, _seed(seed, 1))
         rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
     else:
-        for k in range(max(0, int(max_effects)) + 1):   # 2.-4., then again after each named effect
-            st = _round(current, remaining, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
-            rounds.append(st)
-            if st.verdict.verdict != "effect" or len(selected) >= max_effects:
-                break
-            chosen = next(c for c in st.results if c.effect == st.verdict.selected[0])
-            selected.append(chosen.effect)
-            fitter.log(f"named {chosen.effect}: adding it and re-screening")
-            current, remaining = chosen.fit, [e for e in remaining if e.name != chosen.effect]
+        def run_round(cur, rem, k):
+            return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
+        rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log)
+        white = _ar1_absorbs_misfit(rounds[0]) if noise is None and base.noise == "ar1" else None
+        if white is not None:
+            # the AR(1) correlation is a smooth misfit, not noise: an AR(1) fit would absorb the
+            # very signal the candidates are screened on, so diagnose again under white noise
+            noises = [n for n in noises if n != "ar1"]
+            fitter.log(f"AR(1) noise absorbs a smooth misfit ({white}): diagnosing again with {', '.join(noises)}")
+            with _stopwatch(timings, "base_fit"):
+                base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
+            rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log)
+            pref = rounds[0].check.noise.get("preference")
+            rounds[0].check.noise["preference"] = "; ".join(
+                [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
     verdict = _final_verdict(rounds, selected)
     first = rounds[0]
     edges_found = _base_at_bounds(first.base, d.name)
@@ -247,6 +267,53 @@ def _step_record(r: _Step) -> dict:
             "group": r.verdict.group, "message": r.verdict.message,
             "windows": [(w["eps_lo"], w["eps_hi"], w["sign"]) for w in r.check.windows],
             "candidates": {c.effect: round(float(gain(c)), 2) for c in r.results + r.controls if c.refit}}
+
+
+def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lambda msg: None):
+    """Steps 2–4 at the base model, then again after each named effect.
+
+    ``run_round(current_fit, remaining_candidates, k)`` returns a :class:`_Step`.  A tentatively
+    named effect (verdict ``"partial"``) is added and kept only if the next round settles what
+    it left (:func:`_settles`); otherwise the rounds after it are dropped and its round's
+    unexplained verdict stands.
+
+    Returns
+    -------
+    (rounds, selected, current) : the rounds kept, the named effects in order, the final fit.
+    """
+    rounds: list[_Step] = []
+    selected: list[str] = []
+    current, remaining = base, list(cands)
+    tentative: int | None = None          # index of the round whose effect awaits the next round
+    for k in range(max(0, int(max_effects)) + 1):
+        st = run_round(current, remaining, k)
+        rounds.append(st)
+        if tentative is not None:
+            t = rounds[tentative]
+            if not _settles(st.verdict):               # the pair does not explain it either
+                log(f"{selected[-1]} alone leaves misfit the next round does not explain: not named")
+                t.verdict = t.verdict.fallback
+                return rounds[:tentative + 1], selected[:-1], t.base
+            t.verdict = replace(t.verdict, verdict="effect", fallback=None)
+            tentative = None
+        if st.verdict.verdict == "partial":
+            if len(selected) >= max_effects:
+                st.verdict = st.verdict.fallback
+                break
+            tentative = len(rounds) - 1
+        elif st.verdict.verdict != "effect" or len(selected) >= max_effects:
+            break
+        chosen = next(c for c in st.results if c.effect == st.verdict.selected[0])
+        selected.append(chosen.effect)
+        log(f"named {chosen.effect}{' (tentatively)' if tentative is not None else ''}: adding it and re-screening")
+        current, remaining = chosen.fit, [e for e in remaining if e.name != chosen.effect]
+    return rounds, selected, current
+
+
+def _settles(verdict: Verdict) -> bool:
+    """Does the round after a tentatively named effect account for what that effect left?
+    Yes when it names a further effect or group that explains it, or finds no misfit left."""
+    return verdict.verdict in ("effect", "group", "adequate")
 
 
 def _final_verdict(rounds: list[_Step], selected: list[str]) -> Verdict:

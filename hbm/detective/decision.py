@@ -6,8 +6,13 @@ One evidence number per refit -- its gain against the best base model found
 * a physical effect is named when it gains more than ``DELTA_LOGZ_MIN`` nats, explains the
   misfit about as well as the best non-physical control (it leaves no more misfit windows and
   is within ``REMOVE_TOL`` nats of the control's likelihood) and beats that control in
-  evidence; near-ties with another physical candidate give verdict ``"group"`` with the
+  evidence (or, fitting at least as well, trails it only within twice the SE of the
+  difference); near-ties with another physical candidate give verdict ``"group"`` with the
   experiment that would separate them;
+* a physical effect that beats every control in evidence but leaves misfit a control would
+  remove is named tentatively (``"partial"``): a second effect may be hidden with it, so diagnose
+  adds it and re-screens, and keeps it only if that round explains the rest (names an effect or a
+  group, or finds nothing left); otherwise the unexplained verdict of this round stands;
 * otherwise any sign of misfit -- a significant window under the fitted or the model-free
   noise, a fitted noise that disagrees with the model-free estimate, white noise + a smooth
   misfit preferred to AR(1) noise, or a control that gains -- gives ``"unexplained"`` with
@@ -18,7 +23,7 @@ One evidence number per refit -- its gain against the best base model found
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -42,6 +47,9 @@ class Verdict:
     experiment: str
     message: str
     unexplained: dict | None = None
+    #: for verdict ``"partial"``: the unexplained verdict that stands if the next greedy round
+    #: does not account for what the named effect leaves
+    fallback: "Verdict | None" = None
 
 
 def gain(c: CandidateResult | None) -> float:
@@ -78,24 +86,45 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
     g_best, g_ctrl = gain(best), gain(ctrl)
     signs = misfit_signs(noise, windows, ctrl, base_noise, ctrls)
     if best is not None and g_best > DELTA_LOGZ_MIN:
-        if _explains_like(best, ctrl) and g_best >= g_ctrl:
+        beats = _beats(best, ctrl)
+        if beats and not _explains_like(best, ctrl):
+            # it beats every generic shape in evidence but leaves misfit a shape would remove: a
+            # second effect may be hidden with it (offset + viscoelasticity) -- tentative; the
+            # next greedy round decides (diagnose), else the unexplained verdict stands
+            return replace(_effect(best), verdict="partial",
+                           fallback=_unexplained(ctrl, windows, data, best, signs))
+        if beats:
             tied = [c for c in phys[1:] if gain(c) > DELTA_LOGZ_MIN and
                     g_best - gain(c) < max(RUNNER_UP_MARGIN, 2 * math.hypot(best.delta_log_evidence_se,
                                                                              c.delta_log_evidence_se))]
             if tied:
                 return _group(best, tied, data)
-            iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
-                           if k in primary_parameters(best.effect_instance))
-            return Verdict("effect", [best.effect], [], "",
-                           f"missing effect: {best.effect} (Δlog Z = {best.delta_log_evidence:.1f} ± "
-                           f"{best.delta_log_evidence_se:.1f}, RMSE {best.rmse_before:.3g} → {best.rmse_after:.3g} MPa; "
-                           f"{iv})")
+            return _effect(best)
         return _unexplained(ctrl, windows, data, best, signs)
     if signs:
         return _unexplained(ctrl, windows, data, best, signs)
     msg = "the model is adequate: no misfit window, noise as the model-free estimate, no candidate or generic " \
           "shape gains more than {:.0f} nats of evidence".format(DELTA_LOGZ_MIN)
     return Verdict("adequate", [], [], "", msg)
+
+
+def _effect(best: CandidateResult) -> Verdict:
+    iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
+                   if k in primary_parameters(best.effect_instance))
+    return Verdict("effect", [best.effect], [], "",
+                   f"missing effect: {best.effect} (Δlog Z = {best.delta_log_evidence:.1f} ± "
+                   f"{best.delta_log_evidence_se:.1f}, RMSE {best.rmse_before:.3g} → {best.rmse_after:.3g} MPa; "
+                   f"{iv})")
+
+
+def _beats(c: CandidateResult, ctrl: CandidateResult | None) -> bool:
+    """Does physical candidate ``c`` beat the best control in evidence?  Yes when it gains more;
+    also when it fits at least as well (maximum likelihood) and trails only within twice the SE
+    of the difference -- a generic shape must not win on the noise of two evidence estimates."""
+    if ctrl is None or not ctrl.refit or gain(c) >= gain(ctrl):
+        return True
+    tie = gain(ctrl) - gain(c) <= 2 * math.hypot(c.delta_log_evidence_se, ctrl.delta_log_evidence_se)
+    return bool(tie and c.delta_max_log_likelihood >= ctrl.delta_max_log_likelihood)
 
 
 def _explains_like(c: CandidateResult, ctrl: CandidateResult | None) -> bool:

@@ -248,17 +248,17 @@ class Diagnosis:
         lines.append("Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
                      "(Laplace: the screen's estimate)")
         lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ ± SE':>15}"
-                     f"{'Laplace':>9}{'RMSE before':>12}{'after':>9}  noise  interval of new parameter")
+                     f"{'Laplace':>9}{'RMSE before':>12}{'after':>11}  noise  interval of new parameter")
         for c in self.candidates:
             iv = "; ".join(f"{k} [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in c.intervals.items())
             if c.refit:
                 tm = f"{c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f}"
                 lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{tm:>15}"
-                             f"{c.delta_log_evidence_laplace:>9.1f}{c.rmse_before:>12.4g}{c.rmse_after:>9.4g}  "
+                             f"{c.delta_log_evidence_laplace:>9.1f}{c.rmse_before:>12.4g}{c.rmse_after:>11.4g}  "
                              f"{c.noise or '':<6} {iv}")
             else:
                 lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{'—':>15}{'':>9}"
-                             f"{c.rmse_before:>12.4g}{'':>9}")
+                             f"{c.rmse_before:>12.4g}{'':>11}")
         if self.noise.get("preference"):
             lines.append(f"noise: {self.noise['preference']}")
         if len(self.steps) > 1:
