@@ -68,10 +68,9 @@ from .hierarchical import (ESTIMATORS, HierarchicalModel, HierarchicalResult, _d
                            systematic_resample)
 from .tmcmc import tmcmc as _tmcmc
 
-__all__ = ["GroupedModel", "GroupedResult", "grouped_hierarchical", "truncnorm_ppf", "GROUP_PREFIX"]
+__all__ = ["GroupedModel", "GroupedResult", "grouped_hierarchical", "truncnorm_ppf", "group_differences",
+           "variance_split"]
 
-#: hyper-names of the group means: ``mean_<group>_<P>`` (groups may contain any characters)
-GROUP_PREFIX = "mean"
 # u = 0 or 1 exactly would map to ±inf for an untruncated side
 _U_EDGE = 1e-12
 
@@ -141,11 +140,13 @@ class GroupedModel:
         m = truncnorm_ppf(u, mu[:, None, :], sdb[:, None, :], self.base.mu_lo, self.base.mu_hi)
         return mu, sdb, sdw, m
 
-    def specimen_raw(self, x: np.ndarray, g: int) -> np.ndarray:
-        """Two-level raw coordinates (m_g, sd_within) of group ``g``'s specimens, for every row of ``x``."""
+    def specimen_raw(self, x: np.ndarray, g: int | None = None) -> np.ndarray | list[np.ndarray]:
+        """Two-level raw coordinates (m_g, sd_within) of group ``g``'s specimens, for every row of ``x``
+        (``g=None``: the list over all groups, the quantile map evaluated once)."""
         x = np.atleast_2d(np.asarray(x, float))
         _, _, _, m = self.split(x)
-        return np.concatenate([m[:, g, :], x[:, 2 * self.d : 3 * self.d]], axis=1)
+        raws = [np.concatenate([m[:, k, :], x[:, 2 * self.d : 3 * self.d]], axis=1) for k in range(self.G)]
+        return raws if g is None else raws[g]
 
     def from_z(self, z: np.ndarray) -> np.ndarray:
         """Inverse transform of the pooled columns (the two-level model's)."""
@@ -366,8 +367,7 @@ def grouped_hierarchical(
     def per_specimen(x: np.ndarray, kv=kvar) -> tuple[np.ndarray, np.ndarray]:
         lm = np.empty((x.shape[0], len(specs)))
         ess = np.empty_like(lm)
-        for g in range(model.G):  # loop over groups and their specimens (few), vectorised over ψ and samples
-            raw = model.specimen_raw(x, g)
+        for g, raw in enumerate(model.specimen_raw(x)):  # groups and their specimens (few), vectorised over ψ
             coef, cconst = base.coefficients(raw)
             for i in np.flatnonzero(gidx == g):
                 ci, cci = (coef, cconst) if kv[i] is None else base.coefficients(raw, kv[i])
@@ -407,8 +407,8 @@ def grouped_hierarchical(
     sub = np.arange(x.shape[0]) if x.shape[0] <= n_hyper_updated else np.sort(
         rng_u.choice(x.shape[0], n_hyper_updated, replace=False))
     updated, upd_w, upd_ess = {}, {}, {}
-    for g in range(model.G):
-        coef, cconst = base.coefficients(model.specimen_raw(x[sub], g))
+    for g, raw in enumerate(model.specimen_raw(x[sub])):
+        coef, cconst = base.coefficients(raw)
         for i in np.flatnonzero(gidx == g):
             # per-draw normalised raw-ratio weights, summed over draws (rows and samples swapped)
             lw, _ = base.log_ratio_stats(coef, cconst - (lm_raw[sub, i] + logN[i]), *feats[i], chunk_bytes)
@@ -427,8 +427,7 @@ def grouped_hierarchical(
     sdw_raw = x[:, 2 * model.d : 3 * model.d]
     new_raw = np.concatenate([m_new, sdw_raw], axis=1)
     predictive = _draw_population(base, new_raw, n, rng_p)
-    group_pred = np.stack([_draw_population(base, model.specimen_raw(x, g), n, rng_p) for g in range(model.G)],
-                          axis=1)
+    group_pred = np.stack([_draw_population(base, raw, n, rng_p) for raw in model.specimen_raw(x)], axis=1)
     t5 = time.perf_counter()
     return GroupedResult(
         hyper_samples=model.natural(x), hyper_names=list(model.hyper_names), names=list(model.names),
