@@ -211,7 +211,8 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     out = Path(cfg.out)
     (out / "specimens").mkdir(parents=True, exist_ok=True)
     datasets = load_specimens(cfg.data, sl0=cfg.sl0)
-    specimen_groups(datasets, cfg.group_by)  # a specimen without its group fails before any fit
+    if cfg.hierarchical:  # a specimen without its group fails before any fit
+        specimen_groups(datasets, cfg.group_by)
     ids = sorted(datasets)
     model = model if model is not None else spyrou_model()
     settings = cfg.fit_settings()

@@ -141,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
     datasets = load_specimens(args.data, sl0=args.sl0)  # a bad or missing data folder fails before any fit
     for ds in datasets.values():
         check_domain(model, ds)
-    specimen_groups(datasets, args.group_by)  # every specimen has its group, two groups at least
+    if not args.no_hierarchical:  # groups matter to the hierarchical layer only
+        specimen_groups(datasets, args.group_by)  # every specimen has its group, two groups at least
     cfg = RunConfig(data=args.data, out=args.out, samples=args.samples, kernel=args.kernel, noise=args.noise,
                     workers=args.workers, scheduler=args.scheduler, seed=args.seed, sobol=not args.no_sobol,
                     sobol_n=args.sobol_n, restarts=args.restarts,
