@@ -312,6 +312,21 @@ def _groups(wres, base: Path) -> str:
            f"m_g ~ Normal(mu, sd_between²) and its specimens scatter around it with sd_within; the hyper-posterior "
            f"is sampled jointly with the group means, reusing the stage-1 samples. In the population table above, "
            f"sd is the total √(sd_between² + sd_within²) and a new specimen is one of a new {key}.\n"]
+    bounds = dict(h.attrs.get("bounds", {}))
+    means = np.asarray(g["means"])
+    rows = []
+    for k, p in enumerate(pooled):  # group centres g⁻¹(m_g) in natural units, as the population median
+        t, m = transforms.get(p, "identity"), means[:, :, k]
+        if log_scale[p]:
+            m = np.exp(m)
+        elif t == "logit":
+            lo, hi = bounds.get(p, (0.0, 1.0))
+            m = lo + (hi - lo) / (1.0 + np.exp(-m))
+        q = np.quantile(m, [0.05, 0.5, 0.95], axis=0)
+        rows.append([p[4:] if p.startswith("log_") and t == "identity" else p]
+                    + [f"{fmt(q[1, j])} [{fmt(q[0, j])}, {fmt(q[2, j])}]" for j in range(len(names))])
+    txt.append("Group centres in natural units (median of the group's population, median [90%]):\n\n"
+               + _table(["quantity"] + [_short(n, 24) for n in names], rows) + "\n")
     vs = variance_split(h.hyper_samples, h.hyper_names, pooled)
     rows = [(label[p], f"{fmt(v['sd_between'], 3)} [{fmt(v['sd_between_lo'], 3)}, {fmt(v['sd_between_hi'], 3)}]",
              f"{fmt(v['sd_within'], 3)} [{fmt(v['sd_within_lo'], 3)}, {fmt(v['sd_within_hi'], 3)}]",
