@@ -43,7 +43,9 @@ starts from rest, a new loading history.  Any other drop in time is an error.  W
 Metadata lines must come before the header and look like ``# key: value`` (key: letters,
 digits, ``_ . -`` and spaces, which become ``_``; each key once).  Blank lines are ignored.
 ``id`` names the specimen (default: the file stem); ``provenance`` is ``synthetic`` or
-``measured``.  Every row has as many cells as the header; only regular files are read.
+``measured``; ``group`` (optional, non-empty) names the specimen's group (species, muscle,
+protocol ...): specimens with groups get a population → group → specimen layer
+(:func:`specimen_groups`, ``hbm run --group-by KEY`` groups by any other key).  Every row has as many cells as the header; only regular files are read.
 
 Conversions are recorded in the attributes, so that :func:`save_specimen` writes a file that
 loads back to the same numbers: ``units_stress`` (then ``MPa``) and ``units_stress_original``,
@@ -81,7 +83,7 @@ from .utils import atomic_path, as_generator
 __all__ = [
     "STRAIN_RANGE", "MIN_POINTS", "MAX_PASSIVE_STRESS", "STRESS_UNITS", "DEFORMATIONS",
     "load_specimen", "load_specimens", "save_specimen", "specimen_loading", "provenance",
-    "input_summary", "synthetic_specimen", "Segment", "ramp", "hold", "cycle", "protocol",
+    "input_summary", "synthetic_specimen", "GROUP_KEY", "specimen_groups", "Segment", "ramp", "hold", "cycle", "protocol",
 ]
 
 #: allowed engineering strain (catches percent-vs-fraction mix-ups)
@@ -93,6 +95,8 @@ MIN_POINTS = 5
 MAX_PASSIVE_STRESS = 5.0
 #: stress units of ``# units_stress:`` and of column suffixes -> values per MPa
 STRESS_UNITS = {"MPa": 1.0, "kPa": 1e3, "Pa": 1e6}
+#: metadata key of a specimen's group (``# group: NAME``)
+GROUP_KEY = "group"
 #: deformation columns; a file has exactly one
 DEFORMATIONS = ("strain", "stretch", "sarcomere_length_um")
 
@@ -442,6 +446,9 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
             if key in attrs:
                 raise DataError(f"{name}: line {lineno}: metadata key {key!r} repeated "
                                 f"(first on line {meta_line[key]})")
+            if key == GROUP_KEY and not value:  # a group must have a name the report can use
+                raise DataError(f"{name}: line {lineno}: metadata {GROUP_KEY} is empty, expected a group name "
+                                "(e.g. a species, muscle or protocol)")
             attrs[key], meta_line[key] = value, lineno
             continue
         try:
@@ -681,6 +688,46 @@ def provenance(ds: xr.Dataset) -> str:
     if "synthetic" in source:
         return "synthetic"
     return "measured" if source else "unknown"
+
+
+def specimen_groups(datasets: Mapping[str, xr.Dataset], key: str | None = None) -> dict[str, str] | None:
+    """Each specimen's group from its metadata: ``{id: group name}``, or None for ungrouped data.
+
+    Parameters
+    ----------
+    datasets : mapping id -> Dataset
+        Loaded specimens (:func:`load_specimens`).
+    key : str, optional
+        Metadata key to group by (``--group-by``: e.g. ``species``, ``muscle``, ``protocol``).
+        None: the ``# group:`` lines, if any specimen has one; a single group then means
+        ungrouped data (None).
+
+    Raises
+    ------
+    DataError
+        A specimen without the key (or an empty value) when others have it or ``key`` is given,
+        or a given ``key`` whose values name a single group.
+    """
+    explicit = key is not None
+    key = GROUP_KEY if key is None else re.sub(r"\s+", "_", str(key).strip())
+    if explicit and not _KEY_RE.match(key):
+        raise DataError(f"group key {key!r} is not a metadata key (letters, digits, _ . -)")
+    values = {sid: str(ds.attrs.get(key, "")).strip() for sid, ds in datasets.items()}
+    if not explicit and not any(values.values()):
+        return None
+    lacking = sorted(sid for sid, v in values.items() if not v)
+    if lacking:
+        shown = ", ".join(lacking[:5]) + (f" (+{len(lacking) - 5} more)" if len(lacking) > 5 else "")
+        raise DataError(f"grouping by {key!r}: specimen{'s' if len(lacking) > 1 else ''} {shown} "
+                        f"{'have' if len(lacking) > 1 else 'has'} no '# {key}: NAME' metadata line, expected one in "
+                        "every specimen file")
+    names = sorted(set(values.values()))
+    if len(names) < 2:
+        if not explicit:
+            return None
+        raise DataError(f"grouping by {key!r}: every specimen has {key} {names[0]!r}, expected at least two "
+                        "groups (drop --group-by for one population)")
+    return dict(sorted(values.items()))
 
 
 def input_summary(ds: xr.Dataset) -> str:

@@ -34,7 +34,11 @@ Hierarchical file ``<out>/hierarchical.nc``: ``posterior`` (chain, draw) with ``
 ``sd_<P>`` (hyper-parameters), ``updated`` (chain, draw, specimen) one variable per parameter
 (the updated individual posteriors), ``sample_stats`` (chain, stage) + hyper-evidence,
 ``new_specimen`` (chain, draw) the predictive of a new specimen, ``diagnostics`` (specimen):
-importance ESS; root attrs as above.
+importance ESS; root attrs as above.  A grouped layer (population → group → specimen) adds
+``sd_between_<P>``, ``sd_within_<P>`` to ``posterior`` (``sd_<P>`` is then their root sum of squares)
+and a ``groups`` group: (chain, draw, group) ``mean_<P>`` (group means, transformed units) and
+``new_specimen_<P>`` (a new specimen of each group), (specimen) ``specimen_group``; attrs ``key``
+(the metadata key grouped by) and ``extra`` (JSON).
 
 ``<out>/manifolds.nc``: group per specimen-independent table (specimen, grid) of spline
 manifolds and identified combinations (see :func:`write_population_summary`).
@@ -74,6 +78,7 @@ G_NEW = "new_specimen"
 G_DIAG = "diagnostics"
 G_MANIFOLD = "manifolds"
 G_COMBOS = "combinations"
+G_GROUPS = "groups"
 
 #: per-stage variables of ``sample_stats``: the sampler's stage record is the schema
 STAGE_KEYS = StageInfo._fields
@@ -523,6 +528,10 @@ class HierarchicalFile:
         Minimum per-specimen importance ESS over the hyper-posterior population.
     attrs : dict
         Extra metadata (JSON-able), e.g. transform, hyperprior, warnings.
+    groups : dict or None
+        The group level of a grouped layer: ``key`` (metadata key), ``names`` (groups),
+        ``specimen_group`` ({specimen: group}), ``pooled`` (parameters), ``means`` and
+        ``predictive`` (n, G, len(pooled)) and any JSON-able extras; None without groups.
     """
 
     param_names: list[str]
@@ -538,6 +547,7 @@ class HierarchicalFile:
     attrs: dict = field(default_factory=dict)
     complete: bool = True
     pooled_names: list[str] = field(default_factory=list)
+    groups: dict | None = None
 
     def hyper(self, name: str) -> np.ndarray:
         return self.hyper_samples[:, self.hyper_names.index(name)]
@@ -569,6 +579,8 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
     if h.ess is not None:
         groups[G_DIAG] = xr.Dataset({"importance_ess": ("specimen", np.asarray(h.ess, float))},
                                     coords={"specimen": list(h.specimen_ids)})
+    if h.groups is not None:
+        groups[G_GROUPS] = _groups_dataset(h.groups, h.specimen_ids)
     root = xr.Dataset(attrs={"param_names": _dumps(list(h.param_names)),
                              "pooled_names": _dumps(list(h.pooled_names or h.param_names)),
                              "specimen_ids": _dumps(list(h.specimen_ids)),
@@ -605,7 +617,40 @@ def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
     diag = _ds(tree, G_DIAG)
     if diag is not None:
         h.ess = diag["importance_ess"].values
+    grp = _ds(tree, G_GROUPS)
+    if grp is not None:
+        h.groups = _read_groups(grp)
     return h
+
+
+_GROUP_ARRAYS = {"means": "mean", "predictive": "new_specimen"}
+
+
+def _groups_dataset(g: Mapping[str, Any], specimen_ids: Sequence[str]) -> xr.Dataset:
+    """The ``groups`` group of hierarchical.nc from :attr:`HierarchicalFile.groups`."""
+    names, pooled = list(g["names"]), list(g["pooled"])
+    data: dict[str, Any] = {}
+    for key, prefix in _GROUP_ARRAYS.items():
+        a = np.asarray(g[key], float)  # (n, G, d)
+        data.update({f"{prefix}_{p}": (("chain", "draw", "group"), a[None, :, :, k]) for k, p in enumerate(pooled)})
+    sg = dict(g["specimen_group"])
+    data["specimen_group"] = ("specimen", [str(sg[s]) for s in specimen_ids])
+    extra = {k: v for k, v in g.items() if k not in (*_GROUP_ARRAYS, "names", "pooled", "specimen_group", "key")}
+    n = np.asarray(g["means"]).shape[0]
+    return xr.Dataset(data, coords={"chain": [0], "draw": np.arange(n), "group": names, "specimen": list(specimen_ids)},
+                      attrs={"key": str(g.get("key", "group")), "pooled": _dumps(pooled), "extra": _dumps(extra)})
+
+
+def _read_groups(ds: xr.Dataset) -> dict:
+    """:attr:`HierarchicalFile.groups` back from the ``groups`` group."""
+    pooled = json.loads(ds.attrs.get("pooled", "[]"))
+    out = {"key": str(ds.attrs.get("key", "group")), "names": [str(v) for v in ds["group"].values],
+           "pooled": pooled,
+           "specimen_group": dict(zip(map(str, ds["specimen"].values), map(str, ds["specimen_group"].values))),
+           **json.loads(ds.attrs.get("extra", "{}"))}
+    for key, prefix in _GROUP_ARRAYS.items():
+        out[key] = np.stack([ds[f"{prefix}_{p}"].values[0] for p in pooled], axis=-1)
+    return out
 
 
 # ----------------------------------------------------------------------------- population summary

@@ -14,7 +14,13 @@ the posteriors inform, :func:`~hbm.samplers.hierarchical.auto_pool`), "all", a l
 or "auto" (default: "combinations" when VOLF, P1, T1, GF, GM, T2, THETA are free, otherwise
 "informed").
 
-Seeds: the streams ``hierarchical``, ``new_specimen`` and ``refine`` k of :mod:`hbm.seeds`.
+Groups (``PopulationConfig.groups``, from ``# group:`` lines or ``hbm run --group-by KEY``): a
+population → group → specimen layer (:func:`hbm.samplers.grouped.grouped_hierarchical`) in the same
+transformed coordinates and with every pooling mode; its group-level draws go to
+``hierarchical.nc`` too.  Without groups the two-level code path runs unchanged.
+
+Seeds: the streams ``hierarchical`` (``grouped`` with groups), ``new_specimen`` and ``refine`` k of
+:mod:`hbm.seeds`.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from .combinations import (COMBINATION_PARAMS, combination_features, log_density
 from .errors import HbmError
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, spyrou_model
+from .samplers.grouped import GroupedResult, grouped_hierarchical
 from .samplers.hierarchical import auto_pool, hierarchical, refine_individual
 from .utils import log_progress as _log
 
@@ -92,6 +99,11 @@ class PopulationConfig:
         dask retries of a refinement task.
     progress : bool
         Progress lines and bars on stderr.
+    groups : dict, optional
+        Specimen id -> group name (:func:`hbm.data.specimen_groups`): the three-level layer.
+        None: the two-level layer.
+    group_by : str, optional
+        The metadata key the groups come from (``group``, ``species`` ...), for the report's words.
     """
 
     seed: int = 0
@@ -107,6 +119,8 @@ class PopulationConfig:
     bounds: dict | None = None
     retries: int = 1
     progress: bool = True
+    groups: dict | None = None
+    group_by: str | None = None
 
 
 def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping | None = None, model=None, *,
@@ -156,6 +170,7 @@ def _refine_task(h, sid: str, lik, n_samples: int, seed: int, n_out: int, max_st
     to pooled derived columns (``--pool combinations``), run over the likelihood's own box.
     """
     extra = {} if augment is None else {"augment": augment, "bounds": lik.bounds}
+    h = h.view(sid) if isinstance(h, GroupedResult) else h  # the specimen's own (group mean, sd_within)
     tr = refine_individual(h, sid, lik, n_samples=n_samples, seed=seed, progress=False, n_hyper=n_hyper,
                            max_steps=max_steps, **extra)
     rng = np.random.default_rng(seed)
@@ -242,6 +257,8 @@ def _fit_population(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str]
 
     Returns the result and its warnings (raised and kept ones, without repeats).
     """
+    if cfg.groups:
+        return _fit_grouped(cfg, stage1, names, bounds, transforms, pooled, log_prior)
     # an int seed for the hierarchical layer, independent of the specimen streams
     seed = seeds.seed_int(seeds.stream(int(cfg.seed), "hierarchical"))
     with warnings.catch_warnings(record=True) as caught:
@@ -253,6 +270,35 @@ def _fit_population(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str]
                          # stage so the layer stays at tens of seconds for six specimens
                          tmcmc_options={"max_steps": int(cfg.max_steps)})
     return h, _unique([str(w.message) for w in caught] + list(h.warnings))
+
+
+def _fit_grouped(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str], bounds, transforms: Mapping,
+                 pooled: Sequence[str], log_prior: Mapping | None = None):
+    """:func:`~hbm.samplers.grouped.grouped_hierarchical` with the run's settings (stream ``grouped``).
+
+    Returns the result and its warnings, as :func:`_fit_population`.
+    """
+    groups = {sid: cfg.groups.get(sid) for sid in stage1}
+    _log("groups" + (f" ({cfg.group_by})" if cfg.group_by else "") + ": " + ", ".join(
+        f"{g} ({sum(v == g for v in groups.values())})" for g in sorted(set(groups.values()), key=str)), cfg.progress)
+    options = dict(transforms=transforms, pooled=pooled, log_prior=log_prior, n_samples=int(cfg.samples),
+                   seed=seeds.seed_int(seeds.stream(int(cfg.seed), "grouped")), progress=cfg.progress,
+                   sd_range=tuple(cfg.sd_range), estimator=cfg.estimator,
+                   tmcmc_options={"max_steps": int(cfg.max_steps)})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        h = grouped_hierarchical(stage1, names, bounds, groups, **options)
+    return h, _unique([str(w.message) for w in caught] + list(h.warnings))
+
+
+def _group_payload(cfg: PopulationConfig, h) -> dict | None:
+    """The group level of a grouped result for :class:`hbm.io.HierarchicalFile` (None if ungrouped)."""
+    if not isinstance(h, GroupedResult):
+        return None
+    return {"key": cfg.group_by or "group", "names": list(h.groups), "specimen_group": dict(h.specimen_group),
+            "pooled": list(h.names), "means": np.asarray(h.group_means), "predictive": np.asarray(h.group_predictive),
+            "hyperprior": {"group means": "normal(mu, sd_between) truncated to the range of mu",
+                           "sd_between, sd_within": f"each loguniform on {tuple(cfg.sd_range)} x mu range"}}
 
 
 def _write_population(cfg: PopulationConfig, h, out: Path | None, names: Sequence[str],
@@ -272,6 +318,7 @@ def _write_population(cfg: PopulationConfig, h, out: Path | None, names: Sequenc
                              stages=list(getattr(h.sampler_result, "stages", [])),
                              ess=np.array([float(h.ess_summary[s]["min"]) for s in h.specimens]), attrs=attrs,
                              pooled_names=list(pooled_names))
+    hf.groups = _group_payload(cfg, h)
     return hf, (io.write_hierarchical(hf, out / "hierarchical.nc") if out is not None else None)
 
 

@@ -23,6 +23,7 @@ from ._version import __version__
 from .fit import at_bounds, fit_quality, format_at_bounds, summarize
 from .identify import compare_manifolds
 from .model import COMBINATIONS, SHAPE_PARAMETERS
+from .samplers.grouped import group_differences, variance_split
 from .utils import atomic_write_text
 from .views import population_table, quantity_samples, specimen_variability
 
@@ -278,10 +279,77 @@ def _variability(wres, base: Path) -> str:
         more = f" (+{len(v['separated_pairs']) - 6} more)" if len(v["separated_pairs"]) > 6 else ""
         rows.append((k, f"{v['Q']:.1f}", v["df"], f"{v['p_value']:.2g}", verdict,
                      f"{len(v['separated_pairs'])}/{v['n_pairs']}: {pairs}{more}"))
-    return ("## Specimen variability\n\nDo rats differ beyond their posterior uncertainty? Cochran's Q "
+    return ("## Specimen variability\n\nDo specimens differ beyond their posterior uncertainty? Cochran's Q "
             "of the posterior means (log scale for positive quantities) against χ²(S−1), and the "
             "pairs whose posterior difference excludes 0 with 95% probability.\n\n"
             + _table(["quantity", "Q", "df", "p", "verdict", "separated pairs"], rows))
+
+
+def _short(name: str, n: int = 40) -> str:
+    """A group name for a table cell: as the data wrote it, cut at ``n`` characters."""
+    name = str(name).replace("|", "/")  # a '|' would split the Markdown cell
+    return name if len(name) <= n else name[: n - 1] + "…"
+
+
+def _groups(wres, base: Path) -> str:
+    """## Groups: between- vs within-group spread and the posterior of the group-mean differences."""
+    h = wres.hierarchical
+    g = getattr(h, "groups", None) if h is not None else None
+    if not g:
+        return ""
+    key, names, pooled = g["key"], list(g["names"]), list(g["pooled"])
+    transforms = dict(h.attrs.get("transforms", {}))
+    label, log_scale = {}, {}
+    for p in pooled:  # the coordinate the group level lives in, named as the population table does
+        t = transforms.get(p, "identity")
+        log_scale[p] = t == "log" or (t == "identity" and p.startswith("log_"))
+        label[p] = f"log {p[4:]}" if p.startswith("log_") and t == "identity" else (p if t == "identity" else f"{t} {p}")
+    members = {n: [s for s, v in g["specimen_group"].items() if v == n] for n in names}
+    txt = ["## Groups\n",
+           f"Specimens grouped by `{key}` (their `# {key}:` metadata): "
+           + "; ".join(f"**{_short(n)}** ({len(m)}: {', '.join(m)})" for n, m in members.items()) + ". "
+           f"Three levels, Gaussian in the transformed coordinates of the population table: each {key} has a mean "
+           f"m_g ~ Normal(mu, sd_between²) and its specimens scatter around it with sd_within; the hyper-posterior "
+           f"is sampled jointly with the group means, reusing the stage-1 samples. In the population table above, "
+           f"sd is the total √(sd_between² + sd_within²) and a new specimen is one of a new {key}.\n"]
+    bounds = dict(h.attrs.get("bounds", {}))
+    means = np.asarray(g["means"])
+    rows = []
+    for k, p in enumerate(pooled):  # group centres g⁻¹(m_g) in natural units, as the population median
+        t, m = transforms.get(p, "identity"), means[:, :, k]
+        if log_scale[p]:
+            m = np.exp(m)
+        elif t == "logit":
+            lo, hi = bounds.get(p, (0.0, 1.0))
+            m = lo + (hi - lo) / (1.0 + np.exp(-m))
+        q = np.quantile(m, [0.05, 0.5, 0.95], axis=0)
+        rows.append([p[4:] if p.startswith("log_") and t == "identity" else p]
+                    + [f"{fmt(q[1, j])} [{fmt(q[0, j])}, {fmt(q[2, j])}]" for j in range(len(names))])
+    txt.append("Group centres in natural units (median of the group's population, median [90%]):\n\n"
+               + _table(["quantity"] + [_short(n, 24) for n in names], rows) + "\n")
+    vs = variance_split(h.hyper_samples, h.hyper_names, pooled)
+    rows = [(label[p], f"{fmt(v['sd_between'], 3)} [{fmt(v['sd_between_lo'], 3)}, {fmt(v['sd_between_hi'], 3)}]",
+             f"{fmt(v['sd_within'], 3)} [{fmt(v['sd_within_lo'], 3)}, {fmt(v['sd_within_hi'], 3)}]",
+             f"{v['between_fraction']:.0%} [{v['between_fraction_lo']:.0%}, {v['between_fraction_hi']:.0%}]")
+            for p, v in vs.items()]
+    txt.append(f"Variability between and within groups (transformed units, median [90%]):\n\n"
+               + _table(["quantity", f"sd between {key} groups", "sd within a group (between specimens)",
+                         "share of the variance between groups"], rows))
+    rows = []
+    for d in group_differences(np.asarray(g["means"]), names, pooled, 0.9):
+        a, b, p = _short(d["a"], 24), _short(d["b"], 24), d["parameter"]
+        pp = d["p_positive"]
+        verdict = (f"{b} higher" if pp >= 0.95 else f"{a} higher" if pp <= 0.05
+                   else "no clear difference (90% interval includes 0)")
+        ratio = (f"×{fmt(np.exp(d['median']), 3)} [{fmt(np.exp(d['lo']), 3)}, {fmt(np.exp(d['hi']), 3)}]"
+                 if log_scale[p] else "–")
+        rows.append((label[p], f"{b} − {a}", f"{fmt(d['median'], 3)} [{fmt(d['lo'], 3)}, {fmt(d['hi'], 3)}]", ratio,
+                     f"{pp:.3f}", verdict))
+    txt.append(f"\nDo the groups differ? Posterior of the difference of the group means, per pair and quantity "
+               f"(median [90%]; the ratio for log-scale quantities), the posterior probability that the second "
+               f"group's mean is the higher one, and the verdict at 95% (either sign):\n\n"
+               + _table(["quantity", "difference", "median [90%]", "ratio", "P(> 0)", "verdict"], rows))
+    return "\n".join(txt)
 
 
 def _population_figures(wres, base: Path) -> str:
@@ -297,7 +365,8 @@ def _population_figures(wres, base: Path) -> str:
 #: the report's sections in order: ``f(workflow_result, base) -> markdown`` ("" leaves it out)
 SECTIONS: tuple[Callable[[Any, Path], str], ...] = (_header, _settings, _timings, _specimens, _fit_quality,
                                                     _combinations,
-                                                    _manifolds, _population, _variability, _population_figures)
+                                                    _manifolds, _population, _groups, _variability,
+                                                    _population_figures)
 
 
 def render_report(wres, *, base: Path | None = None,

@@ -21,6 +21,9 @@ stream                     spawn key                 draws
 ``organ_new_specimen``     ``(20000, 2)``            organ bands: population-predictive draws
 ``detective``              ``(30000,)``              hbm.diagnose/extend: child j = 0 base fit,
                                                      1 + k greedy round k, 90 removal, 91 power
+``grouped``                ``(40000,)``              the grouped population sampler (population →
+                                                     group → specimen, ``--group-by``/``# group:``);
+                                                     used instead of ``hierarchical``
 =========================  ========================  ==============================================
 
 A single ``hbm fit --seed S`` is specimen-free: its phases use keys ``(j,)`` of ``SeedSequence(S)``.
@@ -45,6 +48,7 @@ PHASES: tuple[str, ...] = ("optima", "tmcmc", "predictive", "sobol")
 _HIER = 10_000
 _ORGAN = 20_000
 _DETECTIVE = 30_000
+_GROUPED = 40_000
 
 #: name -> function of the stream's indices returning its spawn key (the table above).
 def _specimen_key(k: int) -> tuple[int, ...]:
@@ -62,6 +66,7 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "organ_updated": lambda k: (_ORGAN, 1, int(k)),
     "organ_new_specimen": lambda: (_ORGAN, 2),
     "detective": lambda: (_DETECTIVE,),
+    "grouped": lambda: (_GROUPED,),
 }
 
 
@@ -129,7 +134,7 @@ def run_keys(n_specimens: int) -> dict[tuple[int, ...], str]:
         named.append((f"refine {k}", STREAMS["refine"](k)))
         named.append((f"organ_posterior {k}", STREAMS["organ_posterior"](k)))
         named.append((f"organ_updated {k}", STREAMS["organ_updated"](k)))
-    for name in ("hierarchical", "new_specimen", "organ_new_specimen"):
+    for name in ("hierarchical", "new_specimen", "organ_new_specimen", "grouped"):
         named.append((name, STREAMS[name]()))
     out: dict[tuple[int, ...], str] = {}
     for name, key in named:

@@ -10,6 +10,8 @@ Phases
    fitted specimens, reusing the stage-1 samples) -> ``<out>/hierarchical.nc``.  ``hier_pooled``:
    "combinations" (the default for the base model: a population over what a uniaxial curve
    identifies), "informed", "all", a list of names, or "auto" (see :mod:`hbm.population`).
+   Specimens with ``# group:`` lines, or grouped by ``group_by`` (any metadata key), get a
+   population → group → specimen layer (:func:`hbm.data.specimen_groups`).
 3. **Identifiability and manifolds** (:mod:`hbm.views`): identifiable combinations, VOLF–T1
    manifold splines -> ``<out>/manifolds.nc``.
 4. **Figures** (``<out>/figures/``) and the Markdown report (``<out>/report.md``); the run's
@@ -36,8 +38,8 @@ import numpy as np
 
 from . import identity, io
 from ._version import __version__
-from .data import load_specimens
-from .errors import HbmError
+from .data import GROUP_KEY, load_specimens, specimen_groups
+from .errors import DataError, HbmError
 from .fit import fit_specimen
 from .model import spyrou_model
 from .parallel import dask_client, map_specimens
@@ -86,6 +88,8 @@ class RunConfig:
     prior: dict | None = None
     #: reference sarcomere length (µm) for files with a sarcomere_length_um column (``--sl0``)
     sl0: float | None = None
+    #: metadata key whose values group the specimens (``--group-by``); None: ``# group:`` lines, if any
+    group_by: str | None = None
 
     def __post_init__(self) -> None:
         if self.quick:  # a smoke run: every phase, small budgets
@@ -207,6 +211,8 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     out = Path(cfg.out)
     (out / "specimens").mkdir(parents=True, exist_ok=True)
     datasets = load_specimens(cfg.data, sl0=cfg.sl0)
+    if cfg.hierarchical:  # a specimen without its group fails before any fit
+        specimen_groups(datasets, cfg.group_by)
     ids = sorted(datasets)
     model = model if model is not None else spyrou_model()
     settings = cfg.fit_settings()
@@ -299,11 +305,13 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, opt
         t = time.perf_counter()
         hpath = out / "hierarchical.nc"
         # keyed over the specimen results it pools and its own settings: reused when none changed
-        pop_cfg = cfg.population_config()
+        pop_cfg = _with_groups(cfg.population_config(), cfg, {sid: datasets[sid] for sid in results})
         hkey = identity.content_key({
             "specimens": identity.settings_key({sid: _stored_hash(paths[sid]) for sid in sorted(results)}),
             "population": identity.settings_key({k: v for k, v in dataclasses.asdict(pop_cfg).items()
-                                                 if k not in ("progress", "retries")}),
+                                                 if k not in ("progress", "retries")
+                                                 # ungrouped runs keep their key (and their reuse)
+                                                 and not (k in ("groups", "group_by") and v is None)}),
             "model": identity.model_key(model), "version": __version__})
         stored = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
         if stored is not None and stored.attrs.get("content_key") == hkey:
@@ -351,6 +359,18 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, opt
             _log(f"population figures failed: {type(exc).__name__}: {exc}", True)
         timings["figures"] = time.perf_counter() - t
     return wres
+
+
+def _with_groups(pop_cfg: PopulationConfig, cfg: RunConfig, datasets: Mapping) -> PopulationConfig:
+    """The population settings with the fitted specimens' groups (``group_by`` / ``# group:``), if any."""
+    try:
+        groups = specimen_groups(datasets, cfg.group_by)
+    except DataError as exc:  # checked on every specimen before the fits: failed fits left one group
+        _log(f"WARNING: {exc} among the fitted specimens; one population without groups", True)
+        return pop_cfg
+    if groups is None:
+        return pop_cfg
+    return dataclasses.replace(pop_cfg, groups=groups, group_by=cfg.group_by or GROUP_KEY)
 
 
 def _figures_task(path: str, fig_dir: str, model=None) -> list[str]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..data import load_specimens
+from ..data import load_specimens, specimen_groups
 from ..errors import SettingError
 from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
@@ -48,6 +48,7 @@ examples:
   hbm run --quick --workers 2 --out /tmp/smoke
   hbm run --samples 5000 --kernel manifold --scheduler tcp://10.0.0.5:8786
   hbm run --geometry data/geometry/fusiform.toml
+  hbm run --data my_bundles --group-by species
 """
 
 
@@ -90,6 +91,11 @@ def register(subparsers) -> None:
     p.add_argument("--hier-estimator", choices=("raw", "kernel"), default="raw",
                    help="estimator of p(d_i|psi): raw importance ratios (default, unbiased) or kernel-smoothed "
                         "ratios (O(h^2) bias, robust when the population is narrower than a posterior)")
+    p.add_argument("--group-by", metavar="KEY",
+                   help="group the specimens by a metadata key of their files (e.g. species, muscle, protocol): "
+                        "a population -> group -> specimen layer whose report says whether the groups differ; "
+                        "every specimen needs '# KEY: NAME' and there must be two groups at least (default: the "
+                        "'# group:' lines, if any)")
     p.add_argument("--no-hierarchical", action="store_true", help="skip the hierarchical layer")
     p.add_argument("--no-figures", action="store_true", help="skip figures")
     p.add_argument("--retries", type=non_negative_int, default=1, metavar="R",
@@ -135,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
     datasets = load_specimens(args.data, sl0=args.sl0)  # a bad or missing data folder fails before any fit
     for ds in datasets.values():
         check_domain(model, ds)
+    if not args.no_hierarchical:  # groups matter to the hierarchical layer only
+        specimen_groups(datasets, args.group_by)  # every specimen has its group, two groups at least
     cfg = RunConfig(data=args.data, out=args.out, samples=args.samples, kernel=args.kernel, noise=args.noise,
                     workers=args.workers, scheduler=args.scheduler, seed=args.seed, sobol=not args.no_sobol,
                     sobol_n=args.sobol_n, restarts=args.restarts,
@@ -142,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
                     retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
-                    prior=prior.to_dict() if prior is not None else None, sl0=args.sl0)
+                    prior=prior.to_dict() if prior is not None else None, sl0=args.sl0, group_by=args.group_by)
     _check_sizes(cfg, datasets, model, fix)
     hooks = []
     if getattr(args, "geometry", None):
