@@ -77,3 +77,28 @@ def test_local_proposal_tmcmc_evidence_on_a_gaussian():
     r = tmcmc(ll, b, 400, seed=3, progress=False, proposal="local", local_neighbours=15, local_ridge=1e-3)
     assert abs(r.log_evidence - truth) <= 4 * r.log_evidence_se + 0.05
     assert np.allclose(r.samples.mean(axis=0), 1.0, atol=0.05)
+
+
+def test_persistent_sampling_evidence_and_pool_resampling():
+    # persistent sampling (resampling from the pool of all stages) on a 3-D Gaussian on a box:
+    # Z = (√(2π)·0.3)³ / 10³; the islands draw only from their own rows of the pool
+    from hbm.samplers.tmcmc import _islands, _resample_pool
+
+    b = np.array([[-5.0, 5.0]] * 3)
+
+    def ll(x):
+        return -0.5 * np.sum((x - 1.0) ** 2, axis=1) / 0.09
+
+    truth = 3 * (0.5 * math.log(2 * math.pi) + math.log(0.3)) - 3 * math.log(10.0)
+    errs = []
+    for seed in range(2):
+        r = tmcmc(ll, b, 300, seed=seed, progress=False, recycle=True, persistent=True, n_islands=4)
+        errs.append(r.log_evidence - truth)
+        assert abs(errs[-1]) <= 4 * r.log_evidence_se + 0.05
+        assert np.allclose(r.samples.mean(axis=0), 1.0, atol=0.06)
+    assert np.mean(np.abs(errs)) < 0.2
+    n, k = 100, 4
+    starts, sizes, isl = _islands(n, k)
+    w = np.random.default_rng(0).random(3 * n)
+    idx = _resample_pool(w, n, starts, sizes, isl, np.random.default_rng(1), "systematic")
+    assert np.array_equal(np.tile(isl, 3)[idx], isl)  # island k drew from island k's rows only

@@ -34,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -131,7 +132,7 @@ def check_peer_likelihood(py: Path, lik, gold) -> float:
     return float(np.max(np.abs(np.asarray(out["log_likelihood"]) - lik(theta))))
 
 
-def run_peers(lik, gold, names, seeds) -> tuple[list[dict], list[str]]:
+def run_peers(lik, gold, names, seeds, n_jobs: int = 2) -> tuple[list[dict], list[str]]:
     py = peer_python()
     if not py.exists():
         return [], [f"peers skipped: bench environment python {py} is missing"]
@@ -139,21 +140,32 @@ def run_peers(lik, gold, names, seeds) -> tuple[list[dict], list[str]]:
     notes = [f"peer likelihood (numpy, evidence_peers.py) vs hbm at 16 prior draws: max |Δ log L| = {diff:.1e}"]
     if not diff <= 1e-8:
         return [], notes + ["peers not run: their likelihood disagrees with hbm's"]
-    rows = []
-    for name in names:
+    if any(PEERS[name][0] == "pymc_peer.py" for name in names):
+        # warm-up: the first sample_smc compiles the logp functions (in child processes that
+        # process_time does not see); pytensor caches them, so the timed runs measure sampling
+        try:
+            _peer_call(py, "pymc_peer.py", ["run", "--bench", str(mp.BENCH), "--n", "100", "--seed", "999"], 600)
+        except Exception as e:  # noqa: BLE001
+            notes.append(f"PyMC warm-up failed: {e}")
+    jobs = [(name, seed) for name in names for seed in seeds]
+
+    def one(job):
+        name, seed = job
         script, args, timeout = PEERS[name]
-        if script == "pymc_peer.py":
-            # warm-up: the first sample_smc compiles the logp functions (in child processes that
-            # process_time does not see); pytensor caches them, so the timed runs measure sampling
-            try:
-                _peer_call(py, script, ["run", "--bench", str(mp.BENCH), "--n", "100", "--seed", "999"], timeout)
-            except Exception as e:  # noqa: BLE001
-                notes.append(f"{name}: warm-up failed: {e}")
-        for seed in seeds:
-            try:
-                r = _peer_call(py, script, ["run", "--bench", str(mp.BENCH), *args, "--seed", str(seed)], timeout)
-            except Exception as e:  # noqa: BLE001 - a failing peer is reported, not fatal
-                notes.append(f"{name} seed {seed}: {e}")
+        try:
+            return _peer_call(py, script, ["run", "--bench", str(mp.BENCH), *args, "--seed", str(seed)], timeout)
+        except subprocess.TimeoutExpired:
+            return RuntimeError(f"did not finish within {timeout} s wall time (stopped)")
+        except Exception as e:  # noqa: BLE001 - a failing peer is reported, not fatal
+            return e
+
+    rows = []
+    # peers are separate processes: run `n_jobs` at once so a round fits its time slot (CPU time
+    # is process time, so the overlap does not change the measured numbers)
+    with ThreadPoolExecutor(max_workers=n_jobs) as pool:
+        for (name, seed), r in zip(jobs, pool.map(one, jobs)):
+            if isinstance(r, Exception):
+                notes.append(f"{name} seed {seed}: {str(r)[:300]}")
                 continue
             label = f"{name} ({r.get('peer', 'pymc')} {r.get('version', r.get('pymc', '?'))})"
             row = _row(label, seed, r["evaluations"], r["cpu"], r["log_evidence"],
@@ -194,6 +206,7 @@ def main(argv=None) -> int:
     ap.add_argument("--settings", default=None, help=f"comma-separated subset of {list(SETTINGS)}")
     ap.add_argument("--peers", default=None, help=f"comma-separated subset of {list(PEERS)}, or 'all'")
     ap.add_argument("--peer-seeds", type=int, default=2)
+    ap.add_argument("--peer-jobs", type=int, default=2, help="peer processes at once")
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmarks"))
     args = ap.parse_args(argv)
     names = list(SETTINGS) if args.settings is None else [s.strip() for s in args.settings.split(",")]
@@ -206,7 +219,7 @@ def main(argv=None) -> int:
             _say(rows[-1])
     if args.peers:
         peer_names = list(PEERS) if args.peers == "all" else [s.strip() for s in args.peers.split(",")]
-        prow, notes = run_peers(lik, gold, peer_names, list(range(args.peer_seeds)))
+        prow, notes = run_peers(lik, gold, peer_names, list(range(args.peer_seeds)), args.peer_jobs)
         rows += prow
     stamp = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
     load = os.getloadavg()[0]
