@@ -41,8 +41,9 @@ from pymc_peer import EXP_CLIP, NAMES, read_bench  # noqa: E402  (numpy-only hel
 class Likelihood:
     """Vectorised log-likelihood of the benchmark, counting the rows it evaluates."""
 
-    def __init__(self, bench: Path):
+    def __init__(self, bench: Path, progress: Path | None = None):
         self.eps, self.obs, box, self.gold = read_bench(bench)
+        self.progress, self._last = progress, 0.0
         self.lo = np.array([box[k][0] for k in NAMES])
         self.hi = np.array([box[k][1] for k in NAMES])
         self.rows = 0
@@ -50,6 +51,13 @@ class Likelihood:
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         th = np.atleast_2d(np.asarray(theta, float))
         self.rows += len(th)
+        if self.progress is not None and time.perf_counter() - self._last > 2.0:
+            # throttled progress record, so a run stopped by the caller's time cap still tells
+            # how many evaluations and how much CPU it had spent
+            self._last = time.perf_counter()
+            tmp = self.progress.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"evaluations": self.rows, "cpu": time.process_time()}))
+            tmp.replace(self.progress)
         p = {k: th[:, i:i + 1] for i, k in enumerate(NAMES)}
         lam = 1.0 + self.eps[None, :]
         nh = lam * lam - 1.0 / lam
@@ -127,8 +135,8 @@ def run_dynesty(lik: Likelihood, seed: int, size: int, timeout: float):
 PEERS = {"pocomc": run_pocomc, "nautilus": run_nautilus, "dynesty": run_dynesty}
 
 
-def run(bench: Path, peer: str, seed: int, size: int, timeout: float) -> dict:
-    lik = Likelihood(bench)
+def run(bench: Path, peer: str, seed: int, size: int, timeout: float, progress: Path | None = None) -> dict:
+    lik = Likelihood(bench, progress)
     mod = __import__(peer)
     t, c = time.perf_counter(), time.process_time()
     x, w, logz, logz_err = PEERS[peer](lik, seed, size, timeout)
@@ -148,13 +156,15 @@ def main(argv=None) -> int:
     r.add_argument("--seed", type=int, required=True)
     r.add_argument("--size", type=int, default=None, help="n_effective / n_live / nlive (peer default)")
     r.add_argument("--timeout", type=float, default=600.0, help="nautilus: stop after this many seconds")
+    r.add_argument("--progress-file", default=None, help="JSON {evaluations, cpu} updated every ~2 s")
     k = sub.add_parser("check", help="log-likelihood at given parameter rows")
     k.add_argument("--bench", required=True)
     k.add_argument("--theta", required=True)
     a = ap.parse_args(argv)
     if a.mode == "run":
         size = a.size or {"pocomc": 512, "nautilus": 2000, "dynesty": 500}[a.peer]
-        out = run(Path(a.bench), a.peer, a.seed, size, a.timeout)
+        out = run(Path(a.bench), a.peer, a.seed, size, a.timeout,
+                  Path(a.progress_file) if a.progress_file else None)
     else:
         lik = Likelihood(Path(a.bench))
         rows = json.loads(Path(a.theta).read_text())
