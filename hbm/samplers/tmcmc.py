@@ -294,8 +294,13 @@ _LATE_FIELDS = {"max_evaluations": None, "recycle": False, "proposal": "rw", "mi
 #: fewer evaluations than the defaults (3.2e5 vs 2.4e6) but is NOT as accurate there (log Ẑ
 #: median 2.9 nats low, its island SE ~0.2 does not cover that; results/benchmarks/
 #: evaluations_to_accuracy.md); on the 9-D Gaussian / banana checks mean |error| 0.16 / 0.08.
+#: "lean": the default random walk at N = 1500 and CoV target 1.5 — on the muscle benchmark half
+#: the default's evaluations (1.25e6 vs 2.43e6) for the same share of runs reaching |log Ẑ error| ≤ 0.3
+#: and worst posterior-mean error ≤ 0.3 gold sd (3/5 each, SE covering the error 5/5), but one seed
+#: in five put a posterior mean 1.1 gold sd off (results/benchmarks/evaluations_to_accuracy.md).
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
+    "lean": {"n_samples": 1500, "cov_target": 1.5},
     "frugal": {"n_samples": 1000, "recycle": True, "proposal": "mixture", "n_islands": 8,
                "cov_target": 1.5, "mixing_target": 0.1, "max_steps": 30, "mixture_components": 8,
                "independence_fraction": 0.3},
@@ -1518,7 +1523,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         initial N; see :class:`TMCMCConfig`.  ``result.budget_exhausted`` says whether it bound
         the run.
     preset : str or None
-        Named settings of :data:`PRESETS` ("default", "frugal") used as defaults for the
+        Named settings of :data:`PRESETS` ("default", "lean", "frugal") used as defaults for the
         population size, ``cov_target`` and the options; explicit arguments override them.
     **options
         Further :class:`TMCMCConfig` fields (transform, n_islands, min_steps, max_steps,

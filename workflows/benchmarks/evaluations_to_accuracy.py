@@ -7,8 +7,8 @@ combinations as ``muscle_posterior.py``) and whether the run reached the accurac
 |log Ẑ error| ≤ 0.3 and worst mean error ≤ 0.3 gold sd.  An *expensive-likelihood* column adds a
 virtual clock of 1 ms per evaluated row to the measured CPU time (the cost is simulated by
 counting, not by sleeping: the same model, with every batched call costing n_rows·1 ms).  A
-setting's *time to accuracy* is its median virtual time when ≥ 90 % of its runs reach the
-target, else "not reached".
+setting's *time to accuracy* is its median virtual time when its median run reaches the target
+(≥ 50 % of its runs), else "not reached".
 
 Peers (``--peers``) run in the same invocation, one subprocess per run, in the separate benchmark
 environment (``$HBM_PEER_PYTHON``, else the nearest ``bench-venv/bin/python`` above this
@@ -51,12 +51,12 @@ from hbm.utils import atomic_write_text  # noqa: E402
 
 MS_PER_ROW = 1e-3
 TARGET_LOGZ, TARGET_MEAN = 0.3, 0.3
-REACH_SHARE = 0.9  # share of runs that must reach the target for a "time to accuracy"
+REACH_SHARE = 0.5  # the median run must reach the target for a "time to accuracy" (issue 16: medians)
 # name -> (tmcmc keyword arguments, largest number of seeds or None for --seeds)
 SETTINGS = {
     "default (N=2000, RW)": ({}, None),
     "cov_target 1.5 (N=2000, RW)": ({"cov_target": 1.5}, None),
-    "N=1500, cov_target 1.5": ({"n_samples": 1500, "cov_target": 1.5}, None),
+    "lean preset (N=1500, CoV target 1.5)": ({"preset": "lean"}, None),
     "frugal preset (N=1000, mixture moves, ≤30 steps)": ({"preset": "frugal"}, None),
     "frugal, budget 120k": ({"preset": "frugal", "max_evaluations": 120_000}, 3),
     "recycle + local moves (N=1000, ≤50 steps)": ({"n_samples": 1000, "cov_target": 1.5, "recycle": True,
@@ -296,19 +296,24 @@ def main(argv=None) -> int:
             prow, notes = peers.result()
             rows += prow
     stamp = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
-    load = os.getloadavg()[0]
+    text = render(rows, notes, kind, gold, stamp, os.getloadavg()[0])
+    print(text)
+    atomic_write_text(Path(args.out) / "evaluations_to_accuracy.md", text)
+    atomic_write_text(Path(args.out) / "evaluations_to_accuracy.json",
+                      json.dumps({"measured": stamp, "notes": notes, "rows": rows}, indent=1))
+    return 0
+
+
+def render(rows: list[dict], notes: list[str], kind: str, gold: dict, stamp: str, load: float) -> str:
+    """The Markdown report of one round."""
     md = ["# Evaluations to accuracy on the muscle benchmark posterior (issue 16)", "",
           f"Likelihood: {kind}; gold log Z = {gold['log_evidence']}. Measured {stamp} UTC on a shared 2-core "
           f"machine (1-min load {load:.1f} at the end; CPU = process time, robust to the load). Target: |log Ẑ error| "
           "≤ 0.3 and worst posterior-mean error ≤ 0.3 gold sd. 'time with 1 ms/row' = CPU + 1 ms × evaluations, a "
           "virtual clock (the expensive likelihood is simulated by counting rows, not by sleeping). 'time to "
-          f"accuracy' = median virtual time when ≥ {REACH_SHARE:.0%} of the runs reach the target.", "",
+          f"accuracy' = median virtual time when the median run reaches the target (≥ {REACH_SHARE:.0%} of the runs).", "",
           table(rows), ""] + [f"- {n}" for n in notes] + ["", HISTORY]
-    text = "\n".join(md) + "\n"
-    print(text)
-    atomic_write_text(Path(args.out) / "evaluations_to_accuracy.md", text)
-    atomic_write_text(Path(args.out) / "evaluations_to_accuracy.json", json.dumps(rows, indent=1))
-    return 0
+    return "\n".join(md) + "\n"
 
 
 if __name__ == "__main__":
