@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
+from hbm.errors import HbmError
 from hbm.samplers import tmcmc
 from hbm.samplers.local_proposal import fit_local_metric, local_step, nearest_reference
 
@@ -102,3 +104,14 @@ def test_persistent_sampling_evidence_and_pool_resampling():
     w = np.random.default_rng(0).random(3 * n)
     idx = _resample_pool(w, n, starts, sizes, isl, np.random.default_rng(1), "systematic")
     assert np.array_equal(np.tile(isl, 3)[idx], isl)  # island k drew from island k's rows only
+
+
+@pytest.mark.parametrize("kw, msg", [({"proposal": "local", "transform": "none"}, "needs transform='logit'"),
+                                     ({"proposal": "local", "local_neighbours": 1}, "local_neighbours"),
+                                     ({"proposal": "local", "local_ridge": 0.0}, "local_ridge"),
+                                     ({"persistent": True}, "needs recycle=True"),
+                                     ({"recycle": True, "persistent": True, "persistent_ess": 0.0}, "persistent_ess"),
+                                     ({"proposal": "nope"}, "proposal must be")])
+def test_bad_local_and_persistent_options(kw, msg):
+    with pytest.raises(HbmError, match=msg):
+        tmcmc(lambda x: -np.sum(x * x, axis=1), np.array([[-1.0, 1.0]] * 2), 50, seed=0, progress=False, **kw)

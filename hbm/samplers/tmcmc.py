@@ -164,6 +164,10 @@ class TMCMCConfig:
         geometrically ergodic where the fit is too narrow).
     local_neighbours : int
         Neighbours whose covariance a point uses with ``proposal="local"`` (at least d + 1).
+    local_ridge : float
+        Multiple of the global covariance added to every neighbourhood covariance; must stay
+        well below the squared ratio of the thinnest local to the global width (1e-2 hid the
+        muscle benchmark's thin direction entirely; 1e-4 did not).
     persistent : bool
         Persistent sampling (needs ``recycle``): every stage resamples its N particles from the
         pool of *all* stored populations, weighted to the new β by the MBAR mixture density
@@ -179,10 +183,6 @@ class TMCMCConfig:
         solve of the growing pool every stage costs CPU (~30–120 s per run).
     persistent_ess : float
         Pool ESS target per particle of ``persistent``.
-    local_ridge : float
-        Multiple of the global covariance added to every neighbourhood covariance; must stay
-        well below the squared ratio of the thinnest local to the global width (1e-2 hid the
-        muscle benchmark's thin direction entirely; 1e-4 did not).
     """
 
     n_samples: int
@@ -1235,7 +1235,7 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         # is the MBAR solution of all stages, _recycled_result); the pool replaces the population
         log_z_new = float(logsumexp(lw_pool))
         island_new = np.full(k_isl, log_z_new)
-        log_mean_w, var_inc = log_z_new - state.log_evidence, 0.0
+        var_inc = 0.0
         x, ll = state.history_samples, state.history_log_likelihood
         w = np.exp(lw_pool - lw_pool.max())
         ess = _pool_ess(lw_pool)
