@@ -628,3 +628,13 @@ def test_slow_accuracy_frugal(problem):
     se = np.array([r.log_evidence_se for r in runs])
     assert np.mean(np.abs(z - truth)) <= 0.25, (z.mean(), truth)
     assert 0.5 <= z.std(ddof=1) / se.mean() <= 2.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("problem", [GAUSS9, BANANA], ids=["gauss9", "banana"])
+def test_slow_accuracy_lean(problem):
+    # the "lean" preset (N = 1500, CoV target 1.5) keeps the analytic checks' accuracy bound
+    f, b, truth = problem
+    runs = [tmcmc(f, b, seed=s, progress=False, preset="lean") for s in SEEDS]
+    assert all(r.config.n_samples == 1500 and r.config.cov_target == 1.5 for r in runs)
+    _check_accuracy_and_se(runs, truth)

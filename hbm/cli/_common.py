@@ -247,6 +247,21 @@ def add_seed(parser: argparse.ArgumentParser, help_text: str = "root seed (defau
     parser.add_argument("--seed", type=seed, default=0, metavar="S", help=help_text)
 
 
+def add_max_evaluations(parser: argparse.ArgumentParser) -> None:
+    """``--max-evaluations M``: cap on TMCMC log-likelihood evaluations (rows), opt-in."""
+    parser.add_argument("--max-evaluations", type=positive_int, default=None, metavar="M",
+                        help="cap on TMCMC likelihood evaluations including the initial N (default: no cap); "
+                             "a binding cap gives a cruder posterior and evidence, flagged in the result")
+
+
+def check_max_evaluations(budget: int | None, samples: int) -> int | None:
+    """The budget of ``--max-evaluations``, checked against the population it must at least pay for."""
+    if budget is not None and budget < samples:
+        raise SettingError(f"--max-evaluations {budget}: expected at least the TMCMC population size "
+                           f"{samples} (the initial population alone costs N evaluations)")
+    return budget
+
+
 def add_fix(parser: argparse.ArgumentParser, example: str = "EOPT=0.192") -> None:
     """``--fix NAME=VALUE`` (repeatable, each name once)."""
     parser.add_argument("--fix", action=UniqueNames, type=fix_item, default={}, metavar="NAME=VALUE",

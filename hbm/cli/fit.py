@@ -10,7 +10,7 @@ from ..errors import HbmWarning
 from ..fit import fit_specimen, format_at_bounds
 from ..io import specimen_path
 from ..utils import prepare_output_dir, prepare_output_file, remove_stale_temps
-from ._common import (add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
+from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
                       power_of_two_or_zero, sample_size, sweep, value_range)
 
@@ -48,6 +48,7 @@ def register(subparsers) -> None:
                    help="CMA-ES bound sweep tracing a manifold, e.g. VOLF:0.05")
     p.add_argument("--maxfevals", type=positive_int, default=5000, metavar="M",
                    help="evaluation budget per CMA-ES run (default 5000)")
+    add_max_evaluations(p)
     p.add_argument("--sobol", type=power_of_two_or_zero, default=0, metavar="N",
                    help="Sobol base sample size (power of 2; default 0 = skip)")
     add_seed(p)
@@ -90,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
                        sweep=(args.sweep.name, args.sweep.width) if args.sweep else None,
                        sobol_n=args.sobol or None, checkpoint_dir=args.checkpoint_dir,
                        out=out, progress=not args.no_progress,
-                       optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds)
+                       optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds,
+                       max_evaluations=check_max_evaluations(args.max_evaluations, args.samples))
     for item in res.quality(data)["at_bounds"]:
         line = format_at_bounds([item])[0].removeprefix("warning: ")
         warnings.warn(f"{res.result.specimen_id}: {line}", HbmWarning, stacklevel=1)

@@ -10,7 +10,7 @@ from ..errors import SettingError
 from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
 from ..workflow import RunConfig, run_workflow
-from ._common import (add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
+from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
                       sample_size, sweep)
 
@@ -76,6 +76,7 @@ def register(subparsers) -> None:
                         "'none' to skip)")
     p.add_argument("--maxfevals", type=positive_int, default=3000, metavar="M",
                    help="evaluation budget per CMA-ES run (default 3000)")
+    add_max_evaluations(p)
     p.add_argument("--sobol-n", type=power_of_two, default=1024, metavar="N",
                    help="Sobol base sample size, a power of 2 (default 1024)")
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
@@ -133,6 +134,12 @@ def _check_sizes(cfg: RunConfig, datasets, model, fix: dict) -> None:
         check_population_memory(f"--hier-samples {cfg.hier_samples}", cfg.hier_samples, 256, 2 * model.n_params)
 
 
+def _budget(args: argparse.Namespace) -> dict | None:
+    """TMCMC options of --max-evaluations (None without it: the stored config is unchanged)."""
+    m = check_max_evaluations(args.max_evaluations, min(args.samples, 500) if args.quick else args.samples)
+    return None if m is None else {"max_evaluations": m}
+
+
 def run(args: argparse.Namespace) -> int:
     """Check every setting, path and size, lock --out, then run the workflow."""
     model, fix, bounds = build_model(args)
@@ -150,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
                     retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
-                    prior=prior.to_dict() if prior is not None else None, sl0=args.sl0, group_by=args.group_by)
+                    prior=prior.to_dict() if prior is not None else None, sl0=args.sl0, group_by=args.group_by,
+                    tmcmc_options=_budget(args))
     _check_sizes(cfg, datasets, model, fix)
     hooks = []
     if getattr(args, "geometry", None):

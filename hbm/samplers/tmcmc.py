@@ -37,6 +37,7 @@ from scipy.special import logsumexp
 
 from ..errors import HbmError
 from ..utils import atomic_path
+from .local_proposal import fit_local_metric, local_step, nearest_reference
 
 LogLikelihood = Callable[[np.ndarray], np.ndarray]
 GradientFIM = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray]"]
@@ -142,12 +143,17 @@ class TMCMCConfig:
         Karamanis et al. 2025); the SE is the spread of the same estimate over the islands, which
         are then also kept apart in the final stage.  False (default) = the classical product of
         per-stage mean weights and the last population only.
-    proposal : {"rw", "mixture"}
+    proposal : {"rw", "mixture", "local"}
         Move kernel of the random walk: "rw" (default) the Gaussian random walk with the
         population covariance; "mixture" a mixture kernel that with probability
         ``independence_fraction`` proposes independently from a multivariate-t mixture fitted
         by EM to the stage-start population (full covariance per cluster, in the sampling
-        coordinates), else the random walk.  Needs ``kernel="rw"``.
+        coordinates), else the random walk; "local" the random walk with the covariance of the
+        ``local_neighbours`` stage-start particles nearest to the current point
+        (:mod:`hbm.samplers.local_proposal`; needs ``transform="logit"``).  Needs ``kernel="rw"``.
+        On the muscle benchmark "local" cut the whitened Fisher information of the thin
+        direction from ~7600 to ~30–60 but decorrelated the early, broad stages worse than the
+        global walk; N = 1000 with 50 steps per stage (5e5 evaluations) was 1.3–2.6 nats low.
     mixture_components : int
         Largest number of clusters of the fitted mixture (clusters with fewer than d + 2 members
         are dropped).
@@ -156,6 +162,27 @@ class TMCMCConfig:
     mixture_df : float
         Degrees of freedom of the t components (heavy tails keep the independence sampler
         geometrically ergodic where the fit is too narrow).
+    local_neighbours : int
+        Neighbours whose covariance a point uses with ``proposal="local"`` (at least d + 1).
+    local_ridge : float
+        Multiple of the global covariance added to every neighbourhood covariance; must stay
+        well below the squared ratio of the thinnest local to the global width (1e-2 hid the
+        muscle benchmark's thin direction entirely; 1e-4 did not).
+    persistent : bool
+        Persistent sampling (needs ``recycle``): every stage resamples its N particles from the
+        pool of *all* stored populations, weighted to the new β by the MBAR mixture density
+        (L_i^β / Σ_s N_s L_i^β_s / Z_s), instead of from the last population only, and chooses
+        β so that the pool's ESS at β is ``persistent_ess``·N (capped at pool/(1 + cov_target²)
+        while the pool is small).  With an ESS target above N the resampled particles are
+        nearly all distinct and come from several stages' lineages (less degeneracy per MH
+        step; the idea of pocoMC's persistent sampling, Karamanis et al. 2025).  Islands
+        resample from their own part of the pool, so their recycled evidences stay independent
+        and give the SE.  Measured on the muscle benchmark (N = 1000, ≤ 30 steps per stage):
+        target 2·N took 28 stages, 8.4e5 evaluations, log Ẑ 0.69 high; target 0.5·N 13 stages,
+        3.9e5 evaluations, 1.46 low — no better than the plain recycling there, and the MBAR
+        solve of the growing pool every stage costs CPU (~30–120 s per run).
+    persistent_ess : float
+        Pool ESS target per particle of ``persistent``.
     """
 
     n_samples: int
@@ -187,6 +214,10 @@ class TMCMCConfig:
     mixture_components: int = 4
     independence_fraction: float = 0.5
     mixture_df: float = 5.0
+    local_neighbours: int = 30
+    local_ridge: float = 0.01
+    persistent: bool = False
+    persistent_ess: float = 2.0
 
     def __post_init__(self) -> None:
         if self.cov_target is None:  # kernel-dependent default (frozen dataclass: set once here)
@@ -228,10 +259,20 @@ class TMCMCConfig:
         if self.max_evaluations is not None and int(self.max_evaluations) < int(self.n_samples):
             raise HbmError(f"tmcmc: max_evaluations ({self.max_evaluations}) must be >= n_samples "
                            f"({self.n_samples}): the initial population alone costs N evaluations")
-        if self.proposal not in ("rw", "mixture"):
-            raise HbmError(f"tmcmc: proposal must be 'rw' or 'mixture', got {self.proposal!r}")
-        if self.proposal == "mixture" and self.kernel != "rw":
-            raise HbmError("tmcmc: proposal='mixture' needs kernel='rw'")
+        if self.proposal not in ("rw", "mixture", "local"):
+            raise HbmError(f"tmcmc: proposal must be 'rw', 'mixture' or 'local', got {self.proposal!r}")
+        if self.proposal != "rw" and self.kernel != "rw":
+            raise HbmError(f"tmcmc: proposal={self.proposal!r} needs kernel='rw'")
+        if self.proposal == "local" and self.transform != "logit":
+            raise HbmError("tmcmc: proposal='local' needs transform='logit' (its steps are unbounded)")
+        if int(self.local_neighbours) < 2:
+            raise HbmError(f"tmcmc: local_neighbours must be >= 2, got {self.local_neighbours}")
+        if self.persistent and not self.recycle:
+            raise HbmError("tmcmc: persistent=True needs recycle=True (the pool is the recycled history)")
+        if not self.persistent_ess > 0:
+            raise HbmError(f"tmcmc: persistent_ess must be > 0, got {self.persistent_ess}")
+        if not self.local_ridge > 0:
+            raise HbmError(f"tmcmc: local_ridge must be > 0, got {self.local_ridge}")
         if int(self.mixture_components) < 1:
             raise HbmError(f"tmcmc: mixture_components must be >= 1, got {self.mixture_components}")
         if not 0.0 <= self.independence_fraction <= 1.0:
@@ -243,7 +284,8 @@ class TMCMCConfig:
 #: Fields added to :class:`TMCMCConfig` after checkpoint version 1: left out of the checkpoint
 #: fingerprint while at their defaults, so checkpoints of older runs still resume.
 _LATE_FIELDS = {"max_evaluations": None, "recycle": False, "proposal": "rw", "mixture_components": 4,
-                "independence_fraction": 0.5, "mixture_df": 5.0}
+                "independence_fraction": 0.5, "mixture_df": 5.0, "local_neighbours": 30, "local_ridge": 0.01,
+                "persistent": False, "persistent_ess": 2.0}
 
 #: Named settings for :func:`tmcmc` (``preset=``); explicit arguments override them.
 #: "frugal" (experimental): a smaller population whose stages are all recycled into the evidence
@@ -252,8 +294,13 @@ _LATE_FIELDS = {"max_evaluations": None, "recycle": False, "proposal": "rw", "mi
 #: fewer evaluations than the defaults (3.2e5 vs 2.4e6) but is NOT as accurate there (log Ẑ
 #: median 2.9 nats low, its island SE ~0.2 does not cover that; results/benchmarks/
 #: evaluations_to_accuracy.md); on the 9-D Gaussian / banana checks mean |error| 0.16 / 0.08.
+#: "lean": the default random walk at N = 1500 and CoV target 1.5 — on the muscle benchmark half
+#: the default's evaluations (1.25e6 vs 2.43e6) for the same share of runs reaching |log Ẑ error| ≤ 0.3
+#: and worst posterior-mean error ≤ 0.3 gold sd (3/5 each, SE covering the error 5/5), but one seed
+#: in five put a posterior mean 1.1 gold sd off (results/benchmarks/evaluations_to_accuracy.md).
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
+    "lean": {"n_samples": 1500, "cov_target": 1.5},
     "frugal": {"n_samples": 1000, "recycle": True, "proposal": "mixture", "n_islands": 8,
                "cov_target": 1.5, "mixing_target": 0.1, "max_steps": 30, "mixture_components": 8,
                "independence_fraction": 0.3},
@@ -531,6 +578,18 @@ def _resample_islands(logw, m_k, starts, sizes, isl, rng, scheme) -> np.ndarray:
         u = isl + rng.random(n)
     idx = np.searchsorted(cw, u, side="right")
     return np.clip(idx, starts[isl], starts[isl] + sizes[isl] - 1)
+
+
+def _resample_pool(w, n, starts, sizes, isl, rng, scheme) -> np.ndarray:
+    """Indices into a pool of stacked populations (blocks of n, islands contiguous in each block):
+    island k draws its ``sizes[k]`` particles from its own rows of every block (one loop over the
+    few islands, vectorised inside)."""
+    isl_pool = np.tile(isl, len(w) // n)
+    idx = np.empty(n, dtype=np.int64)
+    for k, (s0, m) in enumerate(zip(starts, sizes)):
+        rows = np.flatnonzero(isl_pool == k)
+        idx[s0:s0 + m] = rows[_resample(w[rows], int(m), rng, scheme)]
+    return idx
 
 
 def _weighted_cov(x: np.ndarray, w: np.ndarray, bounds: np.ndarray) -> np.ndarray:
@@ -1041,6 +1100,37 @@ def _recycled_result(state: TMCMCState, config: TMCMCConfig, bounds: np.ndarray)
     return float(log_z[-1]), se, hx[idx], hll[idx]
 
 
+def _pool_ess(lw: np.ndarray) -> float:
+    w = np.exp(lw - lw.max())
+    return float(w.sum() ** 2 / (w * w).sum())
+
+
+def _persistent_beta(hll: np.ndarray, hbeta: np.ndarray, n: int, beta0: float, config: TMCMCConfig,
+                     force: bool) -> tuple[float, bool, np.ndarray]:
+    """Next β of persistent sampling: pool ESS at β = target (bisection on log Δβ); pool log weights."""
+    counts = np.full(len(hbeta), n)
+    f = mbar_log_evidence(hll, hbeta, counts)
+    base = logsumexp(_tempered(hll, hbeta) - f + np.log(counts), axis=1)
+    tempered = lambda b: _tempered(hll, np.array([b]))[:, 0] - base  # noqa: E731
+    target = min(float(config.persistent_ess) * n, len(hll) / (1.0 + float(config.cov_target) ** 2))
+    if force or _pool_ess(tempered(1.0)) >= target:
+        return 1.0, bool(force), tempered(1.0)
+    lo, hi = math.log(float(config.min_dbeta)), math.log(1.0 - beta0)
+    if _pool_ess(tempered(beta0 + math.exp(lo))) < target:
+        b = beta0 + math.exp(lo)
+        return b, False, tempered(b)
+    for _ in range(60):  # ESS falls with β beyond the newest stage: bisection in log Δβ
+        mid = 0.5 * (lo + hi)
+        if _pool_ess(tempered(beta0 + math.exp(mid))) >= target:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-6:
+            break
+    b = beta0 + math.exp(lo)
+    return b, False, tempered(b)
+
+
 # ----------------------------------------------------------------------------------------
 # pure core
 # ----------------------------------------------------------------------------------------
@@ -1115,7 +1205,12 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     budget_hit = bool(state.budget_bound)
     if remaining is not None and remaining < n:
         force, budget_hit = True, True
-    dbeta, capped = _next_beta(ll, state.beta, config.cov_target, config.min_dbeta, force)
+    if config.persistent:
+        b_new, capped, lw_pool = _persistent_beta(state.history_log_likelihood, state.history_beta, n,
+                                                  state.beta, config, force)
+        dbeta = b_new - state.beta
+    else:
+        dbeta, capped = _next_beta(ll, state.beta, config.cov_target, config.min_dbeta, force)
     beta = 1.0 if state.beta + dbeta >= 1.0 - 1e-12 else state.beta + dbeta
     dbeta = beta - state.beta
     with np.errstate(invalid="ignore"):
@@ -1135,6 +1230,15 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     island_prev = state.island_log_evidence
     island_new = island_prev + inc_k
     log_z_new = _log_mean_exp(island_new)
+    if config.persistent:
+        # running estimate Z_β = Σ_i L_i^β / Σ_s N_s L_i^β_s / Z_s over the pool (the final answer
+        # is the MBAR solution of all stages, _recycled_result); the pool replaces the population
+        log_z_new = float(logsumexp(lw_pool))
+        island_new = np.full(k_isl, log_z_new)
+        var_inc = 0.0
+        x, ll = state.history_samples, state.history_log_likelihood
+        w = np.exp(lw_pool - lw_pool.max())
+        ess = _pool_ess(lw_pool)
     log_mean_w = log_z_new - state.log_evidence
 
     # 2. resample and prepare the proposal (weighted covariance at the new β)
@@ -1161,7 +1265,9 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         def evaluate(u):
             return _eval(log_likelihood, u), np.zeros(len(u))
     chol_rw = _safe_cholesky(sigma)
-    if k_isl == 1:
+    if config.persistent:
+        idx = _resample_pool(w, n, starts, sizes, isl, rng, config.resampling)
+    elif k_isl == 1:
         idx = _resample(w, n, rng, config.resampling)
     elif (beta >= 1.0 and not config.recycle) or not np.isfinite(m_k).all():
         # (recycling keeps the islands apart to the end: their recycled evidences are the SE)
@@ -1197,13 +1303,20 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     if config.proposal == "mixture":
         mixture = _fit_mixture(start, int(config.mixture_components), float(config.mixture_df), sigma, rng)
         lq = _mixture_logpdf(mixture, x)
+    local = None
+    if config.proposal == "local":
+        local = fit_local_metric(start, sigma, int(config.local_neighbours), float(config.local_ridge))
+        near = nearest_reference(local, x)
     gamma = config.de_gamma if config.de_gamma is not None else 2.38 / math.sqrt(2.0 * d)
     acc_de: list = []
     for k in range(max_steps):
         if remaining is not None and n_eval + n > remaining:
             budget_hit = True  # the next step could exceed the budget: stop moving here
             break
-        if mixture is not None:
+        if local is not None:
+            x, ll, lp, near, acc, ne = local_step(x, ll, lp, near, beta, scale, evaluate, rng, local)
+            acc_rw = acc
+        elif mixture is not None:
             x, ll, lp, lq, acc, is_de, ne = _mixture_step(x, ll, lp, lq, beta, scale, box, evaluate,
                                                           rng, mixture, config.independence_fraction)
             acc_rw = acc[~is_de]
@@ -1410,13 +1523,14 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         initial N; see :class:`TMCMCConfig`.  ``result.budget_exhausted`` says whether it bound
         the run.
     preset : str or None
-        Named settings of :data:`PRESETS` ("default", "frugal") used as defaults for the
+        Named settings of :data:`PRESETS` ("default", "lean", "frugal") used as defaults for the
         population size, ``cov_target`` and the options; explicit arguments override them.
     **options
         Further :class:`TMCMCConfig` fields (transform, n_islands, min_steps, max_steps,
         mixing_target, mixing, mixing_every, target_acceptance, target_acceptance_manifold,
         adapt_scale, resampling, min_dbeta, ridge, de_fraction, de_gamma, de_jump, de_noise,
-        recycle, proposal, mixture_components, independence_fraction, mixture_df).
+        recycle, proposal, mixture_components, independence_fraction, mixture_df, local_neighbours,
+        local_ridge).
 
     Returns
     -------
