@@ -69,3 +69,26 @@ def test_budget_is_respected_by_the_sampler():
 
     r = tmcmc(ll, np.array([[0.0, 1.0]] * 3), 200, seed=1, progress=False, max_evaluations=5000)
     assert rows[0] == r.n_evaluations <= 5000 and r.budget_exhausted
+
+
+def test_diagnose_and_extend_pass_the_budget(monkeypatch):
+    import hbm.cli.diagnose as cli_diag
+    monkeypatch.setenv("HBM_DEBUG", "1")
+    for cmd, fn, extra in (("diagnose", "diagnose", []), ("extend", "extend", ["--auto"])):
+        monkeypatch.setattr(cli_diag, fn, _capture)
+        with pytest.raises(Captured) as exc:
+            cli.main([cmd, SPECIMEN, "--max-evaluations", "30000", *extra])
+        assert exc.value.args[0]["max_evaluations"] == 30000
+
+
+def test_detective_evidence_run_keeps_within_the_budget():
+    """Each TMCMC evidence run of the detective spends at most its budget (counted by the sampler)."""
+    from hbm.data import load_specimen
+    from hbm.detective.fitting import sample
+    from hbm.likelihood import make_likelihood
+    from hbm.model import spyrou_model
+
+    lik = make_likelihood(spyrou_model(), load_specimen(SPECIMEN))
+    free = sample(lik, 800, seed=3)
+    capped = sample(lik, 800, seed=3, max_evaluations=20000)
+    assert capped.n_evaluations <= 20000 < free.n_evaluations

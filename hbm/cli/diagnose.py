@@ -10,7 +10,8 @@ from ..effects import resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..utils import prepare_output_file
-from ._common import (add_data_arguments, add_fix, add_form_argument, add_seed, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
+from ._common import (add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
+                      check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
                       name_list, non_negative_int, plot_path, print_json, sample_size)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
@@ -60,6 +61,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     add_seed(p, "seed of every random step (default 0)")
     p.add_argument("--samples", type=sample_size, default=None, metavar="N",
                    help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; use fewer for slow models)")
+    add_max_evaluations(p)   # per evidence run: the population shrinks to what it affords, then a hard cap
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
                    help="write the figure (PNG/PDF/SVG/...; into an existing folder)")
@@ -126,6 +128,8 @@ def _prepare(args, extra: list[str]):
           "noise": args.noise}
     if args.samples is not None:
         kw["n_samples"] = args.samples
+    if args.max_evaluations is not None:
+        kw["max_evaluations"] = check_max_evaluations(args.max_evaluations, samples)
     return ds, kw
 
 

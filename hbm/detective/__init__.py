@@ -152,7 +152,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              seed: int = 0, n_samples: int = 800, top: int = 3, progress: bool = False,
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
-             power: bool = False, removal: bool = True) -> Diagnosis:
+             power: bool = False, removal: bool = True, max_evaluations: int | None = None) -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
@@ -192,6 +192,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         (:func:`hbm.detective.power.detection_power`; ``Diagnosis.power``).
     removal : bool
         Test whether each base part (matrix, fibers, collagen) is needed (``Diagnosis.removal``).
+    max_evaluations : int, optional
+        Likelihood-evaluation budget of each TMCMC evidence run (the population shrinks to what
+        it affords, then a hard cap); for models far slower than the base model.
 
     Returns
     -------
@@ -207,7 +210,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     mf = model_free_noise(d.stress, d.segment)
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
-    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress)
+    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations)
 
     with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
         base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
@@ -354,7 +357,8 @@ def _checked_fix(fix: Mapping[str, float] | None, names: Sequence[str]) -> dict[
 def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidates="all",
            fix: Mapping[str, float] | None = None, seed: int = 0, n_samples: int = 800,
            top: int = 3, progress: bool = False, max_steps: int = 4,
-           noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None) -> Extension:
+           noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
+           max_evaluations: int | None = None) -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     Parameters
@@ -367,7 +371,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations
         As in :func:`diagnose`.
 
     Returns
@@ -385,7 +389,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     if not adds and not auto:
         raise HbmError("extend: give effects to add (--add EFFECT[,EFFECT...]) or auto=True (--auto)")
     mf = model_free_noise(d.stress, d.segment)
-    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress)
+    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations)
     steps = [fitter.fit(current, list(noise_models), None, _seed(seed, 0), global_restarts=2)]
     decisions: list = []
 
@@ -405,7 +409,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     if auto and k < max_steps:                 # then what diagnose names, greedily, in its order
         dg = diagnose(d.ds, model=current, candidates=candidates, fix=fix, seed=seed + 17,
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
-                      max_effects=max_steps - k, removal=False)
+                      noise=noise, max_effects=max_steps - k, removal=False, max_evaluations=max_evaluations)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         by_name = {c.effect: c for c in dg.candidates}

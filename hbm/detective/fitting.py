@@ -82,6 +82,9 @@ def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None):
     n = int(n_samples)
     if max_evaluations:
         n = int(np.clip(int(max_evaluations) // (15 * TMCMC_MAX_STEPS), TMCMC_MIN_SAMPLES, n))
+        # and a hard cap: the sampler stops at the budget and says so in its result
+        return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
+                     max_steps=TMCMC_MAX_STEPS, max_evaluations=max(int(max_evaluations), n))
     return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
                  max_steps=TMCMC_MAX_STEPS)
 
@@ -228,9 +231,11 @@ def warm_start(prev: FitSummary, lik_names: Sequence[str], effect_start: Mapping
 class Fitter:
     """Shared settings of all fits in one diagnosis (same data, same noise prior)."""
 
-    def __init__(self, data: SpecimenData, fix, seed: int, n_samples: int, sigma_bounds, progress: bool):
+    def __init__(self, data: SpecimenData, fix, seed: int, n_samples: int, sigma_bounds, progress: bool,
+                 max_evaluations: int | None = None):
         self.data, self.fix, self.seed = data, fix, seed
         self.n_samples, self.sigma_bounds, self.progress = n_samples, sigma_bounds, progress
+        self.max_evaluations = max_evaluations   # per TMCMC evidence run (``--max-evaluations``)
         self.n = data.stress.size
 
     def log(self, msg: str) -> None:
@@ -363,10 +368,10 @@ class Fitter:
     def _sample(self, fs: FitSummary, seed: int, expected_log_z) -> int:
         """TMCMC at the chosen noise model: evidence, samples, coverage; returns the stages run."""
         lik = fs.likelihood
-        res = sample(lik, self.n_samples, seed)
+        res = sample(lik, self.n_samples, seed, self.max_evaluations)
         expected = None if expected_log_z is None else expected_log_z(fs.max_log_likelihood, len(lik.names))
         if expected is not None and res.log_evidence < expected - 25.0:
-            res2 = sample(lik, self.n_samples, seed + 99991)
+            res2 = sample(lik, self.n_samples, seed + 99991, self.max_evaluations)
             self.log(f"  TMCMC rerun (log Z {res.log_evidence:.1f} far below the BIC-type "
                      f"expectation {expected:.1f}) -> {res2.log_evidence:.1f}")
             if res2.log_evidence > res.log_evidence:
