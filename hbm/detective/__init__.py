@@ -246,7 +246,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
             extra["removal"] = removal_test(first.base, fitter, _seed(seed, 90))
     if power:
         with _stopwatch(timings, "power"):
-            extra["power"] = detection_power(current, d, cands, _seed(seed, 91))
+            # from the user's starting model, so every library effect gets its limit (also those
+            # named here), with the noise of the final model (the starting fit's holds the misfit)
+            extra["power"] = detection_power(first.base, d, cands, _seed(seed, 91), noise_fit=current)
 
     timings["total"] = _time.perf_counter() - t_start
     timings["cpu"] = _time.process_time() - cpu_start

@@ -166,7 +166,7 @@ def _named_fraction(model: Model, eff: Effect, others: Sequence[Effect], ctrls: 
 
 def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effect], seed: int,
                     n_rep: int = POWER_REPLICATES, level: float = POWER_LEVEL, n_levels: int = 7,
-                    refine: int = 3, with_controls: bool = True) -> dict:
+                    refine: int = 3, with_controls: bool = True, noise_fit: FitSummary | None = None) -> dict:
     """Detection limit of every candidate effect on this specimen's protocol and fitted noise.
 
     Parameters
@@ -188,6 +188,9 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
         bisection steps between the last missed and the first named strength.
     with_controls : bool
         Let the non-physical controls compete (the decision rule; ``False`` only for checks).
+    noise_fit : FitSummary, optional
+        Take the noise from this fit instead (diagnose: the final model's, once effects were
+        named, so a misfit of the starting model does not inflate the noise of the replicates).
 
     Returns
     -------
@@ -200,8 +203,9 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
     model, lik = fit.model, fit.likelihood
     theta = np.asarray(lik.model_theta(fit.theta_max[None, :]))[0]
     free = [n for n in lik.names if n in model.parameter_names]
-    sd = np.asarray(lik.noise_sd(fit.theta_max[None, :]))[0]
-    rho = float(dict(zip(lik.names, fit.theta_max)).get("rho", 0.0))
+    nf = fit if noise_fit is None else noise_fit
+    sd = np.asarray(nf.likelihood.noise_sd(nf.theta_max[None, :]))[0]
+    rho = float(dict(zip(nf.likelihood.names, nf.theta_max)).get("rho", 0.0))
     whiten = whitener(sd, rho, d.ar_first)
     rng = np.random.default_rng(seed)
     E = rng.standard_normal((int(n_rep), d.stress.size))   # whitened noise: common to every effect
