@@ -523,6 +523,11 @@ class HierarchicalFile:
         Minimum per-specimen importance ESS over the hyper-posterior population.
     attrs : dict
         Extra metadata (JSON-able), e.g. transform, hyperprior, warnings.
+    reuse : dict specimen -> dict
+        Per-specimen reuse diagnostics of the stage-1 samples
+        (:func:`hbm.samplers.hierarchical.reuse_diagnostics`): the numbers of :data:`REUSE_VARS`
+        are stored as variables ``reuse_<name>`` over ``specimen`` in the diagnostics group,
+        the flag as ``reuse_unreliable`` (0/1), the reasons in the attributes.
     """
 
     param_names: list[str]
@@ -538,6 +543,7 @@ class HierarchicalFile:
     attrs: dict = field(default_factory=dict)
     complete: bool = True
     pooled_names: list[str] = field(default_factory=list)
+    reuse: dict = field(default_factory=dict)
 
     def hyper(self, name: str) -> np.ndarray:
         return self.hyper_samples[:, self.hyper_names.index(name)]
@@ -566,9 +572,13 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
         groups[G_NEW] = xr.Dataset({nm: (("chain", "draw"), h.new_specimen[None, :, i])
                                     for i, nm in enumerate(h.pooled_names or h.param_names)},
                                    coords={"chain": [0], "draw": np.arange(m)})
+    diag_vars = _reuse_vars(h)
     if h.ess is not None:
-        groups[G_DIAG] = xr.Dataset({"importance_ess": ("specimen", np.asarray(h.ess, float))},
-                                    coords={"specimen": list(h.specimen_ids)})
+        diag_vars["importance_ess"] = ("specimen", np.asarray(h.ess, float))
+    if diag_vars:
+        groups[G_DIAG] = xr.Dataset(diag_vars, coords={"specimen": list(h.specimen_ids)},
+                                    attrs={"reuse_reasons": _dumps({k: list(v.get("reasons") or [])
+                                                                    for k, v in h.reuse.items()})})
     root = xr.Dataset(attrs={"param_names": _dumps(list(h.param_names)),
                              "pooled_names": _dumps(list(h.pooled_names or h.param_names)),
                              "specimen_ids": _dumps(list(h.specimen_ids)),
@@ -604,8 +614,40 @@ def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
         h.new_specimen = np.stack([new[nm].values[0] for nm in h.pooled_names], axis=-1)
     diag = _ds(tree, G_DIAG)
     if diag is not None:
-        h.ess = diag["importance_ess"].values
+        if "importance_ess" in diag:
+            h.ess = diag["importance_ess"].values
+        h.reuse = _read_reuse(diag, ids)
     return h
+
+
+#: per-specimen reuse diagnostics stored as variables ``reuse_<name>`` of the diagnostics group
+REUSE_VARS = ("khat_median", "khat_q90", "khat_frac", "khat_updated", "uncovered", "outside_measured",
+              "population_outside", "ess_q10", "ess_raw_q10")
+
+
+def _reuse_vars(h: HierarchicalFile) -> dict[str, Any]:
+    """The diagnostics-group variables of ``h.reuse`` (empty without diagnostics)."""
+    if not h.reuse:
+        return {}
+    ids = list(h.specimen_ids)
+    out = {f"reuse_{k}": ("specimen", np.array([float(h.reuse.get(s, {}).get(k, np.nan)) for s in ids]))
+           for k in REUSE_VARS}
+    out["reuse_unreliable"] = ("specimen", np.array([int(bool(h.reuse.get(s, {}).get("unreliable"))) for s in ids]))
+    return out
+
+
+def _read_reuse(diag: xr.Dataset, ids: Sequence[str]) -> dict:
+    """``HierarchicalFile.reuse`` back from the diagnostics group ({} for files without it)."""
+    if "reuse_unreliable" not in diag:
+        return {}
+    reasons = json.loads(diag.attrs.get("reuse_reasons", "{}"))
+    out = {}
+    for j, sid in enumerate(ids):
+        r = {k: float(diag[f"reuse_{k}"].values[j]) for k in REUSE_VARS if f"reuse_{k}" in diag}
+        r["unreliable"] = bool(diag["reuse_unreliable"].values[j])
+        r["reasons"] = list(reasons.get(sid, []))
+        out[sid] = r
+    return out
 
 
 # ----------------------------------------------------------------------------- population summary

@@ -260,6 +260,35 @@ def _population(wres, base: Path) -> str:
     return "\n".join(txt)
 
 
+def _reuse(wres, base: Path) -> str:
+    """## Reuse of the stage-1 samples: per-specimen diagnostics of what the reused samples cannot represent."""
+    h = wres.hierarchical
+    reuse = getattr(h, "reuse", None) or {}
+    if not reuse:
+        return ""
+    refined = set(h.attrs.get("refined") or [])
+    rows = []
+    for sid, r in reuse.items():
+        verdict = ("**unreliable**: " + "; ".join(r.get("reasons") or []) if r.get("unreliable") else "fine")
+        rows.append((sid, fmt(r.get("ess_q10"), 3), fmt(r.get("khat_median"), 2), fmt(r.get("khat_q90"), 2),
+                     fmt(r.get("uncovered"), 2), fmt(r.get("outside_measured"), 2),
+                     fmt(r.get("population_outside"), 2), verdict,
+                     "fresh TMCMC" if sid in refined else "reweighted samples"))
+    return ("## Reuse of the stage-1 samples\n\nThe population layer reweights each specimen's stage-1 "
+            "samples. The importance ESS only measures how unevenly the existing samples are weighted; "
+            "the other columns measure what they cannot represent: PSIS k̂ of the importance ratios "
+            "(median and 90 % quantile over hyper-posterior draws; > 0.7 unreliable), the share of the "
+            "specimen's posterior under the population that lies beyond the range of its stage-1 samples "
+            "(extrapolating the likelihood with its slope at the edge of the samples; > 0.05 unreliable), "
+            "the same share measured with the real likelihoods of the reference draws, and the "
+            "population-predictive probability outside the samples' 99 % range (likelihood ignored: "
+            "information only). A specimen flagged unreliable gets its updated posterior from a fresh "
+            "TMCMC run under the population.\n\n"
+            + _table(["specimen", "ESS 10%", "k̂ median", "k̂ 90%", "beyond samples (extrapolated)",
+                      "beyond samples (measured)", "population outside", "verdict", "updated posterior from"],
+                     rows))
+
+
 def _variability(wres, base: Path) -> str:
     """## Specimen variability: Cochran's Q and separated pairs per identifiable quantity."""
     results = wres.results
@@ -297,7 +326,8 @@ def _population_figures(wres, base: Path) -> str:
 #: the report's sections in order: ``f(workflow_result, base) -> markdown`` ("" leaves it out)
 SECTIONS: tuple[Callable[[Any, Path], str], ...] = (_header, _settings, _timings, _specimens, _fit_quality,
                                                     _combinations,
-                                                    _manifolds, _population, _variability, _population_figures)
+                                                    _manifolds, _population, _reuse, _variability,
+                                                    _population_figures)
 
 
 def render_report(wres, *, base: Path | None = None,

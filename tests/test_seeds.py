@@ -8,8 +8,8 @@ from hbm import seeds
 
 def test_no_two_streams_share_a_key():
     keys = seeds.run_keys(500)
-    # every specimen stream, its four phases, refine, two organ streams, plus three run-level streams
-    assert len(keys) == 500 * (1 + len(seeds.PHASES) + 3) + 3
+    # every specimen stream, its four phases, refine, reference, two organ streams, plus three run-level streams
+    assert len(keys) == 500 * (1 + len(seeds.PHASES) + 4) + 3
 
 
 def test_run_keys_detects_a_collision(monkeypatch):

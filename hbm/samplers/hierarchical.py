@@ -141,6 +141,7 @@ import numpy as np
 from scipy.special import log_ndtr, ndtri
 
 from ..errors import HbmError
+from .psis import K_HAT_THRESHOLD, pareto_khat
 from .tmcmc import tmcmc as _tmcmc
 
 __all__ = [
@@ -155,6 +156,9 @@ __all__ = [
     "prior_sd_transformed",
     "TRANSFORMS",
     "ESTIMATORS",
+    "reuse_diagnostics",
+    "reuse_unreliable",
+    "defensive_log_weights",
 ]
 
 TRANSFORMS = ("identity", "log", "logit")
@@ -779,6 +783,7 @@ class HierarchicalResult:
     model: HierarchicalModel
     raw_samples: np.ndarray
     options: dict = field(default_factory=dict)
+    reuse: dict = field(default_factory=dict)
 
     @property
     def collapsed(self) -> bool:
@@ -890,6 +895,9 @@ def hierarchical(
     estimator: str = "raw",
     bandwidth: str | float = "silverman",
     log_prior: Mapping[str, np.ndarray] | None = None,
+    log_weights: Mapping[str, np.ndarray] | None = None,
+    stage1_rows: Mapping[str, int] | None = None,
+    log_likelihood: Mapping[str, np.ndarray] | None = None,
 ) -> HierarchicalResult:
     """Hyper-posterior, hyper-evidence, updated individuals and population predictive.
 
@@ -948,6 +956,18 @@ def hierarchical(
         derived features whose stage-1 prior is not uniform (e.g. products of parameters drawn
         uniformly); their ``bounds`` are then the support hull of the features, and the
         unpooled columns must keep a prior independent of ψ given the pooled ones.
+    log_weights : mapping specimen -> ndarray (N_i,), optional
+        Log importance weights ω_ij of the rows, multiplying the ratios: p̂(d_i|ψ) =
+        Z_i · mean_j ω_ij r_ij(ψ).  For rows that are a defensive mixture of the stage-1
+        posterior and a reference distribution q (:func:`defensive_log_weights`), ω is the
+        posterior density over the mixture density; default 0 (plain stage-1 samples).
+    stage1_rows : mapping specimen -> int, optional
+        Number of leading rows that are stage-1 samples (the rest are reference draws); used by
+        the coverage diagnostic (:func:`reuse_diagnostics`).  Default: all rows.
+    log_likelihood : mapping specimen -> ndarray, optional
+        Log-likelihoods of the stage-1 rows (at least ``stage1_rows``; before ``thin``): the
+        coverage diagnostic extrapolates the likelihood beyond the samples with its log-slope at
+        the edge (flat without them, the conservative choice).
 
     Returns
     -------
@@ -970,6 +990,13 @@ def hierarchical(
         for key, x, lp in zip(specs, samples, lps):
             if lp.shape != (x.shape[0],):
                 raise HbmError(f"hierarchical: log_prior[{key!r}] must have shape ({x.shape[0]},), got {lp.shape}")
+    lws = [None] * len(specs) if log_weights is None else [np.asarray(log_weights[k], float) for k in specs]
+    for key, x, lw in zip(specs, samples, lws):
+        if lw is not None and (lw.shape != (x.shape[0],) or np.any(np.isnan(lw)) or np.any(lw == np.inf)):
+            raise HbmError(f"hierarchical: log_weights[{key!r}] must be {x.shape[0]} values < +inf")
+    n1s = [int((stage1_rows or {}).get(k, x.shape[0])) for k, x in zip(specs, samples)]
+    lls = [None] * len(specs) if log_likelihood is None else [
+        np.asarray(log_likelihood[k], float)[:n] if k in log_likelihood else None for k, n in zip(specs, n1s)]
     ss = np.random.SeedSequence(seed if not isinstance(seed, np.random.Generator) else seed.integers(2**63))
     s_tmcmc, s_upd, s_pred, s_thin = ss.spawn(4)
     if thin is not None:
@@ -980,6 +1007,9 @@ def hierarchical(
                for x in samples]
         samples = [x if j is None else x[j] for x, j in zip(samples, sel)]
         lps = [lp if (j is None or lp is None) else lp[j] for lp, j in zip(lps, sel)]
+        lws = [lw if (j is None or lw is None) else lw[j] for lw, j in zip(lws, sel)]
+        lls = [ll if (j is None or ll is None) else ll[j[j < len(ll)]] for ll, j in zip(lls, sel)]
+        n1s = [n if j is None else int(np.sum(j < n)) for n, j in zip(n1s, sel)]
     for key, x in zip(specs, samples):
         out = (x < model.all_bounds[:, 0] - 1e-12 * np.ptp(model.all_bounds, axis=1)) | (
             x > model.all_bounds[:, 1] + 1e-12 * np.ptp(model.all_bounds, axis=1)
@@ -988,6 +1018,8 @@ def hierarchical(
             j = int(np.argmax(out.any(axis=0)))
             raise HbmError(f"hierarchical: stage1[{key!r}] has samples of {names[j]} outside the prior box {model.all_bounds[j].tolist()}")
     feats = [model.features(x, lp) for x, lp in zip(samples, lps)]
+    # importance weights of the rows (defensive mixture) enter as per-sample constants of log r
+    feats = [(F, c if lw is None else c + lw) for (F, c), lw in zip(feats, lws)]
     logN = np.log([x.shape[0] for x in samples])
     trace: list[np.ndarray] = []
     if estimator not in ESTIMATORS:
@@ -1102,6 +1134,16 @@ def hierarchical(
     predictive = _draw_population(model, raw, raw.shape[0], np.random.default_rng(s_pred))
     t5 = time.perf_counter()
 
+    # --- what the reused samples cannot represent (no random numbers: streams unchanged) ---
+    reuse = {}
+    for i, key in enumerate(specs):
+        reuse[key] = reuse_diagnostics(model, samples[i], raw, log_prior=lps[i], updated_weights=upd_w[key],
+                                       log_weights=lws[i], n_stage1=n1s[i], log_likelihood=lls[i])
+        reuse[key].update(ess_q10=ess_summary[key]["q10"], ess_raw_q10=ess_summary[key]["raw_q10"])
+    for key, (bad, why) in reuse_unreliable(reuse, ess_threshold=ess_threshold).items():
+        reuse[key].update(unreliable=bad, reasons=why)
+    t6 = time.perf_counter()
+
     return HierarchicalResult(
         hyper_samples=hyper, hyper_names=list(model.hyper_names), names=list(model.names),
         all_names=list(names), bounds=model.all_bounds.copy(), transforms=dict(model.transforms),
@@ -1111,8 +1153,8 @@ def hierarchical(
         ess_trace=trace, updated=updated, updated_weights=upd_w, updated_ess=upd_ess,
         predictive=predictive, warnings=warn_list,
         timings={"setup": t1 - t0, "tmcmc": t2 - t1, "updated": t4 - t3, "predictive": t5 - t4,
-                 "total": t5 - t0, "likelihood_calls": len(trace)},
-        sampler_result=res, model=model, raw_samples=raw,
+                 "diagnostics": t6 - t5, "total": t6 - t0, "likelihood_calls": len(trace)},
+        sampler_result=res, model=model, raw_samples=raw, reuse=reuse,
         options={"n_samples": int(n_samples), "sd_prior": sd_prior, "sd_range": list(sd_range),
                  "full_cov": list(model.full_cov), "fix": dict(model.fix), "ess_threshold": ess_threshold,
                  "logit_range": logit_range, "mu_lo": model.mu_lo.tolist(), "mu_hi": model.mu_hi.tolist(),
@@ -1147,6 +1189,254 @@ def _draw_population(model: HierarchicalModel, raw: np.ndarray, n: int, rng: np.
         L = _cpc_to_corr_chol(raw[idx, 2 * d :], model.m) * sd[:, model.S][:, :, None]
         z[:, model.S] = mu[:, model.S] + np.einsum("nab,nb->na", L, rng.standard_normal((n, model.m)))
     return model.from_z(z)
+
+
+# --------------------------------------------------------------------------------------
+# what the reused samples cannot represent
+# --------------------------------------------------------------------------------------
+def _diag_rows(n: int, n_draws: int) -> np.ndarray:
+    """Evenly spaced hyper-draw indices (deterministic: the diagnostic consumes no random numbers)."""
+    return np.unique(np.linspace(0, n - 1, min(n, int(n_draws))).round().astype(int))
+
+
+def reuse_diagnostics(
+    model: HierarchicalModel,
+    theta: np.ndarray,
+    raw: np.ndarray,
+    *,
+    log_prior: np.ndarray | None = None,
+    log_weights: np.ndarray | None = None,
+    n_stage1: int | None = None,
+    log_likelihood: np.ndarray | None = None,
+    updated_weights: np.ndarray | None = None,
+    edge: float = 0.02,
+    slope_bin: float = 0.1,
+    outer: float = 0.005,
+    n_draws: int = 200,
+) -> dict:
+    """How well one specimen's reused samples represent p(θ_i | d_i, ψ) over the hyper-posterior.
+
+    The importance ESS measures how unevenly the existing samples are weighted; it cannot see
+    mass where the samples never went.  Diagnostics that can:
+
+    * **PSIS k̂** (:func:`hbm.samplers.psis.pareto_khat`) of the ratios r_ij(ψ) at ``n_draws``
+      evenly spaced hyper-posterior draws: a heavy ratio tail (k̂ > 0.7) means the target has
+      mass where the samples are too sparse for the estimate to converge.
+    * **uncovered mass** (``uncovered``): per pooled coordinate z_k, the share of the
+      conditional posterior p(z | d_i, ψ) ∝ L_i(z) p(z|ψ) beyond the range [min z_k, max z_k]
+      of the stage-1 samples, with the likelihood extrapolated as flat beyond the range at its
+      value in the edge bin (the samples below the ``edge`` quantile, resp. above 1 − ``edge``):
+
+          U_k,lo(ψ) = W_lo(ψ) · P_ψ(z_k < min) / P_ψ(min ≤ z_k ≤ q_edge),
+
+      W_lo the share of the normalised ratios in the edge bin, P_ψ the population marginal of
+      z_k.  Flat extrapolation is exact where the data bound a parameter from one side only (the
+      likelihood no longer changes beyond the samples) and conservative where it decays.
+      U = Σ_k (U_k,lo + U_k,hi); uncovered = U/(1 + U), averaged over the draws.
+    * **measured outside mass** (``outside_measured``, only with reference draws appended to
+      the stage-1 samples, ``n_stage1`` < N): the share of the normalised ratios carried by the
+      rows outside the stage-1 samples' range in some pooled coordinate, with their real
+      likelihoods; averaged over the draws.
+    * ``population_outside``: the population-predictive probability of a pooled coordinate
+      outside the stage-1 samples' [``outer``, 1 − ``outer``] quantile range (likelihood
+      ignored: large for every informed specimen whose posterior is narrower than the
+      population, so it is information, not a trigger).
+
+    Parameters
+    ----------
+    model : HierarchicalModel
+    theta : ndarray (N, len(model.all_names))
+        The specimen's samples as used by the layer (stage-1 rows first).
+    raw : ndarray (n, 2d+q)
+        Hyper-posterior draws in sampler coordinates (``result.raw_samples``).
+    log_prior, log_weights : ndarray (N,), optional
+        As passed to :func:`hierarchical`.
+    n_stage1 : int, optional
+        Number of leading rows that are stage-1 posterior samples (default all).
+    updated_weights : ndarray (N,), optional
+        The updated individual's weights (``result.updated_weights[key]``); adds ``khat_updated``.
+    edge, outer : float
+        Quantile of the edge bins, and of the range for ``population_outside``.
+    n_draws : int
+        Hyper-posterior draws used (evenly spaced).
+
+    Returns
+    -------
+    dict
+        ``khat_median``, ``khat_q90``, ``khat_frac`` (share of draws with k̂ > 0.7),
+        ``khat_updated`` (if weights given), ``uncovered``, ``uncovered_by`` (name -> value),
+        ``outside_measured`` (NaN without reference rows), ``population_outside``, ``n_draws``,
+        ``likelihood_slope`` (whether the extrapolation used the log-likelihoods; without them it
+        is flat, an upper bound that :func:`reuse_unreliable` does not act on).
+    """
+    if not (0 < edge < 0.5 and 0 < outer < 0.5):
+        raise HbmError(f"reuse_diagnostics: need 0 < edge, outer < 0.5, got {edge}, {outer}")
+    theta = np.asarray(theta, float)
+    n1 = theta.shape[0] if n_stage1 is None else int(n_stage1)
+    F, c = model.features(theta, log_prior)
+    if log_weights is not None:
+        c = c + np.asarray(log_weights, float)
+    ll1 = None if log_likelihood is None else np.asarray(log_likelihood, float)[:n1]
+    if ll1 is not None and (ll1.shape != (n1,) or not np.all(np.isfinite(ll1))):
+        raise HbmError(f"reuse_diagnostics: log_likelihood must be {n1} finite values (the stage-1 rows)")
+    rows = _diag_rows(raw.shape[0], n_draws)
+    coef, cconst = model.coefficients(raw[rows])
+    lr = coef @ F.T + cconst[:, None] + c[None, :]  # (n_draws, N) log ratios
+    khat = pareto_khat(np.where(np.isfinite(lr), lr, -np.inf))
+    w = np.exp(lr - lr.max(axis=1, keepdims=True))
+    w /= w.sum(axis=1, keepdims=True)
+    z, _ = model.to_z(theta)
+    z1 = z[:n1]
+    nat = model.natural(raw[rows])
+    mu, sd = nat[:, : model.d], nat[:, model.d : 2 * model.d]
+
+    def lmass(a, b, k, tilt=0.0):
+        # log ∫_a^b e^{tilt·z} N(z; mu, sd) dz up to factors that cancel in the ratios below:
+        # an exponential tilt of a normal is the normal shifted by tilt·sd²
+        m = mu[:, k] + tilt * sd[:, k] ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return _log_norm_mass((a - m) / sd[:, k], (b - m) / sd[:, k])
+
+    U = np.zeros(len(rows))
+    by = {}
+    log_keep = np.zeros(len(rows))  # log P(all coordinates inside the outer range)
+    outside_rows = np.zeros(theta.shape[0], bool)
+    for k, name in enumerate(model.names):  # loop over the pooled parameters, vectorised over draws
+        zk = z1[:, k]
+        zmin, zmax = zk.min(), zk.max()
+        outside_rows |= (z[:, k] < zmin) | (z[:, k] > zmax)
+        qlo, qhi = np.quantile(zk, [edge, 1.0 - edge])
+        Uk = np.zeros(len(rows))
+        for side, beyond, binm, sel in ((-1, (model.zlo[k], zmin), (zmin, qlo), z[:, k] <= qlo),
+                                        (1, (zmax, model.zhi[k]), (qhi, zmax), z[:, k] >= qhi)):
+            if not beyond[1] > beyond[0]:
+                continue  # the samples reach the box edge: nothing beyond them
+            sel = sel.copy()
+            sel[n1:] = False  # the extrapolation is of the stage-1 samples' edge bin
+            wb = w[:, sel].sum(axis=1)
+            tilt = 0.0 if ll1 is None else _edge_slope(zk, ll1, side, slope_bin)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lu = np.log(wb) + lmass(*beyond, k, tilt) - lmass(*binm, k, tilt)
+            Uk += np.where(wb > 0, np.exp(np.minimum(np.nan_to_num(lu, nan=-np.inf), 700.0)), 0.0)
+        U += Uk
+        by[name] = float(np.mean(Uk / (1.0 + Uk)))
+        o_lo, o_hi = np.quantile(zk, [outer, 1.0 - outer])
+        log_keep += lmass(o_lo, o_hi, k) - lmass(model.zlo[k], model.zhi[k], k)
+    out = {
+        "khat_median": float(np.median(khat)), "khat_q90": float(np.quantile(khat, 0.9)),
+        "khat_frac": float(np.mean(khat > K_HAT_THRESHOLD)),
+        "uncovered": float(np.mean(U / (1.0 + U))), "uncovered_by": by,
+        "outside_measured": float(np.mean(w[:, outside_rows].sum(axis=1))) if n1 < theta.shape[0] else float("nan"),
+        "population_outside": float(np.mean(-np.expm1(log_keep))), "n_draws": int(len(rows)),
+        "likelihood_slope": ll1 is not None,
+    }
+    if updated_weights is not None:
+        with np.errstate(divide="ignore"):
+            out["khat_updated"] = float(pareto_khat(np.log(np.asarray(updated_weights, float))))
+    return out
+
+
+def defensive_log_weights(log_lik: np.ndarray, log_rho: np.ndarray, log_z: float, n_post: int,
+                          n_drawn: int) -> np.ndarray:
+    """Log importance weights ω = post/q_mix of stage-1 samples plus reference draws (defensive mixture).
+
+    Rows: ``n_post`` stage-1 posterior samples, then the kept reference draws (of ``n_drawn``
+    drawn from a reference density q; draws outside the support were dropped).  With the
+    stage-1 posterior post(θ) = L(θ) p0(θ)/Z and ρ(θ) = q(θ)/p0(θ), the rows are a draw from the
+    deterministic mixture q_mix = a·post + (1 − a)·q, a = n_post/(n_post + n_drawn) (Owen & Zhou
+    2000, "Safe and effective importance sampling"), so
+
+        ω = post/q_mix = (L/Z) / (a·L/Z + (1 − a)·ρ),
+
+    and mean_j ω_j r_j(ψ) over the n_post + n_drawn draws estimates p(d|ψ)/Z without bias —
+    also where the posterior samples never went, as long as q goes there; ω ≤ 1/a bounds the
+    weights of the posterior samples.  Dropped draws count as zeros: ω is scaled by
+    (rows kept)/(n_post + n_drawn) so that the layer's mean over the kept rows is that estimate.
+
+    Parameters
+    ----------
+    log_lik : ndarray (R,)
+        Log-likelihood of every row.
+    log_rho : ndarray (R,)
+        log q(θ)/p0(θ) of every row.
+    log_z : float
+        Stage-1 log-evidence.
+    n_post, n_drawn : int
+        Stage-1 rows (leading) and reference draws made (kept + dropped).
+
+    Returns
+    -------
+    ndarray (R,)
+    """
+    log_lik, log_rho = np.asarray(log_lik, float), np.asarray(log_rho, float)
+    rows = log_lik.shape[0]
+    if log_rho.shape != (rows,) or not (0 < n_post <= rows) or n_drawn < rows - n_post:
+        raise HbmError(f"defensive_log_weights: need {rows} log_rho values and 0 < n_post <= rows <= "
+                       f"n_post + n_drawn, got {log_rho.shape}, {n_post}, {n_drawn}")
+    a = n_post / (n_post + n_drawn)
+    lp = log_lik - log_z
+    mix = np.logaddexp(np.log(a) + lp, np.log1p(-a) + log_rho) if a < 1 else lp
+    return lp - mix + np.log(rows / (n_post + n_drawn))
+
+
+def _edge_slope(z: np.ndarray, ll: np.ndarray, side: int, frac: float) -> float:
+    """d log L / dz of the likelihood at one edge of the samples, from the ``frac`` outermost samples.
+
+    Least-squares slope of the samples' log-likelihoods on z, clipped so that the likelihood can
+    only fall beyond the edge (never rise: then flat extrapolation, the conservative choice).  A
+    likelihood that is flat at the edge (data bounding the parameter from the other side only)
+    gives ≈ 0; a decaying one gives its local log-slope, which the extrapolation uses.
+    """
+    q = np.quantile(z, frac if side < 0 else 1.0 - frac)
+    sel = z <= q if side < 0 else z >= q
+    if sel.sum() < 5 or np.ptp(z[sel]) <= 0:
+        return 0.0
+    x = z[sel] - z[sel].mean()
+    slope = float(np.dot(x, ll[sel] - ll[sel].mean()) / np.dot(x, x))
+    return max(slope, 0.0) if side < 0 else min(slope, 0.0)
+
+
+def reuse_unreliable(
+    reuse: Mapping[str, Mapping],
+    *,
+    ess_threshold: float = 50.0,
+    khat_max: float = K_HAT_THRESHOLD,
+    uncovered_max: float = 0.05,
+) -> dict[str, tuple[bool, list[str]]]:
+    """Decide per specimen whether reusing its samples is unreliable (then refine it).
+
+    Parameters
+    ----------
+    reuse : mapping specimen -> dict
+        ``result.reuse`` (entries of :func:`reuse_diagnostics` plus ``ess_q10`` / ``ess_raw_q10``).
+    ess_threshold : float
+        10 % quantile of the importance ESS over hyper draws below which the reuse collapsed.
+    khat_max : float
+        Hyper-posterior median PSIS k̂ (or k̂ of the updated weights) above which the ratios
+        have too heavy a tail.
+    uncovered_max : float
+        Conditional-posterior mass beyond the stage-1 samples' range (flat extrapolation, or
+        measured with reference draws) above which they miss the tails.
+
+    Returns
+    -------
+    dict specimen -> (unreliable, reasons)
+    """
+    out = {}
+    for key, r in reuse.items():
+        why = []
+        for name in ("ess_q10", "ess_raw_q10"):
+            if name in r and r[name] < ess_threshold:
+                why.append(f"{name} {r[name]:.1f} < {ess_threshold:g}")
+        for name in ("khat_median", "khat_updated"):
+            if name in r and r[name] > khat_max:
+                why.append(f"{name} {r[name]:.2f} > {khat_max:g}")
+        # flat extrapolation (no stored log-likelihoods) is only an upper bound: reported, not a trigger
+        if r.get("likelihood_slope", True) and r.get("uncovered", 0.0) > uncovered_max:
+            worst = max(r.get("uncovered_by", {"?": 0.0}).items(), key=lambda kv: kv[1])
+            why.append(f"uncovered {r['uncovered']:.3f} > {uncovered_max:g} (mostly {worst[0]}: {worst[1]:.3f})")
+        out[key] = (bool(why), why)
+    return out
 
 
 def refine_individual(
