@@ -165,8 +165,10 @@ def run_peer(spec: dict, cache: Path, draws: int, tune: int, seed: int) -> tuple
     return info, {k: np.asarray(z[k]) for k in z.files}
 
 
-def check_p0(spec: dict, results, cache: Path) -> float:
-    """Largest |peer log p0(φ) − hbm log p0(φ)| over 200 stage-1 φ rows (independent implementations)."""
+def check_p0(spec: dict, results, cache: Path) -> tuple[float, float]:
+    """Largest |peer − hbm| of log p0(φ) over 240 stage-1 φ rows, and of the population log ratio
+    log p(θ|ψ)/p0(θ) at 40 (θ, ψ) pairs (ψ from the hyperprior box): the peer's density is the
+    layer's, term by term (independent implementations)."""
     py = _bench_python()
     first = next(iter(results.values()))
     names = list(first.names)
@@ -176,14 +178,35 @@ def check_p0(spec: dict, results, cache: Path) -> float:
                                 x[:, names.index("VOLF")] * x[:, names.index("P1")],
                                 (1 - x[:, names.index("VOLF")]) * x[:, names.index("T1")]]))
     ours = log_density(f, first.bounds, names)
-    sp = dict(spec, check_phi=f.tolist())
+    pooled = [p["name"] for p in spec["pooled"]]
+    aug_names = names + list(COMBINATION_COLUMNS)
+    aug_bounds = np.vstack([first.bounds, [spec["pooled"][k]["bounds"] for k in range(3)]])
+    hm = HierarchicalModel(aug_names, aug_bounds, pooled=pooled, sd_range=DEFAULT_SD_RANGE,
+                           transforms={p["name"]: p["transform"] for p in spec["pooled"]})
+    rng = np.random.default_rng(0)
+    xs = x[rng.choice(len(x), 40, replace=False)]
+    raw = rng.uniform(hm.box[:, 0], hm.box[:, 1], (40, hm.box.shape[0]))
+    xa = np.hstack([xs, np.log(np.column_stack([
+        xs[:, names.index("VOLF")] * xs[:, names.index("GF")] + (1 - xs[:, names.index("VOLF")]) * xs[:, names.index("GM")],
+        xs[:, names.index("VOLF")] * xs[:, names.index("P1")], (1 - xs[:, names.index("VOLF")]) * xs[:, names.index("T1")]]))])
+    extra = [n for n in pooled if n in names]
+    lp = log_density(xa[:, -3:], first.bounds, names) - sum(np.log(np.ptp(first.bounds[names.index(n)])) for n in extra)
+    F, c = hm.features(xa, lp)
+    coef, cc = hm.coefficients(raw)
+    ours_r = np.einsum("ij,ij->i", coef, F) + cc + c
+    nat = hm.natural(raw)
+    d = len(pooled)
+    sp_pop = [{"theta": dict(zip(names, map(float, xs[j]))), "mu": nat[j, :d].tolist(), "sd": nat[j, d:2 * d].tolist()}
+              for j in range(40)]
+    sp = dict(spec, check_phi=f.tolist(), check_pop=sp_pop)
     path = cache / "check.json"
     path.write_text(json.dumps(sp))
     out = subprocess.run([str(py), str(PEER), "check", "--spec", str(path)], capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"peer check failed:\n{out.stderr[-3000:]}")
-    theirs = np.array(json.loads(out.stdout.strip().splitlines()[-1])["log_p0"])
-    return float(np.max(np.abs(theirs - ours)))
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    return (float(np.max(np.abs(np.array(got["log_p0"]) - ours))),
+            float(np.max(np.abs(np.array(got["log_ratio"]) - ours_r))))
 
 
 def _phi_cols(names, x) -> dict:
@@ -209,7 +232,7 @@ def compare(hfs: list, nuts: dict, names: list, specimen_ids: list) -> dict:
                     "diff_sd": [((q - gq) / gsd).tolist() for q in lay]}
     indiv = {}
     for i, sid in enumerate(specimen_ids):
-        th = np.stack([nuts[f"{n}__{i}"].reshape(-1) for n in names], axis=1)
+        th = np.stack([nuts[n][..., i].reshape(-1) for n in names], axis=1)
         gcols = _phi_cols(names, th)
         for col, g in gcols.items():
             gq, gsd = np.quantile(g, Q), float(g.std())
@@ -277,7 +300,7 @@ def main(argv=None) -> int:
           f"NUTS: {info['chains']} chains × {info['draws']} draws (tune {info['tune']}), max R-hat (hyper) "
           f"{max(info['rhat'].values()):.3f}, max R-hat (all) {info['rhat_max_all']:.3f}, min bulk ESS (hyper) "
           f"{min(info['ess_bulk'].values()):.0f}, divergences {info['divergences']}, {info['sample_s']:.0f} s. "
-          f"Peer log p0(φ) vs hbm: max |Δ| {p0_err:.1e}.", "",
+          f"Peer vs hbm, max |Δ|: log p0(φ) {p0_err[0]:.1e}, log p(θ|ψ)/p0(θ) {p0_err[1]:.1e}.", "",
           f"Layer CPU s per seed: {', '.join(f'{c:.1f}' for _, c in hfs)}; refined: "
           f"{[hf.attrs.get('refined') for hf, _ in hfs]}.  Worst |Δ median| {wh:.2f} sd, worst |Δ 5 %/95 %| {wt:.2f} sd "
           f"(target 0.2 / 0.5).", ""]

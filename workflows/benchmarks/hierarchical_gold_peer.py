@@ -40,7 +40,7 @@ from pymc_peer import NAMES, spyrou_stress  # noqa: E402  (the base model in pyt
 
 
 def log_p0_phi(pt, y3, y1, y2, box, n_nodes: int = 16, n_sub: int = 2):
-    """log p0(φ) of φ = (log G, log c·P1, log (1−c)·T1) under the uniform box prior (scalar φ).
+    """log p0(φ) of φ = (log G, log c·P1, log (1−c)·T1) under the uniform box prior, per row (vectors).
 
     Breakpoints in c: the support limits of y1 and y2 and the trapezoid kinks of G | c; those with a
     zero denominator do not depend on c and are left out (hbm puts them at the box start, a
@@ -56,25 +56,26 @@ def log_p0_phi(pt, y3, y1, y2, box, n_nodes: int = 16, n_sub: int = 2):
     for num_m, den in ((ma, fa - ma), (ma, fb - ma), (mb, fa - mb), (mb, fb - mb)):
         if den != 0:
             bp.append((G - num_m) / den)
-    bp.append(pt.as_tensor_variable(np.float64((mb - ma) / ((fb - fa) + (mb - ma)))))
-    inner = pt.clip(pt.stack(bp), ca, cb)
-    edges = pt.sort(pt.concatenate([pt.as_tensor_variable(np.array([ca])), inner,
-                                    pt.as_tensor_variable(np.array([cb]))]))
+    bp.append(pt.ones_like(G) * ((mb - ma) / ((fb - fa) + (mb - ma))))
+    inner = pt.clip(pt.stack(bp, axis=1), ca, cb)  # (S, nb)
+    ones = pt.ones_like(G)[:, None]
+    edges = pt.sort(pt.concatenate([ones * ca, inner, ones * cb], axis=1), axis=1)
     t = np.arange(n_sub) / n_sub
-    lo, hi = edges[:-1, None], edges[1:, None]
-    sub_lo = (lo + (hi - lo) * t[None, :]).reshape((-1,))
-    sub_hi = (lo + (hi - lo) * (t[None, :] + 1.0 / n_sub)).reshape((-1,))
+    lo, hi = edges[:, :-1, None], edges[:, 1:, None]
+    sub_lo = (lo + (hi - lo) * t[None, None, :]).reshape((G.shape[0], -1))
+    sub_hi = (lo + (hi - lo) * (t[None, None, :] + 1.0 / n_sub)).reshape((G.shape[0], -1))
     x, w = np.polynomial.legendre.leggauss(n_nodes)
     half = 0.5 * (sub_hi - sub_lo)
-    c = (sub_lo[:, None] + half[:, None] * (x[None, :] + 1.0)).reshape((-1,))
-    wt = (half[:, None] * w[None, :]).reshape((-1,))
+    c = (sub_lo[:, :, None] + half[:, :, None] * (x + 1.0)).reshape((G.shape[0], -1))
+    wt = (half[:, :, None] * w).reshape((G.shape[0], -1))
+    e1, e2, G = e1[:, None], e2[:, None], G[:, None]
     p1v, t1v = e1 / c, e2 / (1.0 - c)
     d1 = pt.switch((p1v >= pa) & (p1v <= pb), p1v / (pb - pa), 0.0)
     d2 = pt.switch((t1v >= ta) & (t1v <= tb), t1v / (tb - ta), 0.0)
     w1, w2 = c * (fb - fa), (1.0 - c) * (mb - ma)
     xx = G - c * fa - (1.0 - c) * ma
     d3 = G * pt.maximum(0.0, pt.minimum(pt.minimum(xx, w1 + w2 - xx), pt.minimum(w1, w2))) / (w1 * w2)
-    return pt.log(pt.sum(wt * d1 * d2 * d3 / (cb - ca)))
+    return pt.log(pt.sum(wt * d1 * d2 * d3, axis=1) / (cb - ca))
 
 
 def _log_norm_mass(a, b):
@@ -116,7 +117,7 @@ def log_population_ratio(pt, th: dict, spec: dict, mu: list, sd: list):
             out = out + np.log(hi - lo)  # uniform stage-1 density of a raw parameter column
     th_box = spec["box"]
     lp0 = log_p0_phi(pt, cols[0], cols[1], cols[2], [th_box[k] for k in ("VOLF", "P1", "T1", "GF", "GM")])
-    return out - lp0
+    return out - lp0  # (S,): one value per specimen
 
 
 def build_model(spec: dict):
@@ -130,11 +131,16 @@ def build_model(spec: dict):
             mu.append(pm.Uniform(f"mu_{p['name']}", *p["mu_range"]))
             lsd = pm.Uniform(f"logsd_{p['name']}", np.log(p["sd_range"][0]), np.log(p["sd_range"][1]))
             sd.append(pm.Deterministic(f"sd_{p['name']}", pt.exp(lsd)))
-        for i, s in enumerate(spec["specimens"]):
-            th = {k: pm.Uniform(f"{k}__{i}", *box[k]) for k in NAMES}
-            eps = np.asarray(s["strain"], float)
-            pm.Normal(f"y__{i}", mu=spyrou_stress(pt, eps, th), sigma=th["sigma"], observed=np.asarray(s["stress"]))
-            pm.Potential(f"pop__{i}", log_population_ratio(pt, th, spec, mu, sd))
+        # all specimens at once (one graph, vectors over specimens): the strains must be shared
+        S = len(spec["specimens"])
+        eps = np.asarray(spec["specimens"][0]["strain"], float)
+        if any(not np.array_equal(np.asarray(s["strain"], float), eps) for s in spec["specimens"]):
+            raise SystemExit("error: the peer needs the same strain points for every specimen")
+        obs = np.array([s["stress"] for s in spec["specimens"]], float)
+        th = {k: pm.Uniform(k, *box[k], shape=S) for k in NAMES}
+        col = {k: v[:, None] for k, v in th.items()}
+        pm.Normal("y", mu=spyrou_stress(pt, eps[None, :], col), sigma=col["sigma"], observed=obs)
+        pm.Potential("pop", pt.sum(log_population_ratio(pt, th, spec, mu, sd)))
     return model
 
 
@@ -144,8 +150,20 @@ def check(spec: dict) -> dict:
 
     y = pt.dvector("y")
     box = [spec["box"][k] for k in ("VOLF", "P1", "T1", "GF", "GM")]
-    f = pytensor.function([y], log_p0_phi(pt, y[0], y[1], y[2], box))
-    return {"log_p0": [float(f(np.asarray(r, float))) for r in spec["check_phi"]]}
+    y = pt.dmatrix("y")
+    f = pytensor.function([y], log_p0_phi(pt, y[:, 0], y[:, 1], y[:, 2], box))
+    out = {"log_p0": f(np.asarray(spec["check_phi"], float)).tolist()}
+    if spec.get("check_pop"):  # log p(θ|ψ)/p0(θ) at (θ, ψ) rows
+        th = {k: pt.dvector(k) for k in NAMES}
+        npool = len(spec["pooled"])
+        mu, sd = pt.dmatrix("mu"), pt.dmatrix("sd")  # one ψ per row
+        g = pytensor.function([*th.values(), mu, sd],
+                              log_population_ratio(pt, th, spec, [mu[:, k] for k in range(npool)],
+                                                   [sd[:, k] for k in range(npool)]), on_unused_input="ignore")
+        rows = spec["check_pop"]
+        out["log_ratio"] = g(*[np.array([r["theta"][k] for r in rows]) for k in NAMES],
+                             np.array([r["mu"] for r in rows]), np.array([r["sd"] for r in rows])).tolist()
+    return out
 
 
 def run(spec: dict, out: Path, draws: int, tune: int, chains: int, seed: int) -> dict:
