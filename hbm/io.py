@@ -622,7 +622,7 @@ def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
 
 #: per-specimen reuse diagnostics stored as variables ``reuse_<name>`` of the diagnostics group
 REUSE_VARS = ("khat_median", "khat_q90", "khat_frac", "khat_updated", "uncovered", "outside_measured",
-              "population_outside", "ess_q10", "ess_raw_q10")
+              "population_outside", "population_beyond", "ess_q10", "ess_raw_q10")
 
 
 def _reuse_vars(h: HierarchicalFile) -> dict[str, Any]:

@@ -14,7 +14,14 @@ the posteriors inform, :func:`~hbm.samplers.hierarchical.auto_pool`), "all", a l
 or "auto" (default: "combinations" when VOLF, P1, T1, GF, GM, T2, THETA are free, otherwise
 "informed").
 
-Seeds: the streams ``hierarchical``, ``new_specimen`` and ``refine`` k of :mod:`hbm.seeds`.
+Reuse diagnostics (issue 15): per specimen PSIS k̂ and the mass beyond the stage-1 samples
+(:func:`~hbm.samplers.hierarchical.reuse_diagnostics`, in ``hierarchical.nc`` and the report); a
+specimen flagged unreliable, or whose ESS collapsed, gets its updated posterior from a fresh
+TMCMC run under the population.  ``PopulationConfig.reference`` > 0 appends defensive reference
+draws to each specimen's samples (``--pool combinations``, :func:`_reference_rows`).
+
+Seeds: the streams ``hierarchical``, ``new_specimen``, ``refine`` k and ``reference`` k of
+:mod:`hbm.seeds`.
 """
 
 from __future__ import annotations
@@ -34,7 +41,8 @@ from .combinations import (COMBINATION_PARAMS, combination_features, log_density
 from .errors import HbmError
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, spyrou_model
-from .samplers.hierarchical import auto_pool, defensive_log_weights, hierarchical, refine_individual
+from .samplers.hierarchical import (auto_pool, defensive_log_weights, hierarchical, mixture_log_weights,
+                                    refine_individual)
 from .utils import log_progress as _log
 
 __all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS",
@@ -93,6 +101,9 @@ class PopulationConfig:
         dask retries of a refinement task.
     progress : bool
         Progress lines and bars on stderr.
+    second_pass : bool
+        ``--pool combinations``: refit the layer with draws of the flagged specimens' posteriors
+        under the population appended (:func:`_mixture_pass`; needs the datasets).
     reference : float
         ``--pool combinations``: defensive reference draws per stage-1 sample appended to each
         specimen's samples (:func:`_reference_rows`; needs the datasets); 0 = plain reuse.
@@ -112,6 +123,7 @@ class PopulationConfig:
     retries: int = 1
     progress: bool = True
     reference: float = 0.0
+    second_pass: bool = True
 
 
 def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping | None = None, model=None, *,
@@ -381,6 +393,64 @@ def _reference_rows(cfg: PopulationConfig, results: Mapping[str, io.SpecimenResu
     return out
 
 
+def _mixture_pass(cfg: PopulationConfig, h, flagged: Sequence[str], results: Mapping[str, io.SpecimenResult],
+                  datasets, model, stage1: dict, log_prior: dict, augment, more: dict) -> tuple[dict, dict, dict]:
+    """Second pass for specimens whose reuse is unreliable: add draws of their posterior under the population.
+
+    For each flagged specimen a fresh TMCMC run samples q = p(d_i|θ)·p_mix(θ)/Z_q, p_mix the
+    population mixture over (leave-one-out weighted) hyper-posterior draws of the first pass
+    (:func:`hbm.samplers.hierarchical.refine_individual`, real likelihood, evidence Z_q).  Its
+    draws go where the populations put mass, which the stage-1 samples drawn under the uniform
+    prior may never reach (the e^y tail of log c·P1 bounded from above); they are appended to
+    the stage-1 samples with the deterministic-mixture weights of
+    :func:`hbm.samplers.hierarchical.mixture_log_weights` (unbiased p(d_i|ψ), stage-1 results
+    and log Z_i untouched) and the layer is fitted again on them.
+
+    Returns the new (stage1, log_prior, extra keyword arguments of the layer).
+    """
+    stage1, log_prior, more = dict(stage1), dict(log_prior), dict(more)
+    lws, n1 = dict(more.get("log_weights") or {}), dict(more.get("stage1_rows") or {})
+    # reference "population": mu mid-range, sd at the top of the hyperprior range, i.e. nearly flat in the
+    # pooled (log-)coordinates over their box -- the reference prior of the issue, where p0 is not flat
+    hm = h.model
+    flat = np.zeros((1, h.raw_samples.shape[1]))
+    flat[0, : hm.d] = 0.5 * (hm.mu_lo + hm.mu_hi)
+    flat[0, hm.d : 2 * hm.d] = np.log(hm.sd_hi) if hm.sd_prior == "loguniform" else hm.sd_hi
+    h_ref = dataclasses.replace(h, raw_samples=flat)
+    for k, sid in enumerate(h.specimens):
+        if sid not in flagged:
+            continue
+        if sid in lws:  # already carries reference rows: keep them as they are
+            continue
+        lik = _specimen_likelihood(cfg, results, sid, datasets, model)
+        rs = seeds.seed_int(seeds.stream(int(cfg.seed), "refine", k))
+        tr, raw, w = refine_individual(h_ref, sid, lik, n_samples=min(int(cfg.samples), int(cfg.stage1_samples)),
+                                       seed=rs, progress=False, n_hyper=1, weighting="plain",
+                                       max_steps=int(cfg.max_steps), augment=augment, bounds=lik.bounds,
+                                       return_mixture=True)
+        cols_q, lp_q = augment(np.asarray(tr.samples, float))
+        ok = np.isfinite(lp_q)
+        cols_q, lp_q = cols_q[ok], lp_q[ok]
+        rows1 = np.asarray(stage1[sid][0], float)
+        rows = np.vstack([rows1, cols_q])
+        lp = np.concatenate([log_prior[sid], lp_q])
+        ratio = h.model.log_density(rows, raw, w) - lp  # log p_mix/p0 of the pooled columns
+        lws[sid] = mixture_log_weights(ratio, rows1.shape[0])
+        # the union is the specimen's sample set from now on (coverage, likelihood slopes)
+        n1[sid] = rows.shape[0]
+        if sid in (more.get("log_likelihood") or {}):
+            ll_q = np.asarray(lik(np.asarray(tr.samples, float)[ok]), float)
+            more["log_likelihood"] = {**more["log_likelihood"],
+                                      sid: np.concatenate([more["log_likelihood"][sid][: rows1.shape[0]], ll_q])}
+        stage1[sid] = (rows,) + tuple(stage1[sid][1:])
+        log_prior[sid] = lp
+    if lws:
+        for sid in h.specimens:  # rows without extra draws: weight 1
+            lws.setdefault(sid, np.zeros(len(stage1[sid][0])))
+        more.update(log_weights=lws, stage1_rows=n1)
+    return stage1, log_prior, more
+
+
 def _diagnostic_inputs(results: Mapping[str, io.SpecimenResult]) -> dict:
     """Stage-1 log-likelihoods for the coverage diagnostic (its likelihood extrapolation), when stored."""
     ll = {sid: np.asarray(r.log_likelihood, float) for sid, r in results.items()
@@ -448,9 +518,25 @@ def _run_hierarchical_combinations(cfg: PopulationConfig, results: Mapping[str, 
                                 + ", ".join(f"{sid} {len(ref[sid][1])}" for sid in results))
     h, warn_msgs = _fit_population(cfg, stage1, aug_names, aug_bounds, tr, pooled, log_prior, extra=more)
     n_par = len(names)
+    augment = _CombinationAugment(names, bounds, log_u)
+    flagged = [sid for sid in h.specimens if (h.reuse.get(sid) or {}).get("unreliable")]
+    if cfg.second_pass and flagged and datasets is not None and all(sid in datasets for sid in flagged):
+        _log(f"reuse unreliable for {', '.join(flagged)}: second pass with draws of their posteriors under the "
+             "population", cfg.progress)
+        first_reuse = h.reuse
+        stage1, log_prior, more = _mixture_pass(cfg, h, flagged, results, datasets, model, stage1, log_prior,
+                                                augment, more)
+        h, warn_more = _fit_population(cfg, stage1, aug_names, aug_bounds, tr, pooled, log_prior, extra=more)
+        warn_msgs = _unique(list(warn_msgs) + list(warn_more))
+        reasons["second_pass"] = ("second pass (posterior draws under the population appended) for "
+                                  + ", ".join(f"{s} ({'; '.join(first_reuse[s].get('reasons') or [])})" for s in flagged))
+        # the second pass's own diagnostics decide about refinement; the first pass's flags are kept
+        for sid in flagged:
+            h.reuse[sid]["reasons"] = ([f"first pass: {'; '.join(first_reuse[sid].get('reasons') or [])} -> "
+                                        "posterior draws under the population added"]
+                                       + list(h.reuse[sid].get("reasons") or []))
     updated = {s: np.asarray(h.updated[s])[:, :n_par] for s in h.specimens}
     collapsed = _to_refine(h, datasets)
-    augment = _CombinationAugment(names, bounds, log_u)
     updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl, augment=augment))
     # new specimen: pooled columns from the predictive, (VOLF, P1, T1, GF, GM) | φ from the box
     # prior, unpooled model parameters from their uniform stage-1 prior

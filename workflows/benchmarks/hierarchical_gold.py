@@ -266,8 +266,12 @@ def main(argv=None) -> int:
     ap.add_argument("--pop-seed", type=int, default=15)
     ap.add_argument("--samples", type=int, default=2000)
     ap.add_argument("--layer-seeds", default="1,2,3")
-    ap.add_argument("--draws", type=int, default=1500)
-    ap.add_argument("--tune", type=int, default=1500)
+    ap.add_argument("--draws", type=int, default=1000)
+    ap.add_argument("--tune", type=int, default=1000)
+    ap.add_argument("--reference", type=float, default=None,
+                    help="PopulationConfig.reference (defensive draws per stage-1 sample); default: hbm's")
+    ap.add_argument("--no-second-pass", action="store_true",
+                    help="PopulationConfig.second_pass=False: plain reuse (the layer before issue 15)")
     ap.add_argument("--variant", default="default", help="label of the layer settings in the output")
     ap.add_argument("--stage1-only", action="store_true")
     a = ap.parse_args(argv)
@@ -279,7 +283,10 @@ def main(argv=None) -> int:
     if a.stage1_only:
         return 0
     seeds = [int(s) for s in a.layer_seeds.split(",")]
-    hfs = [layer(results, datasets, model, s)[0:3:2] for s in seeds]  # (hf, cpu seconds)
+    cfg = {} if a.reference is None else {"reference": a.reference}
+    if a.no_second_pass:
+        cfg["second_pass"] = False
+    hfs = [layer(results, datasets, model, s, **cfg)[0:3:2] for s in seeds]  # (hf, cpu seconds)
     spec = peer_spec(results, datasets, hfs[0][0])
     p0_err = check_p0(spec, results, cache)
     info, nuts = run_peer(spec, cache, a.draws, a.tune, seed=a.pop_seed)
@@ -289,7 +296,7 @@ def main(argv=None) -> int:
     rec = {"variant": a.variant, "pop_seed": a.pop_seed, "layer_seeds": seeds, "truth": {k: list(v) for k, v in TRUTH.items()},
            "thetas": thetas.tolist(), "p0_check_max_abs": p0_err, "nuts": info,
            "layer_cpu_s": [c for _, c in hfs],
-           "flags": [hf.attrs.get("reuse", {}) for hf, _ in hfs], "refined": [hf.attrs.get("refined") for hf, _ in hfs],
+           "reuse": [hf.reuse for hf, _ in hfs], "refined": [hf.attrs.get("refined") for hf, _ in hfs],
            "worst_median_sd": wh, "worst_tail_sd": wt, **cmp}
     out = Path(a.out)
     jpath = out / "hierarchical_gold.json"
@@ -306,6 +313,18 @@ def main(argv=None) -> int:
           f"(target 0.2 / 0.5).", ""]
     md += ["Hyper-parameters (Δ per layer seed, in NUTS posterior sd):", ""] + table(cmp, "hyper", seeds) + [""]
     md += ["Updated individuals (pooled columns):", ""] + table(cmp, "individuals", seeds) + [""]
+    md += ["Reuse diagnostic per specimen against the gold (worst |Δ| of the individual's 5 %/50 %/95 % "
+           "over its pooled columns and the layer seeds, in NUTS sd; flags per layer seed):", "",
+           "| specimen | worst Δ (sd) | k̂ median | beyond samples (extrapolated) | beyond (measured) | ESS 10 % "
+           "| flagged |", "|---|---|---|---|---|---|---|"]
+    for sid in hfs[0][0].specimen_ids:
+        d = np.array([r["diff_sd"] for k, r in cmp["individuals"].items() if k.startswith(sid + ":")])
+        r0 = hfs[0][0].reuse.get(sid, {})
+        md.append(f"| {sid} | {np.abs(d).max():.2f} | {r0.get('khat_median', np.nan):.2f} | "
+                  f"{r0.get('uncovered', np.nan):.3f} | {r0.get('outside_measured', np.nan):.3f} | "
+                  f"{r0.get('ess_q10', np.nan):.0f} | "
+                  f"{' / '.join('yes' if hf.reuse.get(sid, {}).get('unreliable') else 'no' for hf, _ in hfs)} |")
+    md.append("")
     text = "\n".join(md)
     print(text)
     sec = out / f"hierarchical_gold_{a.variant}.md.part"
