@@ -103,7 +103,10 @@ class PopulationConfig:
         Progress lines and bars on stderr.
     second_pass : bool
         ``--pool combinations``: refit the layer with draws of the flagged specimens' posteriors
-        under the population appended (:func:`_mixture_pass`; needs the datasets).
+        under a reference population flat in the pooled coordinates appended
+        (:func:`_mixture_pass`; needs the datasets).  Off by default: on the gold benchmark it
+        fixed the tails for one layer seed of three and costs ~13x the layer's CPU
+        (results/benchmarks/hierarchical_gold.md).
     reference : float
         ``--pool combinations``: defensive reference draws per stage-1 sample appended to each
         specimen's samples (:func:`_reference_rows`; needs the datasets); 0 = plain reuse.
@@ -123,7 +126,7 @@ class PopulationConfig:
     retries: int = 1
     progress: bool = True
     reference: float = 0.0
-    second_pass: bool = True
+    second_pass: bool = False
 
 
 def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping | None = None, model=None, *,
@@ -395,12 +398,14 @@ def _reference_rows(cfg: PopulationConfig, results: Mapping[str, io.SpecimenResu
 
 def _mixture_pass(cfg: PopulationConfig, h, flagged: Sequence[str], results: Mapping[str, io.SpecimenResult],
                   datasets, model, stage1: dict, log_prior: dict, augment, more: dict) -> tuple[dict, dict, dict]:
-    """Second pass for specimens whose reuse is unreliable: add draws of their posterior under the population.
+    """Second pass for specimens whose reuse is unreliable: add draws of their posterior under a flat reference.
 
-    For each flagged specimen a fresh TMCMC run samples q = p(d_i|θ)·p_mix(θ)/Z_q, p_mix the
-    population mixture over (leave-one-out weighted) hyper-posterior draws of the first pass
-    (:func:`hbm.samplers.hierarchical.refine_individual`, real likelihood, evidence Z_q).  Its
-    draws go where the populations put mass, which the stage-1 samples drawn under the uniform
+    For each flagged specimen a fresh TMCMC run samples q = p(d_i|θ)·p_ref(θ)/Z_q, p_ref the
+    population model with mu mid-range and sd at the top of the hyperprior range, i.e. nearly flat
+    in the pooled (log-)coordinates (:func:`hbm.samplers.hierarchical.refine_individual`, real
+    likelihood).  (A mixture over the first pass's hyper-posterior draws was tried first: its
+    draws stayed where the first pass's too narrow populations were and changed nothing.)  The
+    draws go where the populations may put mass, which the stage-1 samples drawn under the uniform
     prior may never reach (the e^y tail of log c·P1 bounded from above); they are appended to
     the stage-1 samples with the deterministic-mixture weights of
     :func:`hbm.samplers.hierarchical.mixture_log_weights` (unbiased p(d_i|ψ), stage-1 results

@@ -271,21 +271,24 @@ def _reuse(wres, base: Path) -> str:
     for sid, r in reuse.items():
         verdict = ("**unreliable**: " + "; ".join(r.get("reasons") or []) if r.get("unreliable") else "fine")
         rows.append((sid, fmt(r.get("ess_q10"), 3), fmt(r.get("khat_median"), 2), fmt(r.get("khat_q90"), 2),
-                     fmt(r.get("uncovered"), 2), fmt(r.get("outside_measured"), 2),
+                     fmt(r.get("population_beyond"), 2), fmt(r.get("uncovered"), 2),
                      fmt(r.get("population_outside"), 2), verdict,
                      "fresh TMCMC" if sid in refined else "reweighted samples"))
     return ("## Reuse of the stage-1 samples\n\nThe population layer reweights each specimen's stage-1 "
             "samples. The importance ESS only measures how unevenly the existing samples are weighted; "
             "the other columns measure what they cannot represent: PSIS k̂ of the importance ratios "
-            "(median and 90 % quantile over hyper-posterior draws; > 0.7 unreliable), the share of the "
-            "specimen's posterior under the population that lies beyond the range of its stage-1 samples "
-            "(extrapolating the likelihood with its slope at the edge of the samples; > 0.05 unreliable), "
-            "the same share measured with the real likelihoods of the reference draws, and the "
-            "population-predictive probability outside the samples' 99 % range (likelihood ignored: "
-            "information only). A specimen flagged unreliable gets its updated posterior from a fresh "
-            "TMCMC run under the population.\n\n"
-            + _table(["specimen", "ESS 10%", "k̂ median", "k̂ 90%", "beyond samples (extrapolated)",
-                      "beyond samples (measured)", "population outside", "verdict", "updated posterior from"],
+            "(median and 90 % quantile over hyper-posterior draws; > 0.7 unreliable), the population mass "
+            "beyond the samples' 0.5–99.5 % range with the likelihood extrapolated by its slope at the edge "
+            "of the samples (> 0.35 unreliable: where the data bound a quantity from one side only, as c·P1 "
+            "when the fibre term is buried in the noise, the samples drawn under the uniform prior thin out "
+            "exactly where a population may put its mass), the specimen's posterior share beyond the "
+            "samples' range (same extrapolation) and the population-predictive probability outside the "
+            "samples' 99 % range (likelihood ignored: information only). A flagged specimen gets draws of "
+            "its posterior under a reference population flat in the pooled coordinates added and the layer "
+            "is refitted (second pass); if still flagged, its updated posterior comes from a fresh TMCMC run "
+            "under the population.\n\n"
+            + _table(["specimen", "ESS 10%", "k̂ median", "k̂ 90%", "population beyond samples",
+                      "posterior beyond samples", "population outside 99%", "verdict", "updated posterior from"],
                      rows))
 
 

@@ -291,19 +291,26 @@ def main(argv=None) -> int:
     p0_err = check_p0(spec, results, cache)
     info, nuts = run_peer(spec, cache, a.draws, a.tune, seed=a.pop_seed)
     names = list(next(iter(results.values())).names)
+    write_variant(a.variant, a.pop_seed, seeds, hfs, info, nuts, p0_err, thetas, names, Path(a.out))
+    return 0
+
+
+def write_variant(variant: str, pop_seed: int, seeds: list, hfs: list, info: dict, nuts: dict, p0_err, thetas,
+                  names: list, out: Path) -> str:
+    """Compare one layer variant (``hfs``: (HierarchicalFile, CPU s) per seed) with the NUTS draws and
+    write its record into ``hierarchical_gold.json`` and its section into ``hierarchical_gold_<variant>.md.part``."""
     cmp = compare(hfs, nuts, names, hfs[0][0].specimen_ids)
     wh, wt = _worst(cmp["hyper"])
-    rec = {"variant": a.variant, "pop_seed": a.pop_seed, "layer_seeds": seeds, "truth": {k: list(v) for k, v in TRUTH.items()},
-           "thetas": thetas.tolist(), "p0_check_max_abs": p0_err, "nuts": info,
+    rec = {"variant": variant, "pop_seed": pop_seed, "layer_seeds": seeds, "truth": {k: list(v) for k, v in TRUTH.items()},
+           "thetas": np.asarray(thetas).tolist(), "p0_check_max_abs": p0_err, "nuts": info,
            "layer_cpu_s": [c for _, c in hfs],
            "reuse": [hf.reuse for hf, _ in hfs], "refined": [hf.attrs.get("refined") for hf, _ in hfs],
            "worst_median_sd": wh, "worst_tail_sd": wt, **cmp}
-    out = Path(a.out)
     jpath = out / "hierarchical_gold.json"
     allrec = json.loads(jpath.read_text()) if jpath.exists() else {}
-    allrec[a.variant] = rec
+    allrec[variant] = rec
     atomic_write_text(jpath, json.dumps(allrec, indent=1, default=float))
-    md = [f"### variant `{a.variant}` (population seed {a.pop_seed}, layer seeds {seeds})", "",
+    md = [f"### variant `{variant}` (population seed {pop_seed}, layer seeds {seeds})", "",
           f"NUTS: {info['chains']} chains × {info['draws']} draws (tune {info['tune']}), max R-hat (hyper) "
           f"{max(info['rhat'].values()):.3f}, max R-hat (all) {info['rhat_max_all']:.3f}, min bulk ESS (hyper) "
           f"{min(info['ess_bulk'].values()):.0f}, divergences {info['divergences']}, {info['sample_s']:.0f} s. "
@@ -315,21 +322,21 @@ def main(argv=None) -> int:
     md += ["Updated individuals (pooled columns):", ""] + table(cmp, "individuals", seeds) + [""]
     md += ["Reuse diagnostic per specimen against the gold (worst |Δ| of the individual's 5 %/50 %/95 % "
            "over its pooled columns and the layer seeds, in NUTS sd; flags per layer seed):", "",
-           "| specimen | worst Δ (sd) | k̂ median | beyond samples (extrapolated) | beyond (measured) | ESS 10 % "
-           "| flagged |", "|---|---|---|---|---|---|---|"]
+           "| specimen | worst Δ (sd) | k̂ median | population beyond samples | posterior beyond samples | ESS 10 % "
+           "| flagged | refined |", "|---|---|---|---|---|---|---|---|"]
     for sid in hfs[0][0].specimen_ids:
         d = np.array([r["diff_sd"] for k, r in cmp["individuals"].items() if k.startswith(sid + ":")])
         r0 = hfs[0][0].reuse.get(sid, {})
         md.append(f"| {sid} | {np.abs(d).max():.2f} | {r0.get('khat_median', np.nan):.2f} | "
-                  f"{r0.get('uncovered', np.nan):.3f} | {r0.get('outside_measured', np.nan):.3f} | "
+                  f"{r0.get('population_beyond', np.nan):.2f} | {r0.get('uncovered', np.nan):.3f} | "
                   f"{r0.get('ess_q10', np.nan):.0f} | "
-                  f"{' / '.join('yes' if hf.reuse.get(sid, {}).get('unreliable') else 'no' for hf, _ in hfs)} |")
+                  f"{' / '.join('yes' if hf.reuse.get(sid, {}).get('unreliable') else 'no' for hf, _ in hfs)} | "
+                  f"{' / '.join('yes' if sid in (hf.attrs.get('refined') or []) else 'no' for hf, _ in hfs)} |")
     md.append("")
     text = "\n".join(md)
     print(text)
-    sec = out / f"hierarchical_gold_{a.variant}.md.part"
-    atomic_write_text(sec, text + "\n")
-    return 0
+    atomic_write_text(out / f"hierarchical_gold_{variant}.md.part", text + "\n")
+    return text
 
 
 if __name__ == "__main__":
