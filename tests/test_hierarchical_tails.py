@@ -222,3 +222,20 @@ def test_mu_interval_coverage_over_populations_with_one_sided_specimens():
         hits.append(q5 <= mu_true <= q95)
     cover = float(np.mean(hits))
     assert 0.80 <= cover <= 0.97, cover
+
+
+def test_reuse_diagnostics_round_trip_through_hierarchical_nc(tmp_path):
+    """Per-specimen diagnostics are stored in hierarchical.nc (diagnostics group) and read back."""
+    from hbm import io
+
+    reuse = {"a": {"khat_median": 0.1, "population_beyond": 0.5, "ess_q10": 80.0, "unreliable": True,
+                   "reasons": ["population mass beyond the samples 0.50 > 0.35"]},
+             "b": {"khat_median": -0.2, "population_beyond": 0.1, "ess_q10": 900.0, "unreliable": False, "reasons": []}}
+    hf = io.HierarchicalFile(param_names=["x"], hyper_names=["mu_x", "sd_x"], hyper_samples=np.zeros((4, 2)),
+                             specimen_ids=["a", "b"], ess=np.array([80.0, 900.0]), reuse=reuse)
+    back = io.read_hierarchical(io.write_hierarchical(hf, tmp_path / "hierarchical.nc"))
+    for sid in ("a", "b"):
+        for k in ("khat_median", "population_beyond", "ess_q10", "unreliable", "reasons"):
+            assert back.reuse[sid][k] == reuse[sid][k]
+        assert np.isnan(back.reuse[sid]["khat_q90"])  # not given: stored as NaN
+    np.testing.assert_array_equal(back.ess, [80.0, 900.0])
