@@ -532,6 +532,11 @@ class HierarchicalFile:
         The group level of a grouped layer: ``key`` (metadata key), ``names`` (groups),
         ``specimen_group`` ({specimen: group}), ``pooled`` (parameters), ``means`` and
         ``predictive`` (n, G, len(pooled)) and any JSON-able extras; None without groups.
+    reuse : dict specimen -> dict
+        Per-specimen reuse diagnostics of the stage-1 samples
+        (:func:`hbm.samplers.hierarchical.reuse_diagnostics`): the numbers of :data:`REUSE_VARS`
+        are stored as variables ``reuse_<name>`` over ``specimen`` in the diagnostics group,
+        the flag as ``reuse_unreliable`` (0/1), the reasons in the attributes.
     """
 
     param_names: list[str]
@@ -548,6 +553,7 @@ class HierarchicalFile:
     complete: bool = True
     pooled_names: list[str] = field(default_factory=list)
     groups: dict | None = None
+    reuse: dict = field(default_factory=dict)
 
     def hyper(self, name: str) -> np.ndarray:
         return self.hyper_samples[:, self.hyper_names.index(name)]
@@ -576,9 +582,13 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
         groups[G_NEW] = xr.Dataset({nm: (("chain", "draw"), h.new_specimen[None, :, i])
                                     for i, nm in enumerate(h.pooled_names or h.param_names)},
                                    coords={"chain": [0], "draw": np.arange(m)})
+    diag_vars = _reuse_vars(h)
     if h.ess is not None:
-        groups[G_DIAG] = xr.Dataset({"importance_ess": ("specimen", np.asarray(h.ess, float))},
-                                    coords={"specimen": list(h.specimen_ids)})
+        diag_vars["importance_ess"] = ("specimen", np.asarray(h.ess, float))
+    if diag_vars:
+        groups[G_DIAG] = xr.Dataset(diag_vars, coords={"specimen": list(h.specimen_ids)},
+                                    attrs={"reuse_reasons": _dumps({k: list(v.get("reasons") or [])
+                                                                    for k, v in h.reuse.items()})})
     if h.groups is not None:
         groups[G_GROUPS] = _groups_dataset(h.groups, h.specimen_ids)
     root = xr.Dataset(attrs={"param_names": _dumps(list(h.param_names)),
@@ -616,7 +626,9 @@ def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
         h.new_specimen = np.stack([new[nm].values[0] for nm in h.pooled_names], axis=-1)
     diag = _ds(tree, G_DIAG)
     if diag is not None:
-        h.ess = diag["importance_ess"].values
+        if "importance_ess" in diag:
+            h.ess = diag["importance_ess"].values
+        h.reuse = _read_reuse(diag, ids)
     grp = _ds(tree, G_GROUPS)
     if grp is not None:
         h.groups = _read_groups(grp)
@@ -650,6 +662,36 @@ def _read_groups(ds: xr.Dataset) -> dict:
            **json.loads(ds.attrs.get("extra", "{}"))}
     for key, prefix in _GROUP_ARRAYS.items():
         out[key] = np.stack([ds[f"{prefix}_{p}"].values[0] for p in pooled], axis=-1)
+    return out
+
+
+#: per-specimen reuse diagnostics stored as variables ``reuse_<name>`` of the diagnostics group
+REUSE_VARS = ("khat_median", "khat_q90", "khat_frac", "khat_updated", "uncovered", "outside_measured",
+              "population_outside", "population_beyond", "ess_q10", "ess_raw_q10")
+
+
+def _reuse_vars(h: HierarchicalFile) -> dict[str, Any]:
+    """The diagnostics-group variables of ``h.reuse`` (empty without diagnostics)."""
+    if not h.reuse:
+        return {}
+    ids = list(h.specimen_ids)
+    out = {f"reuse_{k}": ("specimen", np.array([float(h.reuse.get(s, {}).get(k, np.nan)) for s in ids]))
+           for k in REUSE_VARS}
+    out["reuse_unreliable"] = ("specimen", np.array([int(bool(h.reuse.get(s, {}).get("unreliable"))) for s in ids]))
+    return out
+
+
+def _read_reuse(diag: xr.Dataset, ids: Sequence[str]) -> dict:
+    """``HierarchicalFile.reuse`` back from the diagnostics group ({} for files without it)."""
+    if "reuse_unreliable" not in diag:
+        return {}
+    reasons = json.loads(diag.attrs.get("reuse_reasons", "{}"))
+    out = {}
+    for j, sid in enumerate(ids):
+        r = {k: float(diag[f"reuse_{k}"].values[j]) for k in REUSE_VARS if f"reuse_{k}" in diag}
+        r["unreliable"] = bool(diag["reuse_unreliable"].values[j])
+        r["reasons"] = list(reasons.get(sid, []))
+        out[sid] = r
     return out
 
 

@@ -19,7 +19,13 @@ population → group → specimen layer (:func:`hbm.samplers.grouped.grouped_hie
 transformed coordinates and with every pooling mode; its group-level draws go to
 ``hierarchical.nc`` too.  Without groups the two-level code path runs unchanged.
 
-Seeds: the streams ``hierarchical`` (``grouped`` with groups), ``new_specimen`` and ``refine`` k of
+Reuse diagnostics (issue 15): per specimen PSIS k̂ and the mass beyond the stage-1 samples
+(:func:`~hbm.samplers.hierarchical.reuse_diagnostics`, in ``hierarchical.nc`` and the report); a
+specimen flagged unreliable, or whose ESS collapsed, gets its updated posterior from a fresh
+TMCMC run under the population.  ``PopulationConfig.reference`` > 0 appends defensive reference
+draws to each specimen's samples (``--pool combinations``, :func:`_reference_rows`).
+
+Seeds: the streams ``hierarchical`` (``grouped`` with groups), ``new_specimen``, ``refine`` k and ``reference`` k of
 :mod:`hbm.seeds`.
 """
 
@@ -32,6 +38,7 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
+from scipy.special import gammaln
 
 from . import io, seeds
 from .combinations import (COMBINATION_PARAMS, combination_features, log_density, sample_conditional,
@@ -40,7 +47,8 @@ from .errors import HbmError
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, spyrou_model
 from .samplers.grouped import GroupedResult, grouped_hierarchical
-from .samplers.hierarchical import auto_pool, hierarchical, refine_individual
+from .samplers.hierarchical import (auto_pool, defensive_log_weights, hierarchical, mixture_log_weights,
+                                    refine_individual)
 from .utils import log_progress as _log
 
 __all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS",
@@ -104,6 +112,15 @@ class PopulationConfig:
         None: the two-level layer.
     group_by : str, optional
         The metadata key the groups come from (``group``, ``species`` ...), for the report's words.
+    second_pass : bool
+        ``--pool combinations``: refit the layer with draws of the flagged specimens' posteriors
+        under a reference population flat in the pooled coordinates appended
+        (:func:`_mixture_pass`; needs the datasets).  Off by default: on the gold benchmark it
+        fixed the tails for one layer seed of three and costs ~13x the layer's CPU
+        (results/benchmarks/hierarchical_gold.md).
+    reference : float
+        ``--pool combinations``: defensive reference draws per stage-1 sample appended to each
+        specimen's samples (:func:`_reference_rows`; needs the datasets); 0 = plain reuse.
     """
 
     seed: int = 0
@@ -121,6 +138,8 @@ class PopulationConfig:
     progress: bool = True
     groups: dict | None = None
     group_by: str | None = None
+    reference: float = 0.0
+    second_pass: bool = False
 
 
 def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping | None = None, model=None, *,
@@ -213,6 +232,32 @@ def _unique(msgs: Sequence[str]) -> list[str]:
     return list(dict.fromkeys(msgs))
 
 
+def _specimen_likelihood(cfg: PopulationConfig, results: Mapping[str, io.SpecimenResult], sid: str, datasets, model):
+    """The stage-1 log-likelihood of one specimen, on the box its stage-1 fit used: a recorded user
+    prior (possibly wider than the thesis box), otherwise the run's --bounds."""
+    first = next(iter(results.values()))
+    names = list(first.names)
+    noise_col = len([n for n in names if n in model.parameter_names])  # first noise column (common box)
+    sigma_bounds = tuple(first.bounds[noise_col]) if noise_col < len(names) else None
+    recorded = getattr(results[sid], "prior", None)
+    return make_likelihood(model, datasets[sid], noise=cfg.noise, fix=cfg.fix,
+                           bounds=None if recorded else cfg.bounds, sigma_bounds=sigma_bounds,
+                           prior=results[sid].prior_dict() if recorded else None)
+
+
+def _to_refine(h, datasets) -> list[str]:
+    """Specimens whose reused samples are unreliable: ESS collapse, or the reuse diagnostics
+    (PSIS k̂, uncovered mass; :func:`hbm.samplers.hierarchical.reuse_unreliable`).  Without a
+    specimen's dataset a diagnostic flag only warns (an ESS collapse still needs the data)."""
+    reuse = getattr(h, "reuse", None) or {}
+    flagged = [sid for sid in h.specimens if reuse.get(sid, {}).get("unreliable")]
+    missing = [sid for sid in flagged if datasets is None or sid not in datasets]
+    if missing:
+        _log(f"WARNING: reused stage-1 samples unreliable for {', '.join(missing)} (see the reuse diagnostics); "
+             "no dataset to refine them", True)
+    return sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid) or (sid in flagged and sid not in missing))
+
+
 def _refine_collapsed(cfg: PopulationConfig, h, collapsed: Sequence[str], datasets, model,
                       results: Mapping[str, io.SpecimenResult], cl=None, augment=None) -> dict[str, np.ndarray]:
     """Fresh TMCMC of p(θ_i | all data) for every specimen whose importance ESS collapsed.
@@ -225,24 +270,18 @@ def _refine_collapsed(cfg: PopulationConfig, h, collapsed: Sequence[str], datase
     if datasets is None or any(sid not in datasets for sid in collapsed):
         raise HbmError(f"importance ESS collapsed for {', '.join(collapsed)}: their fresh TMCMC runs need "
                        "their datasets (pass datasets=...)")
-    _log(f"WARNING: importance ESS collapsed for {', '.join(collapsed)}: fresh TMCMC runs of their "
-         "updated posteriors p(θ_i | all data)" + (" on dask" if cl is not None else ""), True)
-    first = next(iter(results.values()))
-    names = list(first.names)
-    noise_col = len([n for n in names if n in model.parameter_names])  # first noise column (common box)
-    sigma_bounds = tuple(first.bounds[noise_col]) if noise_col < len(names) else None
+    why = {sid: "; ".join((getattr(h, "reuse", None) or {}).get(sid, {}).get("reasons") or ["ESS collapsed"])
+           for sid in collapsed}
+    _log(f"WARNING: reused stage-1 samples unreliable for {', '.join(f'{s} ({why[s]})' for s in collapsed)}: "
+         "fresh TMCMC runs of their updated posteriors p(θ_i | all data)" + (" on dask" if cl is not None else ""),
+         True)
     n_up = next(iter(h.updated.values())).shape[0]
     jobs = {}
     h_ref = cl.scatter(h) if cl is not None else h
     for k, sid in enumerate(h.specimens):
         if sid not in collapsed:
             continue
-        # the refit samples the box the stage-1 fit used: a recorded user prior (possibly wider
-        # than the thesis box), otherwise the run's --bounds as before
-        recorded = getattr(results[sid], "prior", None)
-        lik = make_likelihood(model, datasets[sid], noise=cfg.noise, fix=cfg.fix,
-                              bounds=None if recorded else cfg.bounds, sigma_bounds=sigma_bounds,
-                              prior=results[sid].prior_dict() if recorded else None)
+        lik = _specimen_likelihood(cfg, results, sid, datasets, model)
         rs = seeds.seed_int(seeds.stream(int(cfg.seed), "refine", k))
         args = (h_ref, sid, lik, min(int(cfg.samples), int(cfg.stage1_samples)), rs, n_up, int(cfg.max_steps))
         kw = {"augment": augment} if augment is not None else {}
@@ -252,7 +291,7 @@ def _refine_collapsed(cfg: PopulationConfig, h, collapsed: Sequence[str], datase
 
 
 def _fit_population(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str], bounds, transforms: Mapping,
-                    pooled: Sequence[str], log_prior: Mapping | None = None):
+                    pooled: Sequence[str], log_prior: Mapping | None = None, extra: Mapping | None = None):
     """:func:`~hbm.samplers.hierarchical.hierarchical` with the run's settings and its own seed.
 
     Returns the result and its warnings (raised and kept ones, without repeats).
@@ -268,7 +307,7 @@ def _fit_population(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str]
                          sd_range=tuple(cfg.sd_range), estimator=cfg.estimator, log_prior=log_prior,
                          # each ψ evaluation is a (n_ψ × 2d) @ (2d × Σ N_i) product: cap the MH steps per
                          # stage so the layer stays at tens of seconds for six specimens
-                         tmcmc_options={"max_steps": int(cfg.max_steps)})
+                         tmcmc_options={"max_steps": int(cfg.max_steps)}, **(extra or {}))
     return h, _unique([str(w.message) for w in caught] + list(h.warnings))
 
 
@@ -317,9 +356,162 @@ def _write_population(cfg: PopulationConfig, h, out: Path | None, names: Sequenc
                              log_evidence_se=float(h.log_evidence_se),
                              stages=list(getattr(h.sampler_result, "stages", [])),
                              ess=np.array([float(h.ess_summary[s]["min"]) for s in h.specimens]), attrs=attrs,
-                             pooled_names=list(pooled_names))
+                             pooled_names=list(pooled_names), reuse=_reuse_attrs(h))
     hf.groups = _group_payload(cfg, h)
     return hf, (io.write_hierarchical(hf, out / "hierarchical.nc") if out is not None else None)
+
+
+#: reference of the defensive draws: multivariate Student-t with these degrees of freedom, scaled
+#: by this factor over the stage-1 posterior covariance of u = (φ, other parameters)
+REFERENCE_DF = 4.0
+REFERENCE_SCALE = 2.0
+
+
+def _mvt(u: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, callable]:
+    """n draws from the Student-t reference fitted to rows ``u`` and its log density function."""
+    mean = u.mean(axis=0)
+    cov = np.cov(u, rowvar=False) * REFERENCE_SCALE**2
+    cov += np.diag(1e-12 * np.maximum(np.diag(cov), 1e-300))  # a constant column (fixed value) stays PD
+    L = np.linalg.cholesky(cov)
+    d, nu = u.shape[1], REFERENCE_DF
+    x = mean + (rng.standard_normal((n, d)) @ L.T) / np.sqrt(rng.chisquare(nu, n) / nu)[:, None]
+    logdet = 2.0 * np.sum(np.log(np.diag(L)))
+    norm = gammaln((nu + d) / 2) - gammaln(nu / 2) - 0.5 * d * np.log(nu * np.pi) - 0.5 * logdet
+
+    def logpdf(v: np.ndarray) -> np.ndarray:
+        m = np.linalg.solve(L, (v - mean).T)
+        return norm - 0.5 * (nu + d) * np.log1p(np.sum(m * m, axis=0) / nu)
+
+    return x, logpdf
+
+
+def _reference_rows(cfg: PopulationConfig, results: Mapping[str, io.SpecimenResult], datasets, model,
+                    names: Sequence[str], bounds: np.ndarray, hull: np.ndarray,
+                    feats: Mapping[str, tuple]) -> dict[str, tuple]:
+    """Defensive reference draws per specimen for ``--pool combinations`` (issue 15: the tails).
+
+    Under the uniform stage-1 prior the density of log c·P1 falls off as e^y, and where the data
+    bound c·P1 only from above the stage-1 samples barely reach the small values a population
+    puts mass on: reuse then under-estimates p(d_i|ψ) for those populations and the updated
+    individuals' tails.  Here every specimen gets ``cfg.reference × N`` extra draws from a
+    reference q that covers those tails by construction: u = (φ, the other parameters) from a
+    Student-t (``REFERENCE_DF``) with ``REFERENCE_SCALE``² × the stage-1 covariance of u, and
+    (VOLF, P1, T1, GF, GM) given φ from the stage-1 prior (:func:`hbm.combinations.sample_conditional`),
+    so q(θ)/p0(θ) = t(u)/p0(u).  Their real log-likelihoods are evaluated, and the stage-1 samples
+    plus the draws are weighted as a deterministic mixture
+    (:func:`hbm.samplers.hierarchical.defensive_log_weights`): p(d_i|ψ) stays unbiased and the
+    stage-1 results, log Z_i included, are untouched.  Draws outside the box, the φ hull or the
+    support of the combinations are dropped (counted as zeros).
+
+    Returns
+    -------
+    dict specimen -> (rows (M, len(names) + 3), log p0 of the pooled φ (M,), log ω of all N + M rows)
+        Empty without datasets or with ``cfg.reference`` = 0.
+    """
+    if not cfg.reference or datasets is None or any(sid not in datasets for sid in results):
+        return {}
+    names = list(names)
+    comb = [names.index(p) for p in COMBINATION_PARAMS]
+    other = [j for j, n in enumerate(names) if n not in COMBINATION_PARAMS]
+    log_p0_other = -float(np.sum(np.log(np.ptp(bounds[other], axis=1))))
+    out = {}
+    for k, (sid, r) in enumerate(results.items()):
+        phi, lp_phi = feats[sid]
+        u = np.column_stack([phi, r.samples[:, other]])
+        n_post = u.shape[0]
+        n_drawn = int(round(float(cfg.reference) * n_post))
+        rng = seeds.rng(int(cfg.seed), "reference", k)
+        x, logpdf = _mvt(u, n_drawn, rng)
+        ok = (np.all((x[:, :3] >= hull[:, 0]) & (x[:, :3] <= hull[:, 1]), axis=1)
+              & np.all((x[:, 3:] >= bounds[other, 0]) & (x[:, 3:] <= bounds[other, 1]), axis=1))
+        x = x[ok]
+        lp_x = log_density(x[:, :3], bounds, names)
+        x, lp_x = x[np.isfinite(lp_x)], lp_x[np.isfinite(lp_x)]
+        theta = np.empty((x.shape[0], len(names)))
+        theta[:, comb] = sample_conditional(x[:, :3], bounds, rng, names)
+        theta[:, other] = x[:, 3:]
+        lik = _specimen_likelihood(cfg, results, sid, datasets, model)
+        ll_x = np.asarray(lik(theta), float)
+        keep = np.isfinite(ll_x)
+        theta, x, lp_x, ll_x = theta[keep], x[keep], lp_x[keep], ll_x[keep]
+        ll_post = np.asarray(lik(r.samples), float)
+        log_rho = np.concatenate([logpdf(u) - lp_phi, logpdf(x) - lp_x]) - log_p0_other
+        lw = defensive_log_weights(np.concatenate([ll_post, ll_x]), log_rho, float(r.log_evidence), n_post,
+                                   n_drawn)
+        out[sid] = (np.hstack([theta, x[:, :3]]), lp_x, lw)
+    return out
+
+
+def _mixture_pass(cfg: PopulationConfig, h, flagged: Sequence[str], results: Mapping[str, io.SpecimenResult],
+                  datasets, model, stage1: dict, log_prior: dict, augment, more: dict) -> tuple[dict, dict, dict]:
+    """Second pass for specimens whose reuse is unreliable: add draws of their posterior under a flat reference.
+
+    For each flagged specimen a fresh TMCMC run samples q = p(d_i|θ)·p_ref(θ)/Z_q, p_ref the
+    population model with mu mid-range and sd at the top of the hyperprior range, i.e. nearly flat
+    in the pooled (log-)coordinates (:func:`hbm.samplers.hierarchical.refine_individual`, real
+    likelihood).  (A mixture over the first pass's hyper-posterior draws was tried first: its
+    draws stayed where the first pass's too narrow populations were and changed nothing.)  The
+    draws go where the populations may put mass, which the stage-1 samples drawn under the uniform
+    prior may never reach (the e^y tail of log c·P1 bounded from above); they are appended to
+    the stage-1 samples with the deterministic-mixture weights of
+    :func:`hbm.samplers.hierarchical.mixture_log_weights` (unbiased p(d_i|ψ), stage-1 results
+    and log Z_i untouched) and the layer is fitted again on them.
+
+    Returns the new (stage1, log_prior, extra keyword arguments of the layer).
+    """
+    stage1, log_prior, more = dict(stage1), dict(log_prior), dict(more)
+    lws, n1 = dict(more.get("log_weights") or {}), dict(more.get("stage1_rows") or {})
+    # reference "population": mu mid-range, sd at the top of the hyperprior range, i.e. nearly flat in the
+    # pooled (log-)coordinates over their box -- the reference prior of the issue, where p0 is not flat
+    hm = h.model
+    flat = np.zeros((1, h.raw_samples.shape[1]))
+    flat[0, : hm.d] = 0.5 * (hm.mu_lo + hm.mu_hi)
+    flat[0, hm.d : 2 * hm.d] = np.log(hm.sd_hi) if hm.sd_prior == "loguniform" else hm.sd_hi
+    h_ref = dataclasses.replace(h, raw_samples=flat)
+    for k, sid in enumerate(h.specimens):
+        if sid not in flagged:
+            continue
+        if sid in lws:  # already carries reference rows: keep them as they are
+            continue
+        lik = _specimen_likelihood(cfg, results, sid, datasets, model)
+        rs = seeds.seed_int(seeds.stream(int(cfg.seed), "refine", k))
+        tr, raw, w = refine_individual(h_ref, sid, lik, n_samples=min(int(cfg.samples), int(cfg.stage1_samples)),
+                                       seed=rs, progress=False, n_hyper=1, weighting="plain",
+                                       max_steps=int(cfg.max_steps), augment=augment, bounds=lik.bounds,
+                                       return_mixture=True)
+        cols_q, lp_q = augment(np.asarray(tr.samples, float))
+        ok = np.isfinite(lp_q)
+        cols_q, lp_q = cols_q[ok], lp_q[ok]
+        rows1 = np.asarray(stage1[sid][0], float)
+        rows = np.vstack([rows1, cols_q])
+        lp = np.concatenate([log_prior[sid], lp_q])
+        ratio = h.model.log_density(rows, raw, w) - lp  # log p_mix/p0 of the pooled columns
+        lws[sid] = mixture_log_weights(ratio, rows1.shape[0])
+        # the union is the specimen's sample set from now on (coverage, likelihood slopes)
+        n1[sid] = rows.shape[0]
+        if sid in (more.get("log_likelihood") or {}):
+            ll_q = np.asarray(lik(np.asarray(tr.samples, float)[ok]), float)
+            more["log_likelihood"] = {**more["log_likelihood"],
+                                      sid: np.concatenate([more["log_likelihood"][sid][: rows1.shape[0]], ll_q])}
+        stage1[sid] = (rows,) + tuple(stage1[sid][1:])
+        log_prior[sid] = lp
+    if lws:
+        for sid in h.specimens:  # rows without extra draws: weight 1
+            lws.setdefault(sid, np.zeros(len(stage1[sid][0])))
+        more.update(log_weights=lws, stage1_rows=n1)
+    return stage1, log_prior, more
+
+
+def _diagnostic_inputs(results: Mapping[str, io.SpecimenResult]) -> dict:
+    """Stage-1 log-likelihoods for the coverage diagnostic (its likelihood extrapolation), when stored."""
+    ll = {sid: np.asarray(r.log_likelihood, float) for sid, r in results.items()
+          if getattr(r, "log_likelihood", None) is not None and len(r.log_likelihood) == len(r.samples)}
+    return {"log_likelihood": ll} if len(ll) == len(results) else {}
+
+
+def _reuse_attrs(h) -> dict:
+    """Per-specimen reuse diagnostics, JSON-able (hierarchical.nc stores them; the report shows them)."""
+    return {sid: {k: v for k, v in r.items() if k != "uncovered_by"} for sid, r in (getattr(h, "reuse", None) or {}).items()}
 
 
 def _run_hierarchical_combinations(cfg: PopulationConfig, results: Mapping[str, io.SpecimenResult], datasets,
@@ -365,11 +557,37 @@ def _run_hierarchical_combinations(cfg: PopulationConfig, results: Mapping[str, 
     reasons["combinations"] = ("--pool combinations: population over " + ", ".join(f"log {c}" for c in COMBINATIONS)
                                + f" (exact stage-1 prior density) and {', '.join(extra)}")
     _log(f"pooled (combinations): {', '.join(pooled)}", cfg.progress)
-    h, warn_msgs = _fit_population(cfg, stage1, aug_names, aug_bounds, tr, pooled, log_prior)
+    more = _diagnostic_inputs(results)
+    ref = _reference_rows(cfg, results, datasets, model, names, bounds, hull, feats)
+    if ref:  # stage-1 samples + defensive reference draws, weighted as a deterministic mixture
+        more.update(stage1_rows={sid: len(r.samples) for sid, r in results.items()},
+                    log_weights={sid: ref[sid][2] for sid in results})
+        stage1 = {sid: (np.vstack([v[0], ref[sid][0]]),) + tuple(v[1:]) for sid, v in stage1.items()}
+        log_prior = {sid: np.concatenate([log_prior[sid], ref[sid][1] + log_u]) for sid in results}
+        reasons["reference"] = (f"defensive reference draws: {cfg.reference:g} per stage-1 sample (Student-t "
+                                f"{REFERENCE_DF:g} dof, {REFERENCE_SCALE:g} x the stage-1 sd); kept "
+                                + ", ".join(f"{sid} {len(ref[sid][1])}" for sid in results))
+    h, warn_msgs = _fit_population(cfg, stage1, aug_names, aug_bounds, tr, pooled, log_prior, extra=more)
     n_par = len(names)
-    updated = {s: np.asarray(h.updated[s])[:, :n_par] for s in h.specimens}
-    collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
     augment = _CombinationAugment(names, bounds, log_u)
+    flagged = [sid for sid in h.specimens if (h.reuse.get(sid) or {}).get("unreliable")]
+    if cfg.second_pass and flagged and datasets is not None and all(sid in datasets for sid in flagged):
+        _log(f"reuse unreliable for {', '.join(flagged)}: second pass with draws of their posteriors under the "
+             "population", cfg.progress)
+        first_reuse = h.reuse
+        stage1, log_prior, more = _mixture_pass(cfg, h, flagged, results, datasets, model, stage1, log_prior,
+                                                augment, more)
+        h, warn_more = _fit_population(cfg, stage1, aug_names, aug_bounds, tr, pooled, log_prior, extra=more)
+        warn_msgs = _unique(list(warn_msgs) + list(warn_more))
+        reasons["second_pass"] = ("second pass (posterior draws under the population appended) for "
+                                  + ", ".join(f"{s} ({'; '.join(first_reuse[s].get('reasons') or [])})" for s in flagged))
+        # the second pass's own diagnostics decide about refinement; the first pass's flags are kept
+        for sid in flagged:
+            h.reuse[sid]["reasons"] = ([f"first pass: {'; '.join(first_reuse[sid].get('reasons') or [])} -> "
+                                        "posterior draws under the population added"]
+                                       + list(h.reuse[sid].get("reasons") or []))
+    updated = {s: np.asarray(h.updated[s])[:, :n_par] for s in h.specimens}
+    collapsed = _to_refine(h, datasets)
     updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl, augment=augment))
     # new specimen: pooled columns from the predictive, (VOLF, P1, T1, GF, GM) | φ from the box
     # prior, unpooled model parameters from their uniform stage-1 prior
@@ -442,9 +660,10 @@ def _run_hierarchical(cfg: PopulationConfig, results: Mapping[str, io.SpecimenRe
         model_names = [n for n in model_names if n in mode]
     transforms = {n: transforms[n] for n in model_names}
     stage1 = {sid: (r.samples, r.log_evidence, r.log_evidence_se) for sid, r in results.items()}
-    h, warn_msgs = _fit_population(cfg, stage1, names, first.bounds, transforms, model_names)
+    h, warn_msgs = _fit_population(cfg, stage1, names, first.bounds, transforms, model_names,
+                                   extra=_diagnostic_inputs(results))
     updated = {sid: np.asarray(h.updated[sid]) for sid in h.specimens}
-    collapsed = sorted(sid for sid in h.specimens if h.ess_collapsed.get(sid))
+    collapsed = _to_refine(h, datasets)
     updated.update(_refine_collapsed(cfg, h, collapsed, datasets, model, results, cl))
     return _write_population(cfg, h, out, names, updated, h.predictive, h.names, warn_msgs, collapsed,
                              transforms=transforms, pooled=model_names, pool_reasons=pool_reasons,

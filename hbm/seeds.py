@@ -16,6 +16,8 @@ stream                     spawn key                 draws
 ``new_specimen``           ``(10000, 0)``            a new specimen's non-pooled parameters (drawn
                                                      given the population-predictive pooled ones)
 ``refine`` k               ``(10000, 1 + k)``        fresh TMCMC of specimen k under the population
+``reference`` k            ``(10001, k)``            defensive reference draws of specimen k for the
+                                                     population layer (hbm.population)
 ``organ_posterior`` k      ``(20000, 0, k)``         organ bands: subsample of specimen k's posterior
 ``organ_updated`` k        ``(20000, 1, k)``         organ bands: subsample of k's updated draws
 ``organ_new_specimen``     ``(20000, 2)``            organ bands: population-predictive draws
@@ -62,6 +64,7 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "hierarchical": lambda: (_HIER,),
     "new_specimen": lambda: (_HIER, 0),
     "refine": lambda k: (_HIER, 1 + int(k)),
+    "reference": lambda k: (_HIER + 1, int(k)),
     "organ_posterior": lambda k: (_ORGAN, 0, int(k)),
     "organ_updated": lambda k: (_ORGAN, 1, int(k)),
     "organ_new_specimen": lambda: (_ORGAN, 2),
@@ -132,6 +135,7 @@ def run_keys(n_specimens: int) -> dict[tuple[int, ...], str]:
         named.append((f"specimen {k}", STREAMS["specimen"](k)))
         named += [(f"specimen {k} {p}", STREAMS["specimen"](k) + (j,)) for j, p in enumerate(PHASES)]
         named.append((f"refine {k}", STREAMS["refine"](k)))
+        named.append((f"reference {k}", STREAMS["reference"](k)))
         named.append((f"organ_posterior {k}", STREAMS["organ_posterior"](k)))
         named.append((f"organ_updated {k}", STREAMS["organ_updated"](k)))
     for name in ("hierarchical", "new_specimen", "organ_new_specimen", "grouped"):

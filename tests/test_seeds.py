@@ -8,9 +8,9 @@ from hbm import seeds
 
 def test_no_two_streams_share_a_key():
     keys = seeds.run_keys(500)
-    # every specimen stream, its four phases, refine, two organ streams, plus four run-level streams
-    # (hierarchical, new_specimen, organ_new_specimen, grouped)
-    assert len(keys) == 500 * (1 + len(seeds.PHASES) + 3) + 4
+    # every specimen stream, its four phases, refine, reference, two organ streams, plus four run-level
+    # streams (hierarchical, new_specimen, organ_new_specimen, grouped)
+    assert len(keys) == 500 * (1 + len(seeds.PHASES) + 4) + 4
 
 
 def test_run_keys_detects_a_collision(monkeypatch):
