@@ -225,7 +225,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         def run_round(cur, rem, k):
             return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
         rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log)
-        white = _ar1_absorbs_misfit(rounds[0]) if noise is None and base.noise == "ar1" else None
+        white = (_ar1_absorbs_misfit(rounds[0])
+                 if noise is None and base.noise == "ar1" and any(n != "ar1" for n in noises) else None)
         if white is not None:
             # the AR(1) correlation is a smooth misfit, not noise: an AR(1) fit would absorb the
             # very signal the candidates are screened on, so diagnose again under white noise
