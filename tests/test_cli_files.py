@@ -264,11 +264,18 @@ def test_stale_temp_files_removed_at_the_next_start(tmp_path, monkeypatch, capsy
 
 
 # ------------------------------------------------------------------ Ctrl-C and SIGTERM, real signals
-def _start(argv, tmp_path):
+def _sigint_default():
+    # A terminal job starts with SIGINT at its default; the test runner itself may not (a shell's
+    # background job inherits SIGINT ignored, and hbm rightly keeps ignoring it then).
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _start(argv, tmp_path, sigint=_sigint_default):
     env = dict(os.environ, PYTHONPATH=str(ROOT), HBM_DEBUG="")
     return subprocess.Popen([sys.executable, "-m", "hbm", *map(str, argv)], cwd=tmp_path, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)  # own process group, like a terminal job
+                            start_new_session=True,  # own process group, like a terminal job
+                            preexec_fn=sigint)
 
 
 def _wait_for(predicate, proc, timeout=60.0):
@@ -316,6 +323,15 @@ def test_ctrl_c_while_importing(tmp_path):
     assert (rc, err) == (130, "hbm: interrupted\n")
 
 
+def test_ctrl_c_ignored_when_started_ignoring_it(tmp_path):
+    """Started with SIGINT ignored (``nohup``, a shell's background job), hbm keeps ignoring it:
+    the command runs to its own end (here: the missing file's error)."""
+    proc = _start(["fit", "x.csv"], tmp_path, sigint=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    time.sleep(0.3)
+    rc, err = _signal_and_collect(proc, signal.SIGINT)
+    assert rc == 2 and err.startswith("hbm: error:") and "x.csv" in err, err
+
+
 def test_sigterm_during_a_fit_removes_temp_files(tmp_path, specimen):
     ck = tmp_path / "ck"
     out = tmp_path / "o" / "toy.nc"
@@ -332,5 +348,5 @@ def test_sigint_handler_of_the_import_guard_only_in_the_command():
     """``import hbm`` elsewhere leaves SIGINT alone (KeyboardInterrupt as usual)."""
     code = "import signal, hbm; print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
-                         env=dict(os.environ, PYTHONPATH=str(ROOT)))
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)), preexec_fn=_sigint_default)
     assert res.stdout.strip() == "True", res.stderr
