@@ -25,6 +25,7 @@ import numpy as np
 
 from . import sensitivity as _sens
 from ._version import __version__
+from .data import input_summary
 from .errors import HbmError
 from . import seeds
 from .io import SpecimenResult, json_default, write_specimen_result
@@ -522,6 +523,8 @@ class FitResult:
         then one line on why raw-parameter means are not a parameter set, then the raw table."""
         r = self.result
         head = [f"specimen {r.specimen_id}: {r.n_samples} posterior samples"]
+        if r.config.get("input"):
+            head.append(f"input converted: {r.config['input']} (stresses below are Cauchy, MPa)")
         raw = summarize(r, prob=prob)
         pc = int(round(prob * 100))
         rows = [RIDGE_NOTE, f"{'parameter':<14}{'mean':>12}{'sd':>12}{f'{pc}% lower':>12}{f'{pc}% upper':>12}"]
@@ -544,6 +547,7 @@ class FitResult:
         r = self.result
         q.update({"names": list(r.names), "n_samples": r.n_samples, "fixed": dict(r.fixed),
                   "summary": {k: v for k, v in summarize(r, prob=prob).items() if k not in COMBINATIONS},
+                  "input": r.config.get("input", ""),
                   "path": None if self.path is None else str(self.path)})
         return json.loads(json.dumps(q, default=json_default))
 
@@ -692,6 +696,9 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
               "seeds": {"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
               "n_evaluations": int(tr.n_evaluations), "n_stages": len(tr.stages),
               "source_file": str(data.attrs.get("source_file", ""))}
+    converted = input_summary(data)
+    if converted:  # the numbers rest on these conversions: keep them with the result
+        config["input"] = converted
     if prior is not None:
         config["prior"] = prior.to_dict()
     config.update(dict(config_extra or {}))

@@ -102,6 +102,8 @@ def _specimen(wres, sid: str, base: Path) -> str:
     txt = [f"### {sid}\n",
            f"log-evidence **{r.log_evidence:.3f} ± {r.log_evidence_se:.3f}** ({len(r.stages)} TMCMC stages, "
            f"{r.n_samples} samples" + (f", fixed {r.fixed}" if r.fixed else "") + ")\n",
+           *([f"Input converted: {r.config['input']} (stresses here are Cauchy, MPa).\n"]
+             if r.config.get("input") else []),
            _table(["quantity", "mean", "sd", "90% interval"], rows)]
     dirs = wres.directions.get(sid)
     if dirs is not None:

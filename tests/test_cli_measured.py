@@ -12,6 +12,7 @@ import xarray as xr
 
 from hbm.cli import main
 from hbm.errors import DataError, HbmWarning
+from hbm.io import read_specimen_result
 from hbm.likelihood import make_likelihood
 from hbm.model import spyrou_model
 
@@ -135,3 +136,38 @@ def test_diagnose_reports_base_parameters_on_a_box_edge():
         found = _base_at_bounds(base, "spec")
     assert [(e["parameter"], e["side"], e["map_at_edge"]) for e in found] == [("THETA", "upper", True)]
     assert found[0]["fraction"] == pytest.approx(0.02, abs=0.01)  # uniform draws: 2 % near the edge
+
+
+def test_fit_says_what_the_loader_converted(tmp_path, capsys):
+    """A sarcomere-length file in nominal kPa: the fit's text report, its JSON and the stored
+    result name the conversions the numbers rest on; the stored stress is the Cauchy stress in
+    MPa computed independently here (sigma = lambda * P, lambda = SL/SL0)."""
+    sl = np.linspace(2.0, 3.0, 12)
+    lam = sl / 2.0
+    cauchy = 0.01 * (lam ** 2 - 1 / lam) + 0.05 * np.clip(lam - 1.2, 0, None)
+    nominal_kpa = 1e3 * cauchy / lam
+    csv = tmp_path / "sl.csv"
+    csv.write_text("# reference_sarcomere_length_um: 2.0\nsarcomere_length_um,nominal_stress_kPa\n"
+                   + "".join(f"{a:.5f},{b:.6f}\n" for a, b in zip(sl, nominal_kpa)))
+    out = tmp_path / "o.nc"
+    argv = ["fit", str(csv), "--samples", "100", "--restarts", "0", "--no-plot", "--no-progress", "--out", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    line = [ln for ln in text.splitlines() if ln.startswith("input converted:")]
+    assert line and "kPa->MPa" in line[0] and "nominal->Cauchy" in line[0] and "SL0 2.0" in line[0], text
+    r = read_specimen_result(out)
+    assert "nominal->Cauchy" in r.config["input"]
+    np.testing.assert_allclose(r.stress, cauchy, rtol=1e-5, atol=1e-9)
+    assert main(argv[:-2] + ["--out", str(tmp_path / "o2.nc"), "--json"]) == 0
+    assert "kPa->MPa" in json.loads(capsys.readouterr().out)["input"]
+    assert main(["extend", str(csv), "--add", "offset", "--samples", "100", "--no-progress"]) == 0
+    assert capsys.readouterr().out.startswith("input converted: stress kPa->MPa, nominal->Cauchy")
+
+
+def test_fit_of_plain_strain_mpa_file_has_no_input_line(tmp_path, capsys):
+    csv = tmp_path / "p.csv"
+    eps = np.linspace(0, 0.3, 12)
+    csv.write_text("strain,stress\n" + "".join(f"{e:.4f},{0.02 * e + 0.1 * e ** 2:.6f}\n" for e in eps))
+    assert main(["fit", str(csv), "--samples", "100", "--restarts", "0", "--no-plot", "--no-progress",
+                 "--out", str(tmp_path / "o.nc")]) == 0
+    assert "input converted" not in capsys.readouterr().out

@@ -133,6 +133,10 @@ def test_specimen_section_numbers(wres, tmp_path):
     assert ("Sobol (ST, log_integrated_stress): VOLF 0.9 (very important), T2 0.5 (important), P1 – (irrelevant)"
             in txt)
     assert "Figures: [corner](figures/ratA_corner.png)" in txt
+    assert "Input converted" not in txt  # strain and MPa as read
+    wres.results["ratB"].config["input"] = "stress kPa->MPa, nominal->Cauchy"
+    txt = report._specimens(wres, tmp_path)
+    assert txt.count("Input converted: stress kPa->MPa, nominal->Cauchy (stresses here are Cauchy, MPa).") == 1
 
 
 def test_combinations_table(wres, tmp_path):

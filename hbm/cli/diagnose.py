@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..data import input_summary
 from ..detective import diagnose, extend
 from ..effects import resolve_effect
 from ..errors import SettingError
@@ -66,6 +67,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
                    help="write the figure (PNG/PDF/SVG/...; into an existing folder)")
     p.add_argument("--progress", action="store_true", help="progress lines on stderr")
+    p.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress lines (the default; accepted like on the other commands)")
     p.add_argument("--noise", default=None, metavar="iid|ar1|proportional|...",
                    help="force one noise model for every fit (default: chosen by evidence)")
 
@@ -147,6 +150,12 @@ def _candidates(args) -> list[str]:
     return out
 
 
+def _print_input(ds) -> None:
+    """The loader's conversions first: every stress below is Cauchy, MPa, in strain."""
+    if input_summary(ds):
+        print(f"input converted: {input_summary(ds)} (stresses below are Cauchy, MPa)")
+
+
 def run_diagnose(args) -> int:
     """Check everything, then diagnose and print (or plot) the verdict."""
     candidates = _candidates(args)
@@ -155,8 +164,9 @@ def run_diagnose(args) -> int:
     if args.plot:
         dg.plot(args.plot)
     if args.json:
-        print_json(dg.to_dict())
+        print_json({**dg.to_dict(), "input": input_summary(ds)})
     else:
+        _print_input(ds)
         print(dg.summary())
         if args.plot:
             print(f"figure: {args.plot}")
@@ -173,8 +183,9 @@ def run_extend(args) -> int:
     if args.plot:
         ext.plot(args.plot)
     if args.json:
-        print_json(ext.to_dict())
+        print_json({**ext.to_dict(), "input": input_summary(ds)})
     else:
+        _print_input(ds)
         print(ext.table())
         for dcs in ext.decisions:
             print(f"auto: model {'+'.join(dcs['model'])}: {dcs['verdict']} — {dcs['message']}")
