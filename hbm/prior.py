@@ -149,6 +149,8 @@ class Prior:
         bad = [k for k, v in doc.items() if not isinstance(v, Mapping)]
         if bad:
             raise PriorError(f"{path}: {bad[0]}: expected a table [{bad[0]}] with lo, hi[, form]")
+        if not doc:  # an empty file is a mistake (wrong path, unsaved editor), not "the default box"
+            raise PriorError(f"{path}: no parameter table; expected e.g. [VOLF] lo = 0.5, hi = 0.9")
         return cls(doc, source=str(path))
 
     @classmethod

@@ -350,3 +350,19 @@ def test_sigint_handler_of_the_import_guard_only_in_the_command():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)), preexec_fn=_sigint_default)
     assert res.stdout.strip() == "True", res.stderr
+
+
+def test_shipped_specimen_id_resolves_from_another_folder(tmp_path, monkeypatch):
+    """``hbm fit calvo2010_rat1`` (the --help example) works from any folder of an editable
+    install; a file of that name in ./data/specimens still wins; an unknown id is one error."""
+    from hbm.cli._common import load_specimen_arg
+    from hbm.errors import HbmError
+    monkeypatch.chdir(tmp_path)
+    ds = load_specimen_arg("calvo2010_rat1")
+    assert ds.attrs["id"] == "calvo2010_rat1" and ds["strain"].size > 10
+    local = tmp_path / "data" / "specimens"
+    local.mkdir(parents=True)
+    (local / "calvo2010_rat1.csv").write_text("# id: mine\nstrain,stress\n0,0\n0.1,0.01\n0.2,0.03\n0.3,0.06\n0.4,0.1\n0.5,0.15\n")
+    assert load_specimen_arg("calvo2010_rat1").attrs["id"] == "mine"
+    with pytest.raises(HbmError, match="no_such_rat"):
+        load_specimen_arg("no_such_rat")

@@ -50,6 +50,8 @@ def test_toml_prior_is_read_and_applied(tmp_path):
     ('[P1]\nlo = "a"\nhi = 1\n', "P1.*numbers"),
     ("P1 = 3\n", "P1.*expected a table"),
     ("[P1\nlo = 1\n", "not a valid TOML"),
+    ("", "no parameter table"),
+    ("# only a comment\n", "no parameter table"),
 ])
 def test_bad_prior_files_raise_one_line_prior_errors(tmp_path, text, match):
     with pytest.raises(PriorError, match=match) as info:

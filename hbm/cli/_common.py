@@ -28,6 +28,8 @@ from ..model import FORMS, compression_check, model_form, spyrou_model
 from ..utils import format_bytes, require_memory
 
 SPECIMEN_FOLDER = Path("data") / "specimens"
+#: the shipped specimens of this checkout (an editable install), for ids given outside it
+SHIPPED_FOLDER = Path(__file__).resolve().parents[2] / "data" / "specimens"
 #: the smallest population / draw count any command accepts (TMCMC populations of --samples and
 #: --hier-samples, posterior draws of predict): a population covariance over the 9-16
 #: parameters of the base model plus effects needs more particles than parameters
@@ -401,6 +403,8 @@ def load_specimen_arg(spec: str, sl0: float | None = None, model=None):
     """
     path = Path(spec)
     candidate = SPECIMEN_FOLDER / f"{spec}.csv"
+    if not candidate.exists() and (SHIPPED_FOLDER / f"{spec}.csv").exists():
+        candidate = SHIPPED_FOLDER / f"{spec}.csv"  # an id of a shipped specimen, from another folder
     if path.exists():
         ds = load_specimen(path, sl0=sl0)
     elif path.suffix.lower() == ".csv" or len(path.parts) > 1:
