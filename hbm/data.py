@@ -13,8 +13,8 @@ CSV format
 
 Columns (header names are case-insensitive; exactly one deformation and one stress column):
 
-* deformation — ``strain``: engineering strain ε = ΔL/L0 (dimensionless); or ``stretch``
-  λ = L/L0 (ε = λ − 1); or ``sarcomere_length_um``, the sarcomere length SL in µm
+* deformation — ``strain``: engineering strain ε = ΔL/L0 (dimensionless); or
+  ``strain_percent``: 100·ε; or ``stretch`` λ = L/L0 (ε = λ − 1); or ``sarcomere_length_um``, the sarcomere length SL in µm
   (ε = SL/SL0 − 1 with the reference SL0 from ``# reference_sarcomere_length_um: 2.0`` or the
   ``sl0=`` argument).  The resulting strain must lie within [−0.5, 2] and must not consist of
   whole numbers only (that is what decimal commas or percent leave behind).
@@ -98,7 +98,7 @@ STRESS_UNITS = {"MPa": 1.0, "kPa": 1e3, "Pa": 1e6}
 #: metadata key of a specimen's group (``# group: NAME``)
 GROUP_KEY = "group"
 #: deformation columns; a file has exactly one
-DEFORMATIONS = ("strain", "stretch", "sarcomere_length_um")
+DEFORMATIONS = ("strain", "strain_percent", "stretch", "sarcomere_length_um")
 
 _COLUMNS = ("strain", "stress", "time", "test")
 _UNITS = {"strain": "-", "stress": "MPa", "time": "s", "test": "-"}
@@ -112,7 +112,7 @@ _STRESS_COL_RE = re.compile(r"^(?:(nominal|cauchy)_)?stress(?:_(mpa|kpa|pa))?$")
 _LABEL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.+\-/()% ]{0,63}$")
 _LEADING_ZERO_RE = re.compile(r"^[+-]?0[0-9]+$")
 _INT64 = 2 ** 63
-_EXPECTED_COLUMNS = ("strain|stretch|sarcomere_length_um, stress (or stress_MPa|stress_kPa|stress_Pa, "
+_EXPECTED_COLUMNS = ("strain|strain_percent|stretch|sarcomere_length_um, stress (or stress_MPa|stress_kPa|stress_Pa, "
                      "nominal_stress[_unit], cauchy_stress[_unit]), time, test")
 _SEPARATOR_HINT = " (cells are separated by ',', numbers use '.')"
 _LABEL_RULE = "a letter, then letters, digits, spaces or _ . + - / ( ) %, at most 64 characters"
@@ -340,6 +340,8 @@ def _strain(name: str, raw: np.ndarray, deformation: str, sl0: float | None,
     """Engineering strain from the deformation column, range-checked."""
     if deformation == "stretch":
         strain = raw - 1.0
+    elif deformation == "strain_percent":
+        strain = raw / 100.0
     elif deformation == "sarcomere_length_um":
         strain = raw / sl0 - 1.0
     else:
@@ -352,13 +354,16 @@ def _strain(name: str, raw: np.ndarray, deformation: str, sl0: float | None,
         if deformation == "stretch":
             raise DataError(f"{where}: expected stretch L/L0 in [{1 + lo}, {1 + hi}] (strain in [{lo}, {hi}]), "
                             f"got {raw[i]!r}")
+        if deformation == "strain_percent":
+            raise DataError(f"{where}: expected strain in percent within [{100 * lo:g}, {100 * hi:g}], "
+                            f"got {raw[i]!r}")
         if deformation == "sarcomere_length_um":
             raise DataError(f"{where}: expected a sarcomere length in micrometres within "
                             f"[{(1 + lo) * sl0:.4g}, {(1 + hi) * sl0:.4g}] (strain SL/SL0 - 1 in [{lo}, {hi}] "
                             f"with SL0 = {sl0!r} um), got {raw[i]!r}")
         raise DataError(f"{where}: expected engineering strain in [{lo}, {hi}] (a fraction, not percent), "
                         f"got {strain[i]!r}")
-    if np.all(raw == np.round(raw)):
+    if deformation != "strain_percent" and np.all(raw == np.round(raw)):
         # a curve needs varying deformation; whole numbers only = decimal commas split the cells
         raise DataError(f"{name}: lines {linenos[0]}-{linenos[-1]}, column {column!r}: every value is a whole "
                         f"number ({', '.join(map(repr, np.unique(raw)[:4].tolist()))}), expected a varying "
@@ -389,6 +394,24 @@ def _check_plausible(name: str, raw: np.ndarray, stress: np.ndarray, unit: str |
     measure = " nominal" if nominal else ""
     raise DataError(f"{where}: stress {seen}{measure} gives a Cauchy stress of {peak:g} MPa, implausible for "
                     f"passive muscle (limit {MAX_PASSIVE_STRESS:g} MPa); {fix}")
+
+
+def _check_sign(name: str, strain: np.ndarray, stress: np.ndarray, cols: _Columns,
+                linenos: Sequence[int]) -> None:
+    """Refuse a curve whose largest stress has the opposite sign of its strain.
+
+    Passive muscle pulls back when stretched and pushes back when compressed: tension positive.
+    Noise may flip small stresses near zero strain, never the peak; a flipped peak means a
+    compression-positive convention (or a column mix-up), and fitting it would fit nothing.
+    """
+    i = int(np.argmax(np.abs(stress)))
+    if strain[i] * stress[i] >= 0:
+        return
+    side = "tension (strain > 0)" if strain[i] > 0 else "compression (strain < 0)"
+    raise DataError(f"{name}: line {linenos[i]}, column {cols.names['stress']!r}: the largest stress "
+                    f"{stress[i]:g} MPa has the opposite sign of its strain {strain[i]:g}, expected tension "
+                    f"positive (stress of the sign of the strain in {side}); a compression-positive file: "
+                    "flip the sign of the stress column")
 
 
 def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
@@ -509,6 +532,7 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
             data[role] = raw[role]
     _check_tests_and_time(name, data.get("time"), data.get("test"), linenos, labels)
     _check_plausible(name, raw["stress"], stress, unit, measure == "nominal", cols, linenos)
+    _check_sign(name, data["strain"], stress, cols, linenos)
 
     # the dataset holds Cauchy stress in MPa and strain: record what the file held
     if unit is not None:

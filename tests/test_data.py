@@ -90,6 +90,12 @@ ROWS5 = "".join(f"{0.1 * i},{0.01 * i}\n" for i in range(5))
     ("strain,stress\n0,0\n# note: late\n" + ROWS5, ["line 3", "after the header"]),
     ("strain,stress\n0,0\n0.1,0.1,7\n0.2,0.2\n0.3,0.3\n0.4,0.4\n", ["line 3", "ragged", "3 cells", "expected 2"]),
     ("strain,stress\n0,0\n0.1\n0.2,0.2\n0.3,0.3\n0.4,0.4\n", ["line 3", "ragged"]),
+    ("strain,stress\n0,0\n0.1,-0.01\n0.2,-0.04\n0.3,-0.09\n0.4,-0.16\n",
+     ["line 6", "'stress'", "opposite sign", "flip the sign"]),
+    ("strain,stress\n0,0\n-0.1,0.01\n-0.2,0.04\n-0.3,0.09\n-0.4,0.16\n",
+     ["line 6", "opposite sign", "compression (strain < 0)"]),
+    ("strain_percent,stress\n0,0\n10,0.1\n20,0.2\n300,0.3\n40,0.4\n",
+     ["line 5", "'strain_percent'", "percent within [-50, 200]", "300"]),
 ])
 def test_validation_errors(tmp_path, text, fragments):
     p = write(tmp_path, text)
@@ -100,6 +106,16 @@ def test_validation_errors(tmp_path, text, fragments):
     assert msg.startswith(str(p))
     for frag in fragments:
         assert frag in msg, (frag, msg)
+
+
+def test_strain_percent_and_noise_signs(tmp_path):
+    """Strain in percent (whole numbers allowed) is ε = value/100, recorded; a flipped small
+    stress near zero strain (noise) is kept, only a flipped peak is refused."""
+    p = write(tmp_path, "strain_percent,stress\n0,-0.0004\n5,0.002\n10,0.006\n15,0.013\n20,0.021\n30,0.05\n")
+    ds = load_specimen(p)
+    np.testing.assert_allclose(ds["strain"].values, [0, 0.05, 0.1, 0.15, 0.2, 0.3])
+    assert ds.attrs["deformation_input"] == "strain_percent"
+    assert ds["stress"].values[0] == -0.0004
 
 
 def test_missing_file_and_directory(tmp_path):

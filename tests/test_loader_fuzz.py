@@ -26,7 +26,7 @@ from hbm.errors import DataError
 
 # ----------------------------------------------------------------------------- the documented rules
 UNITS = {"mpa": 1.0, "kpa": 1000.0, "pa": 1e6}
-DEFORMATION_NAMES = {"strain", "stretch", "sarcomere_length_um"}
+DEFORMATION_NAMES = {"strain", "strain_percent", "stretch", "sarcomere_length_um"}
 RECORDS = ("units_stress_original", "stress_measure_original", "deformation_input", "test_labels")
 LABEL = re.compile(r"[A-Za-z][A-Za-z0-9_.+\-/()% ]{0,63}")
 META = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\- ]*?)\s*:\s?(.*)")
@@ -172,16 +172,24 @@ def meaning(raw: bytes, sl0=None):
         strain = [x - 1.0 for x in raw_def]
     elif header[d] == "sarcomere_length_um":
         strain = [x / ref - 1.0 for x in raw_def]
+    elif header[d] == "strain_percent":
+        strain = [x / 100.0 for x in raw_def]
     else:
         strain = raw_def
-    if not all(-0.5 <= e <= 2.0 for e in strain) or all(x.is_integer() for x in raw_def):
+    if not all(-0.5 <= e <= 2.0 for e in strain):
+        return None
+    if header[d] != "strain_percent" and all(x.is_integer() for x in raw_def):
         return None
     stress = cols["stress"]
     if unit not in (None, "mpa"):
         stress = [x / UNITS[unit] for x in stress]
     if measure == "nominal":
         stress = [(1.0 + e) * x for e, x in zip(strain, stress)]
-    if max(abs(x) for x in stress) > 5.0:
+    peak = max(abs(x) for x in stress)
+    if peak > 5.0:
+        return None
+    at = next(i for i, x in enumerate(stress) if abs(x) == peak)  # the first largest, as np.argmax
+    if strain[at] * stress[at] < 0:  # tension positive
         return None
     test, time = cols.get("test"), cols.get("time")
     if test is not None:
@@ -245,13 +253,18 @@ def _base_stretch_pa():
     return "# stress_measure: cauchy\nstretch,stress_Pa\n" + "\n".join(rows) + "\n"
 
 
+def _base_percent():
+    rows = [f"{2 * i},{0.0004 * i * i - 0.0001:.4f}" for i in range(12)]
+    return "strain_percent,stress\n" + "\n".join(rows) + "\n"
+
+
 def _base_sl_argument():
     rows = [f"{2.5 + 0.05 * i:.3f},{0.5 * i:.2f},ramp_0.01" for i in range(8)]
     return "sarcomere_length_um,nominal_stress_kPa,test\n" + "\n".join(rows) + "\n"
 
 
 BASES = [(_base_int_tests(), None), (_base_sl_labels(), None), (_base_stretch_pa(), None),
-         (_base_sl_argument(), 2.5), (_base_tests_no_time(), None)]
+         (_base_sl_argument(), 2.5), (_base_tests_no_time(), None), (_base_percent(), None)]
 
 CELLS = st.one_of(
     st.text(max_size=12),
