@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -26,7 +27,7 @@ import numpy as np
 from . import sensitivity as _sens
 from ._version import __version__
 from .data import input_summary
-from .errors import HbmError
+from .errors import HbmError, HbmWarning
 from . import seeds
 from .io import SpecimenResult, json_default, write_specimen_result
 from .likelihood import make_likelihood
@@ -552,6 +553,44 @@ class FitResult:
         return json.loads(json.dumps(q, default=json_default))
 
 
+#: above this many points the cost of a fit is measured and said before it starts
+LARGE_CURVE = 2000
+#: TMCMC likelihood evaluations per population member at the default settings (2.43e6 for
+#: N = 2000 on the benchmark posterior, results/benchmarks/evaluations_to_accuracy.md)
+EVALUATIONS_PER_SAMPLE = 1200
+
+
+def check_data_size(sid: str, lik, samples: int, max_evaluations: int | None = None) -> None:
+    """Warn (:class:`~hbm.errors.HbmWarning`) before a fit whose data size makes its result weak
+    or its cost large.
+
+    * Fewer points than twice the free parameters: the posterior of most parameters is the
+      prior box; only the identified combinations and the evidence speak for the data.
+    * More than :data:`LARGE_CURVE` points: the cost of one evaluation is measured on the
+      likelihood itself (no random numbers) and the TMCMC fit's expected time said, with the
+      remedies, when it exceeds two minutes.
+    """
+    n, free = int(lik.n_points), len(lik.names)
+    if n < 2 * free:
+        warnings.warn(f"{sid}: {n} points for {free} free parameters: most parameters are set by the prior "
+                      "box, not the data; read the identified combinations and the evidence", HbmWarning,
+                      stacklevel=2)
+    if n <= LARGE_CURVE:
+        return
+    rows = np.tile(lik.from_unit(np.full(free, 0.5)), (64, 1))
+    t = time.perf_counter()
+    lik(rows)
+    per_row = (time.perf_counter() - t) / 64
+    evaluations = EVALUATIONS_PER_SAMPLE * int(samples)
+    if max_evaluations is not None:
+        evaluations = min(evaluations, int(max_evaluations))
+    if per_row * evaluations > 120.0:
+        warnings.warn(f"{sid}: {n} points: one evaluation costs {1e3 * per_row:.2g} ms, the TMCMC fit about "
+                      f"{per_row * evaluations / 60:.0f} min (~{evaluations:.2g} evaluations); neighbouring points "
+                      "of a dense record are rarely independent: thin the curve or use the ar1 noise, and "
+                      "--max-evaluations caps the cost", HbmWarning, stacklevel=2)
+
+
 def _specimen_id(data) -> str:
     return str(getattr(data, "attrs", {}).get("id", "specimen"))
 
@@ -635,6 +674,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     sid = _specimen_id(data)
     prior = load_prior(prior)
     lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)
+    check_data_size(sid, lik, samples, max_evaluations)
     s_opt, s_tm, s_pred, s_sob = seeds.child_ints(seed, len(seeds.PHASES))  # the phase streams of hbm.seeds
     sweep_t = parse_sweep(sweep)
     if sweep_t is not None and sweep_t[0] in lik.names and lik.forms[lik.index(sweep_t[0])] == "loguniform":

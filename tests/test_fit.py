@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 
+import warnings
+
 import numpy as np
 import pytest
+import xarray as xr
 from conftest import cli_error
 
 from hbm import io
 from hbm.data import synthetic_specimen
-from hbm.errors import HbmError
+from hbm import fit as fit_mod
+from hbm.errors import HbmError, HbmWarning
 from hbm.fit import fit_specimen, pointwise_log_likelihood, posterior_predictive, summarize
 from hbm.seeds import child_ints
 from hbm.likelihood import make_likelihood
@@ -108,3 +112,29 @@ def test_cli_fit(tmp_path, run_cli):
     assert "(1-VOLF)*T1" in text and "log-evidence" in text
     assert "sample size >= 20" in cli_error(run_cli, ["fit", csv, "--samples", "2"])
     assert "power of 2" in cli_error(run_cli, ["fit", csv, "--sobol", "100"])
+
+
+def test_data_size_warnings(monkeypatch):
+    """Few points for the free parameters, and a dense curve's measured cost, are said before
+    the fit; a plain curve gets neither."""
+    model = spyrou_model()
+    theta = np.array([[0.9, 0.1, 0.1, 1.0, 12.0, 58.0, 0.01, 0.01]])
+
+    def lik_of(n):
+        eps = np.linspace(0, 0.3, n)
+        ds = xr.Dataset({"strain": ("point", eps), "stress": ("point", model.stress(eps, theta)[0] + 1e-4)},
+                        attrs={"id": "s"})
+        return make_likelihood(model, ds)
+
+    with pytest.warns(HbmWarning, match="6 points for 9 free parameters"):
+        fit_mod.check_data_size("s", lik_of(6), 100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_mod.check_data_size("s", lik_of(40), 2000)  # neither warning
+    monkeypatch.setattr(fit_mod, "LARGE_CURVE", 100)
+    monkeypatch.setattr(fit_mod, "EVALUATIONS_PER_SAMPLE", 10 ** 9)
+    with pytest.warns(HbmWarning, match=r"s: 400 points: one evaluation costs .* ms, the TMCMC fit about"):
+        fit_mod.check_data_size("s", lik_of(400), 100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_mod.check_data_size("s", lik_of(400), 100, max_evaluations=10)  # capped: cheap
