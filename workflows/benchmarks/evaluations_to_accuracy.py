@@ -46,7 +46,9 @@ for p in (str(ROOT), str(HERE)):
         sys.path.insert(0, p)
 
 import muscle_posterior as mp  # noqa: E402
+from hbm.combinations import CombinationCoordinates  # noqa: E402
 from hbm.samplers import tmcmc  # noqa: E402
+from hbm.samplers.tmcmc import LogitCoordinates, _eval, _free_cov, _rw_de_step, _safe_cholesky  # noqa: E402
 from hbm.utils import atomic_write_text  # noqa: E402
 
 MS_PER_ROW = 1e-3
@@ -62,6 +64,18 @@ SETTINGS = {
     "recycle + local moves (N=1000, ≤50 steps)": ({"n_samples": 1000, "cov_target": 1.5, "recycle": True,
                                                    "n_islands": 8, "max_steps": 50, "proposal": "local",
                                                    "local_neighbours": 10, "local_ridge": 1e-4}, 3),
+    # sampling coordinates of hbm.combinations.CombinationCoordinates ("coordinates": its theta=):
+    # log c / log(1−c) shear of P1, GF / T1, GM and THETA → log collagen onset strain
+    "coords: default (N=2000)": ({"coordinates": "onset"}, 5),
+    "coords: lean (N=1500, CoV 1.5)": ({"coordinates": "onset", "preset": "lean"}, None),
+    "N=1000, CoV 1.5, ≤50 steps (logit)": ({"n_samples": 1000, "cov_target": 1.5, "max_steps": 50}, None),
+    "coords: N=1000, CoV 1.5, ≤50 steps": ({"coordinates": "onset", "n_samples": 1000, "cov_target": 1.5,
+                                            "max_steps": 50}, None),
+    "recycled N=1000, CoV 1.5, ≤50 steps (logit)": ({"n_samples": 1000, "cov_target": 1.5, "max_steps": 50,
+                                                     "recycle": True, "n_islands": 8}, 5),
+    "coords: recycled N=1000, CoV 1.5, ≤50 steps": ({"coordinates": "onset", "n_samples": 1000, "cov_target": 1.5,
+                                                     "max_steps": 50, "recycle": True, "n_islands": 8}, 5),
+    "coords: frugal preset": ({"coordinates": "onset", "preset": "frugal"}, 5),
 }
 # name -> (script, arguments after "run --bench DIR", wall-time cap s): the peers' own accuracy knobs
 # at their defaults (pocoMC n_effective 512, nautilus n_live 2000, dynesty nlive 500); the caps keep
@@ -133,6 +147,9 @@ def run(lik, gold, name, kw, seed) -> dict:
         rows[0] += len(x)
         return lik(x)
 
+    kw = dict(kw)
+    if "coordinates" in kw:
+        kw["bijection"] = CombinationCoordinates(lik.names, lik.bounds, theta=kw.pop("coordinates"))
     c = time.process_time()
     r = tmcmc(counted, lik.bounds, seed=seed, progress=False, **kw)
     cpu = time.process_time() - c
@@ -151,6 +168,94 @@ def _row(name, seed, evaluations, cpu, log_z, se, worst, gold, **extra) -> dict:
             "abs_error": err, "max_mean_err_sd": worst,
             "covered_2se": bool(np.isfinite(se) and err <= 2 * se),
             "reached": bool(err <= TARGET_LOGZ and worst <= TARGET_MEAN), **extra}
+
+
+# ------------------------------------------------------------------------------- geometry
+def _combos(names, x) -> np.ndarray:
+    """The seven gold quantities (columns in mp.GOLD_KEYS order)."""
+    col = {n: x[:, i] for i, n in enumerate(names)}
+    c = col["VOLF"]
+    return np.column_stack([(1 - c) * col["T1"], c * col["P1"], c * col["GF"] + (1 - c) * col["GM"], col["EOPT"],
+                            col["T2"], col["THETA"], col["sigma"]])
+
+
+def _rank_corr(a, b) -> np.ndarray:
+    ra, rb = np.argsort(np.argsort(a, axis=0), axis=0), np.argsort(np.argsort(b, axis=0), axis=0)
+    ra, rb = ra - ra.mean(axis=0), rb - rb.mean(axis=0)
+    return np.abs((ra * rb).sum(axis=0) / np.sqrt((ra * ra).sum(axis=0) * (rb * rb).sum(axis=0)))
+
+
+def geometry(lik, n_points: int = 20, steps: int = 100, seed: int = 0) -> tuple[list[dict], dict]:
+    """Whitened Fisher information and β = 1 mixing in several sampling coordinates.
+
+    Posterior draws: the default TMCMC run (``seed``).  For each map u = g(θ): the eigenvalues of
+    Lᵀ Jᵀ F(θ) J L at ``n_points`` posterior draws (F the Fisher information of ``lik``, J = ∂θ/∂u by
+    central differences, L L ᵀ the posterior covariance of u), and — as the direct measure —
+    ``steps`` random-walk MH steps at β = 1 from the whole posterior population with the global
+    covariance and the scale adapted to 30 % acceptance as in TMCMC: the adapted scale and the
+    largest rank correlation of the seven gold quantities (and of log L) with their start.
+    """
+    r = tmcmc(lik, lik.bounds, seed=seed, progress=False)
+    post = r.samples
+    pts = post[np.random.default_rng(1).choice(len(post), n_points, replace=False)]
+    _, fim = lik.gradient_fim(pts)
+    maps = {"logit (today's default)": LogitCoordinates(lik.bounds)}
+    for label, kw in [("shear only (THETA logit)", {"theta": "logit"}),
+                      ("THETA linear, no shear", {"theta": "linear", "shear": False}),
+                      ("shear + THETA linear", {"theta": "linear"}),
+                      ("shear + THETA → log onset strain", {"theta": "onset"})]:
+        maps[label] = CombinationCoordinates(lik.names, lik.bounds, **kw)
+    start = np.column_stack([_combos(lik.names, post), r.log_likelihood])
+    rows = []
+    for label, m in maps.items():
+        u = m.forward(post)
+        chol = np.linalg.cholesky(np.cov(u.T))
+        up, h, d = m.forward(pts), 1e-6, post.shape[1]
+        jac = np.empty((n_points, d, d))
+        for k in range(d):
+            e = np.zeros(d)
+            e[k] = h
+            jac[:, :, k] = (m.inverse(up + e)[0] - m.inverse(up - e)[0]) / (2 * h)
+        ev = np.linalg.eigvalsh(np.einsum("ki,nak,nab,nbl,lj->nij", chol, jac, fim, jac, chol, optimize=True))
+        # β = 1 random walk from the posterior population (global covariance, adapted scale)
+        rng = np.random.default_rng(5)
+        x, ll = u.copy(), r.log_likelihood.copy()
+        lp = m.inverse(x)[1]
+        sup = np.asarray(m.support, float)
+        box = sup if np.isfinite(sup).any() else None
+        rw_chol = _safe_cholesky(_free_cov(x, np.ones(len(x))))
+
+        def evaluate(v, m=m):
+            t, lj = m.inverse(v)
+            return _eval(lik, t), lj
+        scale, acc = 0.2, []
+        for _ in range(steps):
+            x, ll, lp, a, _, _ = _rw_de_step(x, ll, lp, 1.0, rw_chol, scale, box, evaluate, rng, x,
+                                             np.arange(len(x)), 0.0, 1.0, 0.1, 0.05)
+            acc.append(float(a.mean()))
+            scale = float(np.clip(scale * np.exp(0.5 * (acc[-1] - 0.3) / 0.3), 1e-4, 10.0))
+        now = np.column_stack([_combos(lik.names, m.inverse(x)[0]), ll])
+        corr = _rank_corr(start, now)
+        rows.append({"coordinates": label, "lambda_max_median": float(np.median(ev[:, -1])),
+                     "lambda_max_min": float(ev[:, -1].min()), "lambda_max_max": float(ev[:, -1].max()),
+                     "lambda_2_median": float(np.median(ev[:, -2])), "rw_scale": scale,
+                     "rank_corr_after": dict(zip([*mp.GOLD_KEYS, "log L"], map(float, corr))),
+                     "max_rank_corr_after": float(corr.max()), "steps": steps})
+        print(f"geometry {label}: lambda_max median {rows[-1]['lambda_max_median']:.0f}, scale {scale:.3f}, "
+              f"max rank corr after {steps} steps {corr.max():.2f}", file=sys.stderr, flush=True)
+    return rows, {"log_evidence": r.log_evidence, "evaluations": r.n_evaluations, "seed": seed}
+
+
+def geometry_table(rows) -> str:
+    keys = [*mp.GOLD_KEYS, "log L"]
+    out = ["| sampling coordinates | λ_max (median of 20 draws) | λ_max range | λ_2 (median) | adapted RW scale "
+           f"(β = 1) | rank corr. with start after {rows[0]['steps']} RW steps: " + ", ".join(keys) + " |",
+           "|---|---|---|---|---|---|"]
+    for r in rows:
+        c = ", ".join(f"{r['rank_corr_after'][k]:.2f}" for k in keys)
+        out.append(f"| {r['coordinates']} | {r['lambda_max_median']:.0f} | {r['lambda_max_min']:.0f}–"
+                   f"{r['lambda_max_max']:.0f} | {r['lambda_2_median']:.0f} | {r['rw_scale']:.3f} | {c} |")
+    return "\n".join(out)
 
 
 # ------------------------------------------------------------------------------- peers
@@ -278,10 +383,16 @@ def main(argv=None) -> int:
     ap.add_argument("--peer-seeds", type=int, default=2)
     ap.add_argument("--peer-jobs", type=int, default=3, help="peer processes at once")
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmarks"))
+    ap.add_argument("--geometry", action="store_true",
+                    help="also measure the whitened Fisher information and β = 1 mixing per sampling coordinates")
+    ap.add_argument("--round-title", default=None,
+                    help="insert this round as a dated section at the top of the existing report (keeping "
+                         "its rows) instead of rewriting it")
     args = ap.parse_args(argv)
     names = list(SETTINGS) if args.settings is None else [s.strip() for s in args.settings.split(";")]
     lik, gold, kind = mp.make_problem()
     rows, notes = [], []
+    geo = geometry(lik) if args.geometry else None
     with ThreadPoolExecutor(max_workers=1) as bg:
         peers = None
         if args.peers:  # same round: the peer processes run while hbm's settings run here
@@ -296,11 +407,38 @@ def main(argv=None) -> int:
             prow, notes = peers.result()
             rows += prow
     stamp = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
+    if args.round_title:
+        return add_round(Path(args.out), args.round_title, rows, notes, geo, stamp, os.getloadavg()[0])
     text = render(rows, notes, kind, gold, stamp, os.getloadavg()[0])
     print(text)
     atomic_write_text(Path(args.out) / "evaluations_to_accuracy.md", text)
     atomic_write_text(Path(args.out) / "evaluations_to_accuracy.json",
                       json.dumps({"measured": stamp, "notes": notes, "rows": rows}, indent=1))
+    return 0
+
+
+def add_round(out: Path, title: str, rows: list[dict], notes: list[str], geo, stamp: str, load: float) -> int:
+    """Insert a dated section (table of ``rows``, the geometry table) below the report's title
+    line, keeping everything that was there; append the runs to the JSON's ``rounds``."""
+    md_path, js_path = out / "evaluations_to_accuracy.md", out / "evaluations_to_accuracy.json"
+    old = md_path.read_text().split("\n", 1) if md_path.exists() else ["# Evaluations to accuracy", ""]
+    sec = [f"## This round ({stamp} UTC): {title}", "",
+           f"Same problem, target and columns as below; CPU = process time (1-min load {load:.1f} at the end).", ""]
+    if rows:
+        sec += [table(rows), ""]
+    sec += [f"- {n}" for n in notes]
+    if geo is not None:
+        grows, ref = geo
+        sec += ["", f"Geometry (posterior draws: default TMCMC seed {ref['seed']}, log Ẑ {ref['log_evidence']:.2f}; "
+                "λ = eigenvalues of the Fisher information whitened by the posterior covariance of the "
+                "coordinates; the random walk starts from that whole population at β = 1):", "",
+                geometry_table(grows)]
+    atomic_write_text(md_path, old[0] + "\n\n" + "\n".join(sec) + "\n\n" + old[1].lstrip("\n"))
+    data = json.loads(js_path.read_text()) if js_path.exists() else {}
+    data.setdefault("rounds", []).append({"measured": stamp, "title": title, "notes": notes, "rows": rows,
+                                          "geometry": None if geo is None else {"rows": geo[0], "reference": geo[1]}})
+    atomic_write_text(js_path, json.dumps(data, indent=1))
+    print("\n".join(sec))
     return 0
 
 
