@@ -50,8 +50,8 @@ from .errors import HbmError
 from .model import COMBINATIONS
 from .utils import as_generator
 
-__all__ = ["COMBINATION_PARAMS", "FEATURES", "combination_box", "combination_features", "log_density",
-           "support_hull", "sample_conditional", "to_features"]
+__all__ = ["COMBINATION_PARAMS", "FEATURES", "CombinationCoordinates", "combination_box", "combination_features",
+           "log_density", "onset_strain", "support_hull", "sample_conditional", "to_features"]
 
 #: parameters entering the combinations, in the column order used by this module
 COMBINATION_PARAMS = ("VOLF", "P1", "T1", "GF", "GM")
@@ -301,3 +301,137 @@ def sample_conditional(phi, bounds, rng, names: Sequence[str] | None = None, *, 
     out = np.column_stack([c, p1, t1, gf, gm])
     # rounding only (c lies inside the support interval): keep the draws in the box
     return np.clip(out, box[:, 0], box[:, 1])
+
+
+# --------------------------------------------------------------------------------------
+# sampling coordinates for TMCMC
+# --------------------------------------------------------------------------------------
+#: the fibre angle (degrees) below which the collagen term has no onset strain (cos²θ = 1/3)
+_MAGIC_ANGLE = float(np.degrees(np.arccos(np.sqrt(1.0 / 3.0))))
+
+
+def onset_strain(theta_deg) -> np.ndarray:
+    """Strain ε* > 0 at which λH = 1 again, i.e. where the collagen term switches on.
+
+    λH² = cos²θ·λ² + sin²θ/λ = 1 has the roots λ = 1 and the positive root of
+    cos²θ·(λ² + λ) = sin²θ; ε* = λ − 1 (0.3028 at 60°, 0 at the magic angle 54.74°).
+    """
+    c2 = np.cos(np.deg2rad(np.asarray(theta_deg, float))) ** 2
+    return (np.sqrt(c2 * c2 + 4.0 * c2 * (1.0 - c2)) - c2) / (2.0 * c2) - 1.0
+
+
+def _theta_from_onset(eps) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`onset_strain` and log dθ/dε* (θ in degrees): cos²θ = 1/(λ² + λ + 1)."""
+    lam = 1.0 + np.asarray(eps, float)
+    c2 = 1.0 / (lam * lam + lam + 1.0)
+    theta = np.degrees(np.arccos(np.sqrt(c2)))
+    # dθ/dλ = (2λ + 1)·c2² / (2 √(c2 (1 − c2))) radians
+    log_d = np.log((2.0 * lam + 1.0) * c2 * c2 / (2.0 * np.sqrt(c2 * (1.0 - c2))) * (180.0 / np.pi))
+    return theta, log_d
+
+
+class CombinationCoordinates:
+    """TMCMC sampling coordinates that straighten the Spyrou model's degeneracies.
+
+    Every parameter starts from the sampler's default logit coordinate
+    ℓ_j = logit((θ_j − lo_j)/(hi_j − lo_j)); then
+
+    * P1 and GF are sheared by log c and T1 and GM by log(1 − c) (c = VOLF): u = ℓ + log c, so
+      the hyperbolas c·P1 = const that the curve identifies (and (1 − c)·T1 = const) become
+      nearly straight lines in (ℓ_c, u) wherever P1 lies well inside its box.  The shear is unit
+      triangular: the Jacobian is that of the logit alone;
+    * THETA (if its box lies above the magic angle 54.74°) becomes u = log ε*(THETA), the log
+      onset strain of the collagen term (:func:`onset_strain`) on its box [log ε*(lo), log ε*(hi)]
+      — *not* a logit: the posterior piles up at the 60° face, where a logit would stretch it
+      into a long tail whose local scale changes exponentially (a turning thin direction).
+
+    Measured on the shared benchmark posterior (workflows/benchmarks/evaluations_to_accuracy.py
+    ``--geometry``): the largest eigenvalue of the Fisher information whitened by the
+    posterior covariance falls from a median ~8000 (logit) to ~1400 and the β = 1 random walk's
+    step scale rises 1.8×, but TMCMC does not reach the benchmark's accuracy with fewer
+    evaluations in these coordinates (results/benchmarks/evaluations_to_accuracy.md): the
+    remaining thin direction is not a smooth function of the others.  Exact (tested), optional.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Parameter names in the sampler's column order (absent VOLF: no shear; absent THETA:
+        no onset coordinate; other parameters keep the logit).
+    bounds : array (len(names), 2)
+        The uniform prior box.
+    theta : {"onset", "linear", "logit"}
+        Coordinate of THETA: log onset strain (default), THETA itself, or the plain logit.
+    shear : bool
+        Apply the log c / log(1 − c) shear.
+    """
+
+    def __init__(self, names: Sequence[str], bounds, *, theta: str = "onset", shear: bool = True):
+        self.names = [str(n) for n in names]
+        b = np.asarray(bounds, float)
+        if b.shape != (len(self.names), 2) or not np.all(np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
+            raise HbmError(f"combinations: bounds must be a finite ({len(self.names)}, 2) box with lo < hi")
+        if theta not in ("onset", "linear", "logit"):
+            raise HbmError(f"combinations: theta must be 'onset', 'linear' or 'logit', got {theta!r}")
+        self.lo, self.width = b[:, 0].copy(), b[:, 1] - b[:, 0]
+        ix = {n: j for j, n in enumerate(self.names)}
+        self._c = ix.get("VOLF") if shear else None
+        if self._c is not None and not (0.0 < b[self._c, 0] and b[self._c, 1] < 1.0):
+            raise HbmError(f"combinations: VOLF box must lie inside (0, 1), got {b[self._c].tolist()}")
+        self._up = [ix[p] for p in ("P1", "GF") if p in ix and self._c is not None]
+        self._down = [ix[p] for p in ("T1", "GM") if p in ix and self._c is not None]
+        self._th = ix.get("THETA") if theta != "logit" else None
+        self._theta_kind = theta
+        if self._th is not None and theta == "onset" and not b[self._th, 0] > _MAGIC_ANGLE:
+            raise HbmError(f"combinations: theta='onset' needs a THETA box above {_MAGIC_ANGLE:.2f} deg, "
+                           f"got {b[self._th].tolist()}")
+        self._logit = np.ones(len(self.names), dtype=bool)
+        sup = np.array([[-np.inf, np.inf]] * len(self.names))
+        if self._th is not None:
+            self._logit[self._th] = False
+            sup[self._th] = np.log(onset_strain(b[self._th])) if theta == "onset" else b[self._th]
+        self.support = sup
+        self.name = f"combinations(theta={theta},shear={bool(shear)},names={','.join(self.names)})"
+
+    def _shift(self, c: np.ndarray) -> np.ndarray:
+        """(n, d) shear added to the logit coordinates."""
+        s = np.zeros((len(c), len(self.names)))
+        s[:, self._up] = np.log(c)[:, None]
+        s[:, self._down] = np.log1p(-c)[:, None]
+        return s
+
+    def forward(self, theta: np.ndarray) -> np.ndarray:
+        """θ (n, d) → u (n, d)."""
+        x = np.asarray(theta, float)
+        f = np.clip((x - self.lo) / self.width, 1e-15, 1.0 - 1e-15)
+        u = np.log(f) - np.log1p(-f)
+        if self._c is not None:
+            u = u + self._shift(x[:, self._c])
+        if self._th is not None:
+            t = x[:, self._th]
+            u[:, self._th] = np.log(onset_strain(t)) if self._theta_kind == "onset" else t
+        return u
+
+    def inverse(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """u (n, d) → (θ (n, d), log|det ∂θ/∂u| (n,))."""
+        u = np.asarray(u, float)
+        ell = u.copy()
+        if self._c is not None:  # VOLF is itself a plain logit: undo the shear with its c
+            a = np.abs(u[:, self._c])
+            e = np.exp(-a)
+            fc = np.where(u[:, self._c] >= 0, 1.0, e) / (1.0 + e)
+            ell = ell - self._shift(self.lo[self._c] + fc * self.width[self._c])
+        a = np.abs(ell)
+        e = np.exp(-a)  # stable logistic
+        f = np.where(ell >= 0, 1.0, e) / (1.0 + e)
+        x = self.lo + f * self.width
+        # logit Jacobian: dθ/dℓ = width·f(1 − f) = width·e^{−|ℓ|}/(1 + e^{−|ℓ|})²; the shear has det 1
+        log_j = np.log(self.width) - a - 2.0 * np.log1p(e)
+        if self._th is not None:
+            t = u[:, self._th]
+            if self._theta_kind == "onset":
+                x[:, self._th], log_d = _theta_from_onset(np.exp(t))
+                log_j[:, self._th] = t + log_d
+            else:
+                x[:, self._th] = t
+                log_j[:, self._th] = 0.0
+        return x, log_j.sum(axis=1)

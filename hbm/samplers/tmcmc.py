@@ -29,7 +29,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, NamedTuple, Optional, get_type_hints
+from typing import Any, Callable, Mapping, NamedTuple, Optional, Protocol, get_type_hints, runtime_checkable
 
 import numpy as np
 from scipy.optimize import brentq
@@ -41,6 +41,31 @@ from .local_proposal import fit_local_metric, local_step, nearest_reference
 
 LogLikelihood = Callable[[np.ndarray], np.ndarray]
 GradientFIM = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray]"]
+
+
+@runtime_checkable
+class Bijection(Protocol):
+    """Sampling coordinates u = g(θ) of the random walk, replacing the default logit transform.
+
+    The samplers know nothing of the model: a caller that knows the model's degeneracies (e.g.
+    :class:`hbm.combinations.CombinationCoordinates`) passes an object with
+
+    * ``name`` : str — identifies the map in checkpoint fingerprints;
+    * ``support`` : array (d, 2) — the box of u that g maps the prior box onto (±inf allowed);
+      proposals outside it are rejected without evaluating the likelihood;
+    * ``forward(theta)`` : (n, d) → u (n, d);
+    * ``inverse(u)`` : (n, d) → (θ (n, d), log|det ∂θ/∂u| (n,)).
+
+    The prior of θ is uniform on the box, so the log-density of u is the log-Jacobian up to a
+    constant: the MH ratio uses it and the tempered target (hence log Ẑ) is unchanged.
+    """
+
+    name: str
+    support: np.ndarray
+
+    def forward(self, theta: np.ndarray) -> np.ndarray: ...
+
+    def inverse(self, u: np.ndarray) -> "tuple[np.ndarray, np.ndarray]": ...
 
 _CHECKPOINT_VERSION = 1
 
@@ -101,7 +126,8 @@ class TMCMCConfig:
         with the logistic prior density of u in the MH ratio: proposals never leave the box and
         multiplicative ridges (T1 ∝ 1/(1 − VOLF), A·exp(T2·x)) become nearly straight, which is
         what made the muscle benchmark accurate at ~100× less cost.  The manifold kernel always
-        works in box coordinates.
+        works in box coordinates.  A ``bijection`` passed to :func:`tmcmc` / :func:`step`
+        replaces this transform by the caller's coordinates (:class:`Bijection`).
     n_islands : int
         K contiguous blocks of particles resampled separately (sharing β and proposal shape);
         the spread of their evidences gives ``log_evidence_se`` including the error of incomplete
@@ -646,6 +672,50 @@ def _batched_cholesky(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return chol, ok
 
 
+def _free_cov(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted covariance in unbounded sampling coordinates, with a relative floor."""
+    wn = w / w.sum()
+    xc = x - wn @ x
+    sigma = (xc * wn[:, None]).T @ xc
+    # floor: a degenerate weight vector (one survivor) must not freeze the walk
+    return 0.5 * (sigma + sigma.T) + np.diag(1e-9 * x.var(axis=0) + 1e-12)
+
+
+def _check_bijection(bijection: Optional[Bijection], config: TMCMCConfig, d: int) -> None:
+    """Reject a bijection the kernel cannot use (checked once per stage: cheap)."""
+    if bijection is None:
+        return
+    if not isinstance(bijection, Bijection):
+        raise HbmError("tmcmc: bijection needs name, support, forward(theta) and inverse(u)")
+    if config.kernel != "rw":
+        raise HbmError("tmcmc: a bijection needs kernel='rw' (the manifold kernel works in box coordinates)")
+    sup = np.asarray(bijection.support, float)
+    if sup.shape != (d, 2) or np.any(sup[:, 0] >= sup[:, 1]):
+        raise HbmError(f"tmcmc: bijection support must be a (d, 2) box with lo < hi, got shape {sup.shape}")
+    if config.proposal == "local" and np.isfinite(sup).any():
+        raise HbmError("tmcmc: proposal='local' needs a bijection onto all of R^d (its steps are unbounded)")
+
+
+class LogitCoordinates:
+    """The default sampling coordinates (``transform="logit"``) as a :class:`Bijection`.
+
+    Passing it as ``bijection`` reproduces the default run bitwise; it is the reference that
+    other coordinates are compared with (e.g. the geometry measurement of the benchmark).
+    """
+
+    name = "logit"
+
+    def __init__(self, bounds):
+        self.bounds = _check_bounds(bounds)
+        self.support = np.array([[-np.inf, np.inf]] * len(self.bounds))
+
+    def forward(self, theta: np.ndarray) -> np.ndarray:
+        return _to_logit(np.asarray(theta, float), self.bounds)
+
+    def inverse(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _from_logit(np.asarray(u, float), self.bounds, True)
+
+
 def _to_logit(x: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """Box → R^d: u = log(f / (1 − f)), f = (x − lo)/(hi − lo) (kept finite at the faces)."""
     f = np.clip((x - bounds[:, 0]) / (bounds[:, 1] - bounds[:, 0]), 1e-15, 1.0 - 1e-15)
@@ -1170,7 +1240,8 @@ def init(log_likelihood: LogLikelihood, bounds, config: TMCMCConfig, seed) -> TM
 
 
 def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMCConfig,
-         gradient_fim: Optional[GradientFIM] = None) -> tuple[TMCMCState, StageInfo]:
+         gradient_fim: Optional[GradientFIM] = None,
+         bijection: Optional[Bijection] = None) -> tuple[TMCMCState, StageInfo]:
     """One TMCMC stage: next β, evidence increment, resampling, MH moves.
 
     Parameters
@@ -1183,6 +1254,9 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     config : TMCMCConfig
     gradient_fim : callable, optional
         θ (n, d) → (∇ log L (n, d), Fisher information (n, d, d)); required for the manifold kernel.
+    bijection : Bijection, optional
+        Sampling coordinates of the random walk (instead of ``config.transform``); see
+        :class:`Bijection`.  None (default) leaves the run unchanged.
 
     Returns
     -------
@@ -1191,6 +1265,7 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         Per-stage diagnostics.
     """
     bounds = _check_bounds(bounds)
+    _check_bijection(bijection, config, len(bounds))
     if state.beta >= 1.0:
         raise HbmError("tmcmc: the run is already at beta = 1")
     rng = _rng_from_state(state.rng_state)
@@ -1242,21 +1317,27 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     log_mean_w = log_z_new - state.log_evidence
 
     # 2. resample and prepare the proposal (weighted covariance at the new β)
-    use_logit = config.transform == "logit" and config.kernel == "rw"
+    use_bij = bijection is not None
+    use_logit = config.transform == "logit" and config.kernel == "rw" and not use_bij
     if use_logit:
         # random walk in unconstrained logit coordinates: the uniform prior becomes a product of
         # logistic densities, multiplicative ridges (T1 ~ 1/(1−c), A·e^{T2·x}) become nearly straight
         x = _to_logit(x, bounds)
-        box = np.array([[-np.inf, np.inf]] * d)
-        wn = w / w.sum()
-        xc = x - wn @ x
-        sigma = (xc * wn[:, None]).T @ xc
-        # floor: a degenerate weight vector (one survivor) must not freeze the walk
-        sigma = 0.5 * (sigma + sigma.T) + np.diag(1e-9 * x.var(axis=0) + 1e-12)
+        sigma = _free_cov(x, w)
         box = None
 
         def evaluate(u):
             theta, lp_u = _from_logit(u, bounds, True)
+            return _eval(log_likelihood, theta), lp_u
+    elif use_bij:
+        # the caller's coordinates: log-Jacobian as the prior density of u, its support as the box
+        x = bijection.forward(x)
+        sigma = _free_cov(x, w)
+        sup = np.asarray(bijection.support, float)
+        box = sup if np.isfinite(sup).any() else None
+
+        def evaluate(u):
+            theta, lp_u = bijection.inverse(u)
             return _eval(log_likelihood, theta), lp_u
     else:
         box = bounds
@@ -1279,7 +1360,10 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     else:
         idx = _resample_islands(logw, m_k, starts, sizes, isl, rng, config.resampling)
     x, ll = x[idx], ll[idx]
-    lp = _from_logit(x, bounds, True)[1] if use_logit else np.zeros(n)
+    if use_bij:
+        lp = bijection.inverse(x)[1]
+    else:
+        lp = _from_logit(x, bounds, True)[1] if use_logit else np.zeros(n)
     start = x.copy()
 
     # 3. Metropolis–Hastings moves
@@ -1358,6 +1442,8 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         metric_ok = float(np.mean(oks)) if oks else float("nan")
     if use_logit:
         x = _from_logit(x, bounds)
+    elif use_bij:
+        x = bijection.inverse(x)[0]
 
     hist = (None, None, None)
     if config.recycle:
@@ -1408,11 +1494,13 @@ def _evidence_se(state: TMCMCState) -> float:
 # ----------------------------------------------------------------------------------------
 # checkpoints
 # ----------------------------------------------------------------------------------------
-def _fingerprint(config: TMCMCConfig, bounds: np.ndarray, seed) -> str:
+def _fingerprint(config: TMCMCConfig, bounds: np.ndarray, seed, bijection: Optional[str] = None) -> str:
     cfg = {k: v for k, v in dataclasses.asdict(config).items()
            if not (k in _LATE_FIELDS and v == _LATE_FIELDS[k])}
     payload = {"config": cfg, "bounds": bounds.tolist(), "seed": repr(seed),
                "version": _CHECKPOINT_VERSION}
+    if bijection is not None:  # absent without one: older checkpoints still resume
+        payload["bijection"] = bijection
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
@@ -1486,7 +1574,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
           proposal_scale: float = 0.2, n_steps: Optional[int] = None, max_stages: int = 100,
           checkpoint: Optional[str | os.PathLike] = None, progress: bool = True,
           max_evaluations: Optional[int] = None, preset: Optional[str] = None,
-          **options: Any) -> TMCMCResult:
+          bijection: Optional[Bijection] = None, **options: Any) -> TMCMCResult:
     """Transitional MCMC from the uniform prior on ``bounds`` to the posterior, with log-evidence.
 
     Parameters
@@ -1525,6 +1613,10 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
     preset : str or None
         Named settings of :data:`PRESETS` ("default", "lean", "frugal") used as defaults for the
         population size, ``cov_target`` and the options; explicit arguments override them.
+    bijection : Bijection or None
+        Sampling coordinates of the random walk replacing the logit transform (see
+        :class:`Bijection`; e.g. :class:`hbm.combinations.CombinationCoordinates` for the muscle
+        model).  None (default): the run is unchanged.
     **options
         Further :class:`TMCMCConfig` fields (transform, n_islands, min_steps, max_steps,
         mixing_target, mixing, mixing_every, target_acceptance, target_acceptance_manifold,
@@ -1561,6 +1653,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         raise HbmError("tmcmc: kernel='manifold' needs gradient_fim")
     if seed is None or isinstance(seed, np.random.Generator):
         raise HbmError("tmcmc: seed must be an int (reproducible, resumable runs)")
+    _check_bijection(bijection, config, len(b))
 
     timer = [0.0]
 
@@ -1580,7 +1673,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
             finally:
                 timer[0] += time.perf_counter() - t
 
-    fp = _fingerprint(config, b, seed)
+    fp = _fingerprint(config, b, seed, None if bijection is None else str(bijection.name))
     settings = {"n_samples": config.n_samples, "kernel": kernel, "seed": repr(seed), "d": len(b)}
     path = Path(checkpoint) if checkpoint is not None else None
     stages: list[StageInfo] = []
@@ -1604,7 +1697,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         bar.update(int(1000 * state.beta))
     try:
         while state.beta < 1.0:
-            state, info = step(state, ll_timed, b, config, gf_timed)
+            state, info = step(state, ll_timed, b, config, gf_timed, bijection)
             stages.append(info)
             if path is not None:
                 _save_checkpoint(path, state, stages, fp, settings)

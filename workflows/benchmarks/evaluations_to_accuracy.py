@@ -46,7 +46,9 @@ for p in (str(ROOT), str(HERE)):
         sys.path.insert(0, p)
 
 import muscle_posterior as mp  # noqa: E402
+from hbm.combinations import CombinationCoordinates  # noqa: E402
 from hbm.samplers import tmcmc  # noqa: E402
+from hbm.samplers.tmcmc import LogitCoordinates, _eval, _free_cov, _rw_de_step, _safe_cholesky  # noqa: E402
 from hbm.utils import atomic_write_text  # noqa: E402
 
 MS_PER_ROW = 1e-3
@@ -62,6 +64,18 @@ SETTINGS = {
     "recycle + local moves (N=1000, ≤50 steps)": ({"n_samples": 1000, "cov_target": 1.5, "recycle": True,
                                                    "n_islands": 8, "max_steps": 50, "proposal": "local",
                                                    "local_neighbours": 10, "local_ridge": 1e-4}, 3),
+    # sampling coordinates of hbm.combinations.CombinationCoordinates ("coordinates": its theta=):
+    # log c / log(1−c) shear of P1, GF / T1, GM and THETA → log collagen onset strain
+    "coords: default (N=2000)": ({"coordinates": "onset"}, 5),
+    "coords: lean (N=1500, CoV 1.5)": ({"coordinates": "onset", "preset": "lean"}, None),
+    "N=1000, CoV 1.5, ≤50 steps (logit)": ({"n_samples": 1000, "cov_target": 1.5, "max_steps": 50}, None),
+    "coords: N=1000, CoV 1.5, ≤50 steps": ({"coordinates": "onset", "n_samples": 1000, "cov_target": 1.5,
+                                            "max_steps": 50}, None),
+    "recycled N=1000, CoV 1.5, ≤50 steps (logit)": ({"n_samples": 1000, "cov_target": 1.5, "max_steps": 50,
+                                                     "recycle": True, "n_islands": 8}, 5),
+    "coords: recycled N=1000, CoV 1.5, ≤50 steps": ({"coordinates": "onset", "n_samples": 1000, "cov_target": 1.5,
+                                                     "max_steps": 50, "recycle": True, "n_islands": 8}, 5),
+    "coords: frugal preset": ({"coordinates": "onset", "preset": "frugal"}, 5),
 }
 # name -> (script, arguments after "run --bench DIR", wall-time cap s): the peers' own accuracy knobs
 # at their defaults (pocoMC n_effective 512, nautilus n_live 2000, dynesty nlive 500); the caps keep
@@ -116,6 +130,12 @@ HISTORY = """\
     8.4e5, +0.09, +0.33, −0.71, −0.25;
   - frugal preset variants at 2.6–4.1e5: CoV target 1.0 −1.80, −1.01, −0.72; one island −3.55,
     −3.43, −3.78; 16 components −6.2, −8.5, −4.8;
+  - sampling coordinates straightening the degeneracy (`bijection=CombinationCoordinates`: log c /
+    log(1−c) shear of P1, GF / T1, GM, THETA → log onset strain; round of 2026-11-23 19:01): whitened
+    Fisher λ_max 7957 → 1395, β = 1 random-walk scale 0.047 → 0.085, but the thin coordinate is not
+    a cubic function of the others (residual 0.57 vs local sd 0.03) and at equal settings no fewer
+    evaluations to accuracy: lean 5/10 reach either way (coords: log Ẑ median +0.30, means ≤ 0.27 sd);
+    N = 1000, ≤ 50 steps 0.64 vs 0.24 nats; recycled 0.51 vs 0.92; frugal 2.14 nats low;
   - random walk N = 2000, CoV 2, recycled: 1.33e6, +0.09, −0.32, +0.29, +0.03 (worst mean 0.10–0.44 sd);
     N = 1500, CoV 1.5: 1.25e6, −0.03, +0.14, −0.04, +0.01 (worst mean 1.12 sd in one seed of four);
     N = 2000, CoV 1.5, ≤ 60 steps: 1.17e6, −0.25, +0.70, −0.21, +0.10.
@@ -133,6 +153,9 @@ def run(lik, gold, name, kw, seed) -> dict:
         rows[0] += len(x)
         return lik(x)
 
+    kw = dict(kw)
+    if "coordinates" in kw:
+        kw["bijection"] = CombinationCoordinates(lik.names, lik.bounds, theta=kw.pop("coordinates"))
     c = time.process_time()
     r = tmcmc(counted, lik.bounds, seed=seed, progress=False, **kw)
     cpu = time.process_time() - c
@@ -151,6 +174,121 @@ def _row(name, seed, evaluations, cpu, log_z, se, worst, gold, **extra) -> dict:
             "abs_error": err, "max_mean_err_sd": worst,
             "covered_2se": bool(np.isfinite(se) and err <= 2 * se),
             "reached": bool(err <= TARGET_LOGZ and worst <= TARGET_MEAN), **extra}
+
+
+# ------------------------------------------------------------------------------- geometry
+def _combos(names, x) -> np.ndarray:
+    """The seven gold quantities (columns in mp.GOLD_KEYS order)."""
+    col = {n: x[:, i] for i, n in enumerate(names)}
+    c = col["VOLF"]
+    return np.column_stack([(1 - c) * col["T1"], c * col["P1"], c * col["GF"] + (1 - c) * col["GM"], col["EOPT"],
+                            col["T2"], col["THETA"], col["sigma"]])
+
+
+def _rank_corr(a, b) -> np.ndarray:
+    ra, rb = np.argsort(np.argsort(a, axis=0), axis=0), np.argsort(np.argsort(b, axis=0), axis=0)
+    ra, rb = ra - ra.mean(axis=0), rb - rb.mean(axis=0)
+    return np.abs((ra * rb).sum(axis=0) / np.sqrt((ra * ra).sum(axis=0) * (rb * rb).sum(axis=0)))
+
+
+def geometry(lik, n_points: int = 20, steps: int = 100, seed: int = 0) -> tuple[list[dict], dict]:
+    """Whitened Fisher information and β = 1 mixing in several sampling coordinates.
+
+    Posterior draws: the default TMCMC run (``seed``).  For each map u = g(θ): the eigenvalues of
+    Lᵀ Jᵀ F(θ) J L at ``n_points`` posterior draws (F the Fisher information of ``lik``, J = ∂θ/∂u by
+    central differences, L L ᵀ the posterior covariance of u), and — as the direct measure —
+    ``steps`` random-walk MH steps at β = 1 from the whole posterior population with the global
+    covariance and the scale adapted to 30 % acceptance as in TMCMC: the adapted scale and the
+    largest rank correlation of the seven gold quantities (and of log L) with their start.
+    """
+    r = tmcmc(lik, lik.bounds, seed=seed, progress=False)
+    post = r.samples
+    pts = post[np.random.default_rng(1).choice(len(post), n_points, replace=False)]
+    _, fim = lik.gradient_fim(pts)
+    maps = {"logit (today's default)": LogitCoordinates(lik.bounds)}
+    for label, kw in [("shear only (THETA logit)", {"theta": "logit"}),
+                      ("THETA linear, no shear", {"theta": "linear", "shear": False}),
+                      ("shear + THETA linear", {"theta": "linear"}),
+                      ("shear + THETA → log onset strain", {"theta": "onset"})]:
+        maps[label] = CombinationCoordinates(lik.names, lik.bounds, **kw)
+    start = np.column_stack([_combos(lik.names, post), r.log_likelihood])
+    rows = []
+    for label, m in maps.items():
+        u = m.forward(post)
+        chol = np.linalg.cholesky(np.cov(u.T))
+        up, h, d = m.forward(pts), 1e-6, post.shape[1]
+        jac = np.empty((n_points, d, d))
+        for k in range(d):
+            e = np.zeros(d)
+            e[k] = h
+            jac[:, :, k] = (m.inverse(up + e)[0] - m.inverse(up - e)[0]) / (2 * h)
+        ev, vec = np.linalg.eigh(np.einsum("ki,nak,nab,nbl,lj->nij", chol, jac, fim, jac, chol, optimize=True))
+        resid = _thin_residual(np.linalg.solve(chol, (u - u.mean(axis=0)).T).T, vec[:, :, -1])
+        # β = 1 random walk from the posterior population (global covariance, adapted scale)
+        rng = np.random.default_rng(5)
+        x, ll = u.copy(), r.log_likelihood.copy()
+        lp = m.inverse(x)[1]
+        sup = np.asarray(m.support, float)
+        box = sup if np.isfinite(sup).any() else None
+        rw_chol = _safe_cholesky(_free_cov(x, np.ones(len(x))))
+
+        def evaluate(v, m=m):
+            t, lj = m.inverse(v)
+            return _eval(lik, t), lj
+        scale, acc = 0.2, []
+        for _ in range(steps):
+            x, ll, lp, a, _, _ = _rw_de_step(x, ll, lp, 1.0, rw_chol, scale, box, evaluate, rng, x,
+                                             np.arange(len(x)), 0.0, 1.0, 0.1, 0.05)
+            acc.append(float(a.mean()))
+            scale = float(np.clip(scale * np.exp(0.5 * (acc[-1] - 0.3) / 0.3), 1e-4, 10.0))
+        now = np.column_stack([_combos(lik.names, m.inverse(x)[0]), ll])
+        corr = _rank_corr(start, now)
+        rows.append({"coordinates": label, "lambda_max_median": float(np.median(ev[:, -1])),
+                     "lambda_max_min": float(ev[:, -1].min()), "lambda_max_max": float(ev[:, -1].max()),
+                     "lambda_2_median": float(np.median(ev[:, -2])), "rw_scale": scale,
+                     "rank_corr_after": dict(zip([*mp.GOLD_KEYS, "log L"], map(float, corr))),
+                     "max_rank_corr_after": float(corr.max()), "steps": steps,
+                     "thin_local_sd_median": float(np.median(1.0 / np.sqrt(ev[:, -1]))),
+                     "thin_residual_sd": resid})
+        print(f"geometry {label}: lambda_max median {rows[-1]['lambda_max_median']:.0f}, scale {scale:.3f}, "
+              f"max rank corr after {steps} steps {corr.max():.2f}", file=sys.stderr, flush=True)
+    return rows, {"log_evidence": r.log_evidence, "evaluations": r.n_evaluations, "seed": seed}
+
+
+def _thin_residual(z: np.ndarray, tops: np.ndarray) -> list[float]:
+    """How far a smooth global map could flatten the thin direction: the whitened population's
+    coordinate along the median thin direction, regressed on polynomials (degree 1, 2, 3) of the
+    orthogonal coordinates — residual sd (1 = no explanation) to compare with the local width."""
+    v = np.median(tops * np.sign(tops[:, [int(np.argmax(np.abs(tops).mean(axis=0)))]]), axis=0)
+    v = v / np.linalg.norm(v)
+    basis = np.linalg.qr(np.column_stack([v, np.eye(len(v))[:, :-1]]))[0]
+    p, o = z @ v, z @ basis[:, 1:]
+    k = o.shape[1]
+    feats, out = [np.ones(len(o))] + [o[:, i] for i in range(k)], []
+    for deg in (1, 2, 3):
+        if deg == 2:
+            feats += [o[:, i] * o[:, j] for i in range(k) for j in range(i, k)]
+        if deg == 3:
+            feats += [o[:, i] * o[:, j] * o[:, m] for i in range(k) for j in range(i, k) for m in range(j, k)]
+        q = np.column_stack(feats)
+        out.append(float(np.std(p - q @ np.linalg.lstsq(q, p, rcond=None)[0])))
+    return out
+
+
+def geometry_table(rows) -> str:
+    keys = [*mp.GOLD_KEYS, "log L"]
+    out = ["| sampling coordinates | λ_max (median of 20 draws) | λ_max range | λ_2 (median) | adapted RW scale "
+           f"(β = 1) | rank corr. with start after {rows[0]['steps']} RW steps: " + ", ".join(keys) + " | thin "
+           "direction: local sd (median) / residual sd of its coordinate given polynomials of degree 1, 2, 3 "
+           "of the others (whitened units) |",
+           "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        c = ", ".join(f"{r['rank_corr_after'][k]:.2f}" for k in keys)
+        t = " / ".join(f"{v:.2f}" for v in r["thin_residual_sd"])
+        out.append(f"| {r['coordinates']} | {r['lambda_max_median']:.0f} | {r['lambda_max_min']:.0f}–"
+                   f"{r['lambda_max_max']:.0f} | {r['lambda_2_median']:.0f} | {r['rw_scale']:.3f} | {c} | "
+                   f"{r['thin_local_sd_median']:.3f} / {t} |")
+    return "\n".join(out)
 
 
 # ------------------------------------------------------------------------------- peers
@@ -278,10 +416,16 @@ def main(argv=None) -> int:
     ap.add_argument("--peer-seeds", type=int, default=2)
     ap.add_argument("--peer-jobs", type=int, default=3, help="peer processes at once")
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmarks"))
+    ap.add_argument("--geometry", action="store_true",
+                    help="also measure the whitened Fisher information and β = 1 mixing per sampling coordinates")
+    ap.add_argument("--round-title", default=None,
+                    help="insert this round as a dated section at the top of the existing report (keeping "
+                         "its rows) instead of rewriting it")
     args = ap.parse_args(argv)
-    names = list(SETTINGS) if args.settings is None else [s.strip() for s in args.settings.split(";")]
+    names = list(SETTINGS) if args.settings is None else [s.strip() for s in args.settings.split(";") if s.strip()]
     lik, gold, kind = mp.make_problem()
     rows, notes = [], []
+    geo = geometry(lik) if args.geometry else None
     with ThreadPoolExecutor(max_workers=1) as bg:
         peers = None
         if args.peers:  # same round: the peer processes run while hbm's settings run here
@@ -296,11 +440,38 @@ def main(argv=None) -> int:
             prow, notes = peers.result()
             rows += prow
     stamp = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
+    if args.round_title:
+        return add_round(Path(args.out), args.round_title, rows, notes, geo, stamp, os.getloadavg()[0])
     text = render(rows, notes, kind, gold, stamp, os.getloadavg()[0])
     print(text)
     atomic_write_text(Path(args.out) / "evaluations_to_accuracy.md", text)
     atomic_write_text(Path(args.out) / "evaluations_to_accuracy.json",
                       json.dumps({"measured": stamp, "notes": notes, "rows": rows}, indent=1))
+    return 0
+
+
+def add_round(out: Path, title: str, rows: list[dict], notes: list[str], geo, stamp: str, load: float) -> int:
+    """Insert a dated section (table of ``rows``, the geometry table) below the report's title
+    line, keeping everything that was there; append the runs to the JSON's ``rounds``."""
+    md_path, js_path = out / "evaluations_to_accuracy.md", out / "evaluations_to_accuracy.json"
+    old = md_path.read_text().split("\n", 1) if md_path.exists() else ["# Evaluations to accuracy", ""]
+    sec = [f"## This round ({stamp} UTC): {title}", "",
+           f"Same problem, target and columns as below; CPU = process time (1-min load {load:.1f} at the end).", ""]
+    if rows:
+        sec += [table(rows), ""]
+    sec += [f"- {n}" for n in notes]
+    if geo is not None:
+        grows, ref = geo
+        sec += ["", f"Geometry (posterior draws: default TMCMC seed {ref['seed']}, log Ẑ {ref['log_evidence']:.2f}; "
+                "λ = eigenvalues of the Fisher information whitened by the posterior covariance of the "
+                "coordinates; the random walk starts from that whole population at β = 1):", "",
+                geometry_table(grows)]
+    atomic_write_text(md_path, old[0] + "\n\n" + "\n".join(sec) + "\n\n" + old[1].lstrip("\n"))
+    data = json.loads(js_path.read_text()) if js_path.exists() else {}
+    data.setdefault("rounds", []).append({"measured": stamp, "title": title, "notes": notes, "rows": rows,
+                                          "geometry": None if geo is None else {"rows": geo[0], "reference": geo[1]}})
+    atomic_write_text(js_path, json.dumps(data, indent=1))
+    print("\n".join(sec))
     return 0
 
 
