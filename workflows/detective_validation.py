@@ -226,6 +226,25 @@ def cases(groups) -> list[dict]:
             out.append(dict(group="two", name=f"offset+qlv_{i}", pset=i % 3, proto="three_rates", n=35, noise="iid",
                             rel=0.012, effects=[("offset", {"s0": 0.006}), ("qlv", {"g": 0.35, "tau": 60.0})],
                             expect="effect", named=["offset", "viscoelastic"]))
+    if "two_dev" in groups:
+        # development set of the two-effect rule (issue 17 follow-up): other pairs, orders (an
+        # offset before the QLV relaxes with the tissue, after it is a load-cell zero), protocols,
+        # point counts and noise types than the "two" group, which stays held out
+        dev = [("qlv>offset", 1, "three_rates", 30, "iid", 0.012,
+                [("qlv", {"g": 0.3, "tau": 40.0}), ("offset", {"s0": 0.005})], ["viscoelastic", "offset"]),
+               ("offset>qlv", 2, "two_rates", 50, "hetero", 0.01,
+                [("offset", {"s0": 0.008}), ("qlv", {"g": 0.3, "tau": 100.0})], ["offset", "viscoelastic"]),
+               ("mullins>offset", 0, "lur", 40, "iid", 0.01,
+                [("mullins", {"dmg": 0.3}), ("offset", {"s0": 0.006})], ["offset", "damage"]),
+               ("qlv+mullins", 1, "lur", 40, "iid", 0.01,
+                [("qlv", {"g": 0.3, "tau": 60.0}), ("mullins", {"dmg": 0.3})], ["viscoelastic", "damage"]),
+               ("qlv+drift", 2, "lur", 40, "iid", 0.012,
+                [("qlv", {"g": 0.3, "tau": 60.0}), ("drift", {"total": 0.15})], ["viscoelastic"]),
+               ("offset>qlv_t5", 0, "three_rates", 45, "t5", 0.012,
+                [("offset", {"s0": 0.004}), ("qlv", {"g": 0.4, "tau": 30.0})], ["offset", "viscoelastic"])]
+        for name, pset, proto, n, nz, rel, effs, named in dev:
+            out.append(dict(group="two_dev", name=name, pset=pset, proto=proto, n=n, noise=nz, rel=rel,
+                            effects=effs, expect="effect", named=named))
     return out
 
 
@@ -352,7 +371,7 @@ def _rate(rows, key="ok") -> str:
 
 def report(rows: list[dict], power: dict | None, before: list[dict] | None) -> str:
     """The markdown report: targets, then the table of cases × verdicts (before/after)."""
-    by = {g: [r for r in rows if r["group"] == g] for g in ("clean", "unknown", "library", "two")}
+    by = {g: [r for r in rows if r["group"] == g] for g in ("clean", "unknown", "library", "two", "two_dev")}
     bb = {r["case"]: r for r in (before or [])}
     clean = by["clean"]
     fa = sum(not r["ok"] for r in clean)
