@@ -279,9 +279,12 @@ def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lamb
     """Steps 2–4 at the base model, then again after each named effect.
 
     ``run_round(current_fit, remaining_candidates, k)`` returns a :class:`_Step`.  A tentatively
-    named effect (verdict ``"partial"``) is added and kept only if the next round settles what
-    it left (:func:`_settles`); otherwise the rounds after it are dropped and its round's
-    unexplained verdict stands.
+    named effect (verdict ``"partial"``) is added and kept if the next round settles what it
+    left (:func:`_settles`), or if no generic shape replaces it -- with it the best evidence
+    (alone or with any control) beats the best without it by more than ``DELTA_LOGZ_MIN``
+    (:func:`gain_beyond_controls`): two hidden effects whose interplay leaves a small rest (an
+    offset that relaxes with the tissue) are both named, and the rest is reported as unexplained.
+    Otherwise the rounds after it are dropped and its round's unexplained verdict stands.
 
     Returns
     -------
@@ -296,11 +299,19 @@ def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lamb
         rounds.append(st)
         if tentative is not None:
             t = rounds[tentative]
-            if not _settles(st.verdict):               # the pair does not explain it either
-                log(f"{selected[-1]} alone leaves misfit the next round does not explain: not named")
+            beyond = gain_beyond_controls(t, st)
+            if not _settles(st.verdict) and not beyond > DELTA_LOGZ_MIN:
+                # the next round does not explain the rest, and a generic shape does as well
+                # without the effect as with it: the effect may be absorbing an unknown misfit
+                log(f"{selected[-1]} alone leaves misfit the next round does not explain, and it gains "
+                    f"{beyond:.1f} nats beside the best generic shape: not named")
                 t.verdict = t.verdict.fallback
                 return rounds[:tentative + 1], selected[:-1], t.base
-            t.verdict = replace(t.verdict, verdict="effect", fallback=None)
+            msg = t.verdict.message
+            if not _settles(st.verdict):
+                # a second, unexplained misfit: the effect is needed all the same
+                msg += f" (needed beside the best generic shape too: +{beyond:.1f} nats)"
+            t.verdict = replace(t.verdict, verdict="effect", fallback=None, message=msg)
             tentative = None
         if st.verdict.verdict == "partial":
             if len(selected) >= max_effects:
@@ -314,6 +325,28 @@ def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lamb
         log(f"named {chosen.effect}{' (tentatively)' if tentative is not None else ''}: adding it and re-screening")
         current, remaining = chosen.fit, [e for e in remaining if e.name != chosen.effect]
     return rounds, selected, current
+
+
+def gain_beyond_controls(prev: _Step, nxt: _Step) -> float:
+    """Evidence the effect named in round ``prev`` adds when a generic shape may be present too.
+
+    The best log-evidence with the effect (the model of round ``nxt``, alone or with any control
+    refitted there) minus the best without it (round ``prev``'s model, alone or with any control
+    refitted there), capped like :func:`.decision.gain` by the same difference of maximum
+    log-likelihoods (a noisy evidence must not create a gain the best fits do not show).  Large:
+    no generic shape replaces the effect -- it is needed even if a second, unexplained misfit is
+    hidden with it.  −inf when either round has no evidence.
+    """
+    def best(st: _Step) -> tuple[float, float]:
+        fits = [getattr(st.base, "log_evidence", np.nan), getattr(st.base, "max_log_likelihood", np.nan)]
+        out = [tuple(fits)] + [(c.fit.log_evidence, c.fit.max_log_likelihood) for c in st.controls
+                               if c.refit and c.fit is not None]
+        out = [o for o in out if np.isfinite(o[0]) and np.isfinite(o[1])]
+        return max(out, default=(np.nan, np.nan))
+    (z0, l0), (z1, l1) = best(prev), best(nxt)
+    if not (np.isfinite(z0) and np.isfinite(z1)):
+        return -np.inf
+    return float(min(z1 - z0, l1 - l0))
 
 
 def _settles(verdict: Verdict) -> bool:

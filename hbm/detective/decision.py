@@ -11,8 +11,10 @@ One evidence number per refit -- its gain against the best base model found
   experiment that would separate them;
 * a physical effect that beats every control in evidence but leaves misfit a control would
   remove is named tentatively (``"partial"``): a second effect may be hidden with it, so diagnose
-  adds it and re-screens, and keeps it only if that round explains the rest (names an effect or a
-  group, or finds nothing left); otherwise the unexplained verdict of this round stands;
+  adds it and re-screens, and keeps it if that round explains the rest (names an effect or a
+  group, or finds nothing left) or if no generic shape replaces it (with it, alone or beside any
+  control, the evidence beats the best without it by ``DELTA_LOGZ_MIN``); otherwise the
+  unexplained verdict of this round stands;
 * otherwise any sign of misfit -- a significant window under the fitted or the model-free
   noise, a fitted noise that disagrees with the model-free estimate, white noise + a smooth
   misfit preferred to AR(1) noise, or a control that gains -- gives ``"unexplained"`` with
