@@ -146,12 +146,19 @@ def test_bad_input():
 def test_population_exact_settings_and_combination_coordinates():
     from hbm.combinations import log_density, support_hull, to_features
     from hbm.model import spyrou_model
-    from hbm.population import PopulationConfig, _CombinationCoordinates, _check_exact
+    from hbm.population import PopulationConfig, _CombinationCoordinates, _check_exact, _exact_applies
 
     with pytest.raises(HbmError, match="gibbs"):
         _check_exact(PopulationConfig(exact="nuts"))
-    with pytest.raises(HbmError, match="two-level"):
-        _check_exact(PopulationConfig(exact="gibbs", groups={"a": "x"}))
+    with pytest.raises(HbmError, match="exact_chains"):
+        _check_exact(PopulationConfig(exact_chains=2))
+    assert PopulationConfig().exact == "gibbs"  # on by default (README, results/benchmarks/hierarchical_gold.md)
+    data = {"a": None, "b": None}
+    assert not _exact_applies(PopulationConfig(groups={"a": "x"}), ["a"], data, "ab")  # grouped: refinements
+    assert not _exact_applies(PopulationConfig(), [], data, "ab")  # nothing flagged: plain reuse
+    assert not _exact_applies(PopulationConfig(), ["a"], None, "ab")  # no data: reuse (flag warned)
+    assert _exact_applies(PopulationConfig(), ["a"], data, "abc") == ["a", "b"]  # all with data
+    assert _exact_applies(PopulationConfig(exact_all=False), ["a"], data, "ab") == ["a"]
     # the fibre map: a θ with the given combinations exactly where p0(φ) > 0 (its support)
     m = spyrou_model()
     names, b = list(m.parameter_names), np.asarray(m.bounds)
@@ -165,3 +172,21 @@ def test_population_exact_settings_and_combination_coordinates():
     assert 0.5 < ok.mean() < 1.0
     assert np.allclose(np.log(to_features(names, th[ok])), phi[ok], atol=1e-12)
     assert np.all((th >= b[:, 0]) & (th <= b[:, 1]))
+
+
+def test_report_says_what_the_exact_fallback_did(tmp_path):
+    from types import SimpleNamespace
+
+    from hbm.report import _reuse
+
+    reuse = {"a": {"unreliable": True, "reasons": ["population mass beyond the samples"], "ess_q10": 300.0},
+             "b": {"unreliable": False, "reasons": [], "ess_q10": 900.0}}
+    exact = {"exact": ["a"], "n_chains": 128, "n_keep": 60, "n_burn": 600, "evaluations": {"a": 12345},
+             "wall_s": 9.0, "rhat_max": 1.2, "ess_min": 400.0}
+    h = SimpleNamespace(reuse=reuse, attrs={"refined": [], "exact": exact})
+    txt = _reuse(SimpleNamespace(hierarchical=h), tmp_path)
+    assert "joint Gibbs, real likelihood" in txt and "joint Gibbs, reweighted samples" in txt
+    assert "12345 likelihood evaluations" in txt and "max R-hat 1.2" in txt
+    h.attrs = {"refined": ["a"]}
+    txt = _reuse(SimpleNamespace(hierarchical=h), tmp_path)
+    assert "fresh TMCMC" in txt and "did not run" in txt

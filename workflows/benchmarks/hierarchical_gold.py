@@ -18,6 +18,10 @@ Gold: ``hierarchical_gold_peer.py`` in the bench venv (PyMC + nutpie, never impo
 posterior of (ψ, θ_1..θ_6) with the real likelihoods, 3 chains; first its pytensor p0(φ) is checked
 against ``hbm.combinations.log_density``.  Cached in ``--cache`` (keyed by the spec).
 
+Variants (``--variant`` label): ``--exact none`` plain reuse (+ fresh TMCMC of flagged specimens), the
+default the exact fallback (joint Metropolis-within-Gibbs, real likelihoods for all specimens once one is
+flagged), ``--exact-all 0`` the fallback with real likelihoods for the flagged specimens only.
+
 Output: ``results/benchmarks/hierarchical_gold.md`` and ``.json``: per hyper-parameter the median,
 5 % and 95 % quantiles, layer vs NUTS, differences in NUTS posterior sd; the updated individuals'
 quantiles of log c·P1 (and the other pooled columns) in the same units; the layer's seconds.
@@ -272,9 +276,10 @@ def main(argv=None) -> int:
                     help="PopulationConfig.reference (defensive draws per stage-1 sample); default: hbm's")
     ap.add_argument("--no-second-pass", action="store_true",
                     help="PopulationConfig.second_pass=False: plain reuse (the layer before issue 15)")
-    ap.add_argument("--exact", default=None, choices=("gibbs",),
+    ap.add_argument("--exact", default=None, choices=("gibbs", "none"),
                     help="PopulationConfig.exact: the joint Metropolis-within-Gibbs fallback for flagged specimens")
-    ap.add_argument("--exact-all", action="store_true", help="PopulationConfig.exact_all: real likelihoods for all")
+    ap.add_argument("--exact-all", type=int, choices=(0, 1), default=None,
+                    help="PopulationConfig.exact_all (1: real likelihoods for all specimens, 0: flagged ones only)")
     ap.add_argument("--variant", default="default", help="label of the layer settings in the output")
     ap.add_argument("--stage1-only", action="store_true")
     a = ap.parse_args(argv)
@@ -290,7 +295,9 @@ def main(argv=None) -> int:
     if a.no_second_pass:
         cfg["second_pass"] = False
     if a.exact:
-        cfg.update(exact=a.exact, exact_all=a.exact_all)
+        cfg["exact"] = None if a.exact == "none" else a.exact
+        if a.exact_all is not None:
+            cfg["exact_all"] = bool(a.exact_all)
     hfs = [layer(results, datasets, model, s, **cfg)[0:3:2] for s in seeds]  # (hf, cpu seconds)
     spec = peer_spec(results, datasets, hfs[0][0])
     p0_err = check_p0(spec, results, cache)
