@@ -18,6 +18,9 @@ stream                     spawn key                 draws
 ``refine`` k               ``(10000, 1 + k)``        fresh TMCMC of specimen k under the population
 ``reference`` k            ``(10001, k)``            defensive reference draws of specimen k for the
                                                      population layer (hbm.population)
+``joint``                  ``(10002,)``              the exact fallback of the population layer
+                                                     (joint Metropolis-within-Gibbs): child 0
+                                                     starting points, 1 sampler, 2 θ given φ
 ``organ_posterior`` k      ``(20000, 0, k)``         organ bands: subsample of specimen k's posterior
 ``organ_updated`` k        ``(20000, 1, k)``         organ bands: subsample of k's updated draws
 ``organ_new_specimen``     ``(20000, 2)``            organ bands: population-predictive draws
@@ -65,6 +68,7 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "new_specimen": lambda: (_HIER, 0),
     "refine": lambda k: (_HIER, 1 + int(k)),
     "reference": lambda k: (_HIER + 1, int(k)),
+    "joint": lambda: (_HIER + 2,),
     "organ_posterior": lambda k: (_ORGAN, 0, int(k)),
     "organ_updated": lambda k: (_ORGAN, 1, int(k)),
     "organ_new_specimen": lambda: (_ORGAN, 2),
@@ -138,7 +142,7 @@ def run_keys(n_specimens: int) -> dict[tuple[int, ...], str]:
         named.append((f"reference {k}", STREAMS["reference"](k)))
         named.append((f"organ_posterior {k}", STREAMS["organ_posterior"](k)))
         named.append((f"organ_updated {k}", STREAMS["organ_updated"](k)))
-    for name in ("hierarchical", "new_specimen", "organ_new_specimen", "grouped"):
+    for name in ("hierarchical", "new_specimen", "organ_new_specimen", "grouped", "joint"):
         named.append((name, STREAMS[name]()))
     out: dict[tuple[int, ...], str] = {}
     for name, key in named:

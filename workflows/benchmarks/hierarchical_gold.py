@@ -18,6 +18,10 @@ Gold: ``hierarchical_gold_peer.py`` in the bench venv (PyMC + nutpie, never impo
 posterior of (ψ, θ_1..θ_6) with the real likelihoods, 3 chains; first its pytensor p0(φ) is checked
 against ``hbm.combinations.log_density``.  Cached in ``--cache`` (keyed by the spec).
 
+Variants (``--variant`` label): ``--exact none`` plain reuse (+ fresh TMCMC of flagged specimens), the
+default the exact fallback (joint Metropolis-within-Gibbs, real likelihoods for all specimens once one is
+flagged), ``--exact-all 0`` the fallback with real likelihoods for the flagged specimens only.
+
 Output: ``results/benchmarks/hierarchical_gold.md`` and ``.json``: per hyper-parameter the median,
 5 % and 95 % quantiles, layer vs NUTS, differences in NUTS posterior sd; the updated individuals'
 quantiles of log c·P1 (and the other pooled columns) in the same units; the layer's seconds.
@@ -272,6 +276,10 @@ def main(argv=None) -> int:
                     help="PopulationConfig.reference (defensive draws per stage-1 sample); default: hbm's")
     ap.add_argument("--no-second-pass", action="store_true",
                     help="PopulationConfig.second_pass=False: plain reuse (the layer before issue 15)")
+    ap.add_argument("--exact", default=None, choices=("gibbs", "none"),
+                    help="PopulationConfig.exact: the joint Metropolis-within-Gibbs fallback for flagged specimens")
+    ap.add_argument("--exact-all", type=int, choices=(0, 1), default=None,
+                    help="PopulationConfig.exact_all (1: real likelihoods for all specimens, 0: flagged ones only)")
     ap.add_argument("--variant", default="default", help="label of the layer settings in the output")
     ap.add_argument("--stage1-only", action="store_true")
     a = ap.parse_args(argv)
@@ -286,6 +294,10 @@ def main(argv=None) -> int:
     cfg = {} if a.reference is None else {"reference": a.reference}
     if a.no_second_pass:
         cfg["second_pass"] = False
+    if a.exact:
+        cfg["exact"] = None if a.exact == "none" else a.exact
+        if a.exact_all is not None:
+            cfg["exact_all"] = bool(a.exact_all)
     hfs = [layer(results, datasets, model, s, **cfg)[0:3:2] for s in seeds]  # (hf, cpu seconds)
     spec = peer_spec(results, datasets, hfs[0][0])
     p0_err = check_p0(spec, results, cache)
@@ -305,6 +317,8 @@ def write_variant(variant: str, pop_seed: int, seeds: list, hfs: list, info: dic
            "thetas": np.asarray(thetas).tolist(), "p0_check_max_abs": p0_err, "nuts": info,
            "layer_cpu_s": [c for _, c in hfs],
            "reuse": [hf.reuse for hf, _ in hfs], "refined": [hf.attrs.get("refined") for hf, _ in hfs],
+           "exact": [{k: v for k, v in (hf.attrs.get("exact") or {}).items() if k not in ("rhat", "ess")}
+                     for hf, _ in hfs],
            "worst_median_sd": wh, "worst_tail_sd": wt, **cmp}
     jpath = out / "hierarchical_gold.json"
     allrec = json.loads(jpath.read_text()) if jpath.exists() else {}
@@ -318,6 +332,13 @@ def write_variant(variant: str, pop_seed: int, seeds: list, hfs: list, info: dic
           f"Layer CPU s per seed: {', '.join(f'{c:.1f}' for _, c in hfs)}; refined: "
           f"{[hf.attrs.get('refined') for hf, _ in hfs]}.  Worst |Δ median| {wh:.2f} sd, worst |Δ 5 %/95 %| {wt:.2f} sd "
           f"(target 0.2 / 0.5).", ""]
+    ex = [hf.attrs.get("exact") for hf, _ in hfs]
+    if any(ex):
+        md += ["Exact fallback (joint Metropolis-within-Gibbs) per seed: " + "; ".join(
+            f"real likelihoods for {', '.join(e['exact'])}, {e['n_chains']} chains × {e['n_keep']} kept "
+            f"(burn-in {e['n_burn']}, thin {e['thin']}), {sum(e['evaluations'].values())} likelihood evaluations, "
+            f"{e['cpu_s']:.0f} CPU s / {e['wall_s']:.0f} s wall, max R-hat {e['rhat_max']:.3f}, min bulk ESS "
+            f"{e['ess_min']:.0f}" if e else "not run" for e in ex) + ".", ""]
     md += ["Hyper-parameters (Δ per layer seed, in NUTS posterior sd):", ""] + table(cmp, "hyper", seeds) + [""]
     md += ["Updated individuals (pooled columns):", ""] + table(cmp, "individuals", seeds) + [""]
     md += ["Reuse diagnostic per specimen against the gold (worst |Δ| of the individual's 5 %/50 %/95 % "
