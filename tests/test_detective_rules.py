@@ -127,7 +127,10 @@ def test_decision_control_that_explains_better_gives_unexplained_with_its_region
     ctrl = _cand("local_step", 9.0, 20.0, physical=False, windows_after=0, region=("strain", 0.21, 0.25))
     v = decide([phys], [ctrl], [{"eps_lo": 0.2, "eps_hi": 0.26, "sign": -1, "z": -5.0}], OK_NOISE, "iid", _data())
     assert v.verdict == "unexplained" and v.unexplained["range"] == [0.21, 0.25]
-    assert "ε ∈ [0.21, 0.25]" in v.message
+    assert "ε ∈ [0.21, 0.25]" in v.message and "best physical candidate offset Δlog Z = 8.0 " in v.message
+    # an evidence estimate above the likelihood gain is capped, and the message names both numbers
+    capped = decide([_cand("offset", 8.7, 4.2, windows_after=1)], [ctrl], [], OK_NOISE, "iid", _data())
+    assert "offset gain 4.2 nats (its Δlog Z 8.7 capped by its maximum-likelihood gain)" in capped.message
     # a physical effect better in evidence but leaving misfit the control removes is not named
     # outright: tentatively, with this round's unexplained verdict as the fallback
     phys2 = _cand("offset", 10.0, 12.0, windows_after=2)

@@ -138,6 +138,15 @@ def _explains_like(c: CandidateResult, ctrl: CandidateResult | None) -> bool:
     return bool(fewer and close)
 
 
+def _gain_words(c: CandidateResult) -> str:
+    """The gain the decision used, in words matching the table's Δlog Z column: when the
+    likelihood gain caps the evidence estimate, both numbers are named."""
+    if gain(c) < c.delta_log_evidence:
+        return (f"gain {gain(c):.1f} nats (its Δlog Z {c.delta_log_evidence:.1f} capped by its "
+                "maximum-likelihood gain)")
+    return f"Δlog Z = {gain(c):.1f}"
+
+
 def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: CandidateResult | None,
                  signs: list[str]) -> Verdict:
     """Unexplained misfit: where (the best control's region, else the strongest window) and its shape."""
@@ -161,7 +170,7 @@ def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: 
            + (f", Δlog Z = {where['delta_log_evidence']:.1f}" if where["delta_log_evidence"] is not None else "")
            + ")")
     if best is not None and best.refit:
-        msg += f"; best physical candidate {best.effect} Δlog Z = {gain(best):.1f} does not explain it as well"
+        msg += f"; best physical candidate {best.effect} {_gain_words(best)} does not explain it as well"
     if signs:
         msg += "; evidence of misfit: " + ", ".join(signs)
     return Verdict("unexplained", [], [], "a protocol probing that range (e.g. load-unload cycles or a relaxation "
