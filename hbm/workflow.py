@@ -79,6 +79,8 @@ class RunConfig:
     hier_estimator: str = "raw"
     hier_transforms: dict | None = None
     hier_sd_range: tuple = DEFAULT_SD_RANGE
+    #: exact fallback of the population layer for flagged specimens ("gibbs") or None (reuse + TMCMC refinement)
+    hier_exact: str | None = "gibbs"
     figures: bool = True
     progress: bool = True
     retries: int = 1
@@ -120,7 +122,9 @@ class RunConfig:
                                 max_steps=self.hier_max_steps, estimator=self.hier_estimator,
                                 transforms=self.hier_transforms, sd_range=self.hier_sd_range,
                                 stage1_samples=self.samples, noise=self.noise, fix=self.fix, bounds=self.bounds,
-                                retries=self.retries, progress=self.progress)
+                                retries=self.retries, progress=self.progress, exact=self.hier_exact,
+                                # a smoke run: the fallback's chains shorter too (a fifth of the draws kept)
+                                **({"exact_burn": 200, "exact_keep": 12} if self.quick else {}))
 
 
 def _settings_hash(settings: Mapping) -> str:

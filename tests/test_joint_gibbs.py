@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
+import hbm.cli as cli
+import hbm.cli.run as cli_run
 from hbm.errors import HbmError
 from hbm.samplers.hierarchical import HierarchicalModel
 from hbm.samplers.joint_gibbs import ExactSpecimen, ReuseSpecimen, joint_gibbs, rhat_ess
@@ -190,3 +192,23 @@ def test_report_says_what_the_exact_fallback_did(tmp_path):
     h.attrs = {"refined": ["a"]}
     txt = _reuse(SimpleNamespace(hierarchical=h), tmp_path)
     assert "fresh TMCMC" in txt and "did not run" in txt
+
+
+def test_run_option_hier_exact_reaches_the_population_layer(monkeypatch, tmp_path):
+    """``--hier-exact none`` switches the fallback off; the default is gibbs; --quick shortens it."""
+    class Captured(Exception):
+        pass
+
+    def capture(cfg, **kw):
+        raise Captured(cfg.population_config())
+
+    monkeypatch.setenv("HBM_DEBUG", "1")
+    monkeypatch.setattr(cli_run, "run_workflow", capture)
+    got = {}
+    for label, extra in (("default", []), ("none", ["--hier-exact", "none"]), ("quick", ["--quick"])):
+        with pytest.raises(Captured) as exc:
+            cli.main(["run", "--out", str(tmp_path / "r"), "--no-progress", *extra])
+        got[label] = exc.value.args[0]
+    assert got["default"].exact == "gibbs" and got["none"].exact is None
+    assert (got["quick"].exact_burn, got["quick"].exact_keep) == (200, 12)
+    assert (got["default"].exact_burn, got["default"].exact_keep) == (600, 60)

@@ -92,6 +92,10 @@ def register(subparsers) -> None:
     p.add_argument("--hier-estimator", choices=("raw", "kernel"), default="raw",
                    help="estimator of p(d_i|psi): raw importance ratios (default, unbiased) or kernel-smoothed "
                         "ratios (O(h^2) bias, robust when the population is narrower than a posterior)")
+    p.add_argument("--hier-exact", choices=("gibbs", "none"), default="gibbs",
+                   help="specimens whose reused samples the diagnostics flag: joint Metropolis-within-Gibbs "
+                        "with their real likelihoods (gibbs, default) or a fresh TMCMC run of each (none; "
+                        "cheaper, lower tails too short: README)")
     p.add_argument("--group-by", metavar="KEY",
                    help="group the specimens by a metadata key of their files (e.g. species, muscle, protocol): "
                         "a population -> group -> specimen layer whose report says whether the groups differ; "
@@ -157,6 +161,7 @@ def run(args: argparse.Namespace) -> int:
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
                     hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
                     retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
+                    hier_exact=None if args.hier_exact == "none" else args.hier_exact,
                     prior=prior.to_dict() if prior is not None else None, sl0=args.sl0, group_by=args.group_by,
                     tmcmc_options=_budget(args))
     _check_sizes(cfg, datasets, model, fix)
