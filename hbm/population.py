@@ -708,7 +708,10 @@ def _exact_gibbs(cfg: PopulationConfig, h, exact_ids: Sequence[str], results: Ma
     _log(f"exact fallback: {sum(g.evaluations.values())} likelihood evaluations, {g.timings['total']:.1f} s; "
          f"max R-hat {worst_rhat:.3f}, min bulk ESS {min_ess:.0f}", cfg.progress)
     if worst_rhat > 1.05:
-        _log(f"WARNING: exact fallback not converged (max R-hat {worst_rhat:.3f} > 1.05): raise exact_burn", True)
+        # measured on the shipped six: R-hat 1.22 after 600 burn-in sweeps, 1.27 after 2000 -- slow
+        # mixing along the one-sided tails, not a short burn-in; so no "raise the burn-in" advice
+        _log(f"WARNING: exact fallback not converged (max R-hat {worst_rhat:.3f} > 1.05): its chains mix slowly "
+             "along one-sided tails; read the population's tails with the report's gold-benchmark accuracy", True)
     return h, updated, info
 
 

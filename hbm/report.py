@@ -309,10 +309,12 @@ def _reuse_consequence(reuse: dict, exact: dict | None = None) -> str:
     flagged = [sid for sid, r in reuse.items() if r.get("unreliable")]
     if exact:
         ev = sum((exact.get("evaluations") or {}).values())
-        text = (f"The exact fallback ran (`PopulationConfig.exact=\"gibbs\"`): the joint posterior of the population "
+        others = exact.get("reuse") or []
+        text = (f"The exact fallback ran (`--hier-exact gibbs`, the default): the joint posterior of the population "
                 f"and the specimens was sampled by Metropolis-within-Gibbs, {', '.join(exact.get('exact') or [])} "
-                f"with their real likelihoods, the others by their reweighted stage-1 samples "
-                f"({exact.get('n_chains')} chains × {exact.get('n_keep')} kept draws after {exact.get('n_burn')} "
+                f"with their real likelihoods"
+                + (f", {', '.join(others)} by their reweighted stage-1 samples" if others else "")
+                + f" ({exact.get('n_chains')} chains × {exact.get('n_keep')} kept draws after {exact.get('n_burn')} "
                 f"burn-in sweeps, {ev} likelihood evaluations, {fmt(exact.get('wall_s'), 3)} s); the population "
                 f"estimates and updated individuals above are its draws. Convergence: max R-hat "
                 f"{fmt(exact.get('rhat_max'), 3)}, min bulk ESS {fmt(exact.get('ess_min'), 3)}")
