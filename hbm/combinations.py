@@ -51,6 +51,7 @@ from .model import COMBINATIONS
 from .utils import as_generator
 
 __all__ = ["COMBINATION_PARAMS", "FEATURES", "CombinationCoordinates", "combination_box", "combination_features",
+           "fibre_point",
            "log_density", "onset_strain", "support_hull", "sample_conditional", "to_features"]
 
 #: parameters entering the combinations, in the column order used by this module
@@ -252,6 +253,50 @@ def combination_features(names: Sequence[str], samples, bounds, **quadrature) ->
         raise HbmError("combinations: samples with G, c*P1 or (1-c)*T1 <= 0 have no log feature")
     phi = np.log(f)
     return phi, log_density(phi, box, **quadrature)
+
+
+def fibre_point(phi, bounds, names: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """One (VOLF, P1, T1, GF, GM) with combinations φ, and whether φ is in the support of p0.
+
+    Each box limit of P1 = e^{y1}/c, T1 = e^{y2}/(1−c) and of G = c·GF + (1−c)·GM is a half-line
+    in c; φ lies in the support iff their intersection with c's box is not empty.  The point
+    takes c mid-way in that interval and GF, GM at the same fraction of their boxes (a
+    deterministic point of the fibre: the likelihood is the same anywhere on it).
+
+    Returns
+    -------
+    parts : array (n, 5)
+        (VOLF, P1, T1, GF, GM), clipped to the box (meaningless where ``ok`` is False).
+    ok : bool array (n,)
+        Exactly where :func:`log_density` is finite.
+    """
+    phi = _check_phi(phi)
+    box = combination_box(bounds, names)
+    (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = box
+    G, a, b = np.exp(phi[:, 0]), np.exp(phi[:, 1]), np.exp(phi[:, 2])
+    lo = np.maximum(ca, a / pb)
+    hi = np.minimum(cb, 1.0 - b / tb)
+    if pa > 0:
+        hi = np.minimum(hi, a / pa)
+    if ta > 0:
+        lo = np.maximum(lo, 1.0 - b / ta)
+    ok = np.ones(phi.shape[0], bool)
+    # G >= ma + c (fa − ma) and G <= mb + c (fb − mb): each a half-line in c
+    for base, slope, below in ((ma, fa - ma, True), (mb, fb - mb, False)):
+        if slope == 0:
+            ok &= (G >= base) if below else (G <= base)
+            continue
+        t = (G - base) / slope
+        if below == (slope > 0):
+            hi = np.minimum(hi, t)
+        else:
+            lo = np.maximum(lo, t)
+    ok &= lo < hi
+    c = np.where(ok, 0.5 * (lo + hi), 0.5 * (ca + cb))
+    span = c * (fb - fa) + (1 - c) * (mb - ma)
+    frac = np.clip((G - c * fa - (1 - c) * ma) / span, 0.0, 1.0)
+    parts = np.column_stack([c, a / c, b / (1 - c), fa + frac * (fb - fa), ma + frac * (mb - ma)])
+    return np.clip(parts, box[:, 0], box[:, 1]), ok
 
 
 def sample_conditional(phi, bounds, rng, names: Sequence[str] | None = None, *, n_nodes: int = 16,

@@ -83,7 +83,7 @@ from .utils import atomic_path, as_generator
 __all__ = [
     "STRAIN_RANGE", "MIN_POINTS", "MAX_PASSIVE_STRESS", "STRESS_UNITS", "DEFORMATIONS",
     "load_specimen", "load_specimens", "save_specimen", "specimen_loading", "provenance",
-    "input_summary", "synthetic_specimen", "GROUP_KEY", "specimen_groups", "Segment", "ramp", "hold", "cycle", "protocol",
+    "input_summary", "input_line", "synthetic_specimen", "GROUP_KEY", "specimen_groups", "Segment", "ramp", "hold", "cycle", "protocol",
 ]
 
 #: allowed engineering strain (catches percent-vs-fraction mix-ups)
@@ -752,6 +752,11 @@ def specimen_groups(datasets: Mapping[str, xr.Dataset], key: str | None = None) 
         raise DataError(f"grouping by {key!r}: every specimen has {key} {names[0]!r}, expected at least two "
                         "groups (drop --group-by for one population)")
     return dict(sorted(values.items()))
+
+
+def input_line(summary: str, where: str = "below") -> str:
+    """The one line a command prints first about :func:`input_summary` (``""`` when nothing was converted)."""
+    return f"input converted: {summary} (stresses {where} are Cauchy, MPa)" if summary else ""
 
 
 def input_summary(ds: xr.Dataset) -> str:

@@ -26,7 +26,7 @@ import numpy as np
 
 from . import sensitivity as _sens
 from ._version import __version__
-from .data import input_summary
+from .data import input_line, input_summary
 from .errors import HbmError, HbmWarning
 from . import seeds
 from .io import SpecimenResult, json_default, write_specimen_result
@@ -525,7 +525,7 @@ class FitResult:
         r = self.result
         head = [f"specimen {r.specimen_id}: {r.n_samples} posterior samples"]
         if r.config.get("input"):
-            head.append(f"input converted: {r.config['input']} (stresses below are Cauchy, MPa)")
+            head.append(input_line(r.config["input"]))
         raw = summarize(r, prob=prob)
         pc = int(round(prob * 100))
         rows = [RIDGE_NOTE, f"{'parameter':<14}{'mean':>12}{'sd':>12}{f'{pc}% lower':>12}{f'{pc}% upper':>12}"]

@@ -49,7 +49,7 @@ import numpy as np
 from scipy.special import gammaln
 
 from . import io, seeds
-from .combinations import (COMBINATION_PARAMS, combination_box, combination_features, log_density,
+from .combinations import (COMBINATION_PARAMS, combination_features, fibre_point, log_density,
                            sample_conditional, support_hull, to_features)
 from .errors import HbmError
 from .likelihood import make_likelihood
@@ -565,7 +565,7 @@ class _PlainCoordinates:
         return y
 
 
-class _CombinationCoordinates:
+class _PhiCoordinates:
     """Coordinates of the exact fallback for ``--pool combinations``: y = (φ, the other stage-1 columns).
 
     The likelihood depends on (VOLF, P1, T1, GF, GM) only through φ = (log G, log c·P1,
@@ -582,7 +582,6 @@ class _CombinationCoordinates:
         self.comb = [self.names.index(p) for p in COMBINATION_PARAMS]
         self.other = [j for j, n in enumerate(self.names) if n not in COMBINATION_PARAMS]
         self.box = np.vstack([np.asarray(hull, float), self.bounds[self.other]])
-        self.box5 = combination_box(self.bounds, self.names)
         self.names_y = list(COMBINATION_COLUMNS) + [self.names[j] for j in self.other]
 
     def y_of(self, theta: np.ndarray) -> np.ndarray:
@@ -590,37 +589,10 @@ class _CombinationCoordinates:
         return np.column_stack([np.log(to_features(self.names, theta)), theta[:, self.other]])
 
     def theta_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A θ with combinations φ = y[:, :3] (c mid-way in its feasible interval) and whether one exists.
-
-        Each box limit of P1 = e^{y1}/c, T1 = e^{y2}/(1−c) and of G = c·GF + (1−c)·GM is an
-        interval in c; φ is in the support of p0 iff their intersection with c's box is not empty.
-        """
-        (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = self.box5
-        G, a, b = np.exp(y[:, 0]), np.exp(y[:, 1]), np.exp(y[:, 2])
-        lo = np.maximum(ca, a / pb)
-        hi = np.minimum(cb, 1.0 - b / tb)
-        if pa > 0:
-            hi = np.minimum(hi, a / pa)
-        if ta > 0:
-            lo = np.maximum(lo, 1.0 - b / ta)
-        ok = np.ones(y.shape[0], bool)
-        # G >= ma + c (fa − ma) and G <= mb + c (fb − mb): each a half-line in c
-        for base, slope, below in ((ma, fa - ma, True), (mb, fb - mb, False)):
-            if slope == 0:
-                ok &= (G >= base) if below else (G <= base)
-                continue
-            t = (G - base) / slope
-            if below == (slope > 0):
-                hi = np.minimum(hi, t)
-            else:
-                lo = np.maximum(lo, t)
-        ok &= lo < hi
-        c = np.where(ok, 0.5 * (lo + hi), 0.5 * (ca + cb))
-        span = c * (fb - fa) + (1 - c) * (mb - ma)
-        frac = np.clip((G - c * fa - (1 - c) * ma) / span, 0.0, 1.0)
-        parts = np.column_stack([c, a / c, b / (1 - c), fa + frac * (fb - fa), ma + frac * (mb - ma)])
+        """A θ with combinations φ = y[:, :3] (:func:`hbm.combinations.fibre_point`) and whether one exists."""
+        parts, ok = fibre_point(y[:, :3], self.bounds, self.names)
         theta = np.empty((y.shape[0], len(self.names)))
-        theta[:, self.comb] = np.clip(parts, self.box5[:, 0], self.box5[:, 1])
+        theta[:, self.comb] = parts
         theta[:, self.other] = y[:, 3:]
         return theta, ok
 
@@ -815,7 +787,7 @@ def _run_hierarchical_combinations(cfg: PopulationConfig, results: Mapping[str, 
     exact = None
     exact_ids = _exact_applies(cfg, collapsed, datasets, h.specimens)
     if exact_ids:
-        coords = _CombinationCoordinates(names, bounds, hull, log_u)
+        coords = _PhiCoordinates(names, bounds, hull, log_u)
         h, exact_updated, exact = _exact_gibbs(cfg, h, exact_ids,
                                                results, datasets, model, {s: v[0] for s, v in stage1.items()},
                                                log_prior, coords)

@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import quad
 from scipy.stats import kstest, qmc, uniform
 
-from hbm.combinations import (COMBINATION_PARAMS, combination_box, combination_features, log_density,
+from hbm.combinations import (COMBINATION_PARAMS, combination_box, combination_features, fibre_point, log_density,
                               sample_conditional, support_hull, to_features)
 from hbm.combinations import _integrand
 from hbm.errors import HbmError
@@ -98,6 +98,22 @@ def test_sample_conditional_reproduces_phi_and_the_uniform_prior():
         assert kstest(draws[:, j], uniform(lo, hi - lo).cdf).pvalue > 1e-3, p
     # the conditional is not the identity map: fresh draws differ from the originals
     assert np.mean(np.abs(draws[:, 0] - th[:, 0])) > 0.02
+
+
+def test_fibre_point_reproduces_phi_inside_the_support_only():
+    """Prior draws (inside the support by construction) give back a box point with the same φ;
+    φ pushed off the box is flagged exactly where log p0 is -inf."""
+    th = prior_draws(BOX, 5000, seed=8)
+    phi = np.log(to_features(list(COMBINATION_PARAMS), th))
+    parts, ok = fibre_point(phi, BOX)
+    assert ok.all()
+    np.testing.assert_allclose(np.log(to_features(list(COMBINATION_PARAMS), parts)), phi, atol=1e-10)
+    lo, hi = np.array([BOX[p] for p in COMBINATION_PARAMS]).T
+    assert np.all((parts >= lo) & (parts <= hi))
+    shifted = phi + np.random.default_rng(9).normal(0.0, 2.0, phi.shape)
+    _, ok = fibre_point(shifted, BOX)
+    assert 0.05 < ok.mean() < 0.95
+    np.testing.assert_array_equal(ok, np.isfinite(log_density(shifted, BOX)))
 
 
 def test_bad_inputs():

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..data import input_summary
+from ..data import input_line, input_summary
 from ..detective import diagnose, extend
 from ..effects import resolve_effect
 from ..errors import SettingError
@@ -152,8 +152,9 @@ def _candidates(args) -> list[str]:
 
 def _print_input(ds) -> None:
     """The loader's conversions first: every stress below is Cauchy, MPa, in strain."""
-    if input_summary(ds):
-        print(f"input converted: {input_summary(ds)} (stresses below are Cauchy, MPa)")
+    line = input_line(input_summary(ds))
+    if line:
+        print(line)
 
 
 def run_diagnose(args) -> int:

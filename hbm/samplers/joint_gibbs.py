@@ -52,6 +52,7 @@ from scipy.stats import rankdata
 
 from ..errors import HbmError
 from .hierarchical import HierarchicalModel, _draw_population
+from .tmcmc import _safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
 
 __all__ = ["ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
 
@@ -188,18 +189,6 @@ def rhat_ess(x: np.ndarray) -> tuple[float, float]:
     return rhat, float(M * N / tau)
 
 
-def _chol(cov: np.ndarray) -> np.ndarray:
-    """Cholesky factor of a covariance, with jitter so that a degenerate ensemble still works."""
-    cov = np.atleast_2d(np.asarray(cov, float))
-    d = np.maximum(np.diag(cov), 1e-300)
-    for eps in (0.0, 1e-10, 1e-6, 1e-3):
-        try:
-            return np.linalg.cholesky(cov + eps * np.diag(d))
-        except np.linalg.LinAlgError:
-            continue
-    return np.diag(np.sqrt(d))
-
-
 def _pick(logp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """One index per row of ``logp`` (n, M), drawn with probabilities ∝ exp(logp) (inverse CDF)."""
     w = np.exp(logp - logp.max(axis=1, keepdims=True))
@@ -214,7 +203,7 @@ def _fit_mixture(rows: np.ndarray, n_components: int, inflate: float, rng: np.ra
     Clusters with fewer than 2(d + 1) rows are dropped (the proposal need only be a density).
     """
     n, d = rows.shape
-    Lg = _chol(np.cov(rows, rowvar=False).reshape(d, d))
+    Lg = _safe_cholesky(np.cov(rows, rowvar=False).reshape(d, d))
     w = np.linalg.solve(Lg, (rows - rows.mean(axis=0)).T).T
     M = max(1, min(int(n_components), n // (4 * (d + 1))))
     cent = w[rng.choice(n, M, replace=False)]
@@ -226,7 +215,7 @@ def _fit_mixture(rows: np.ndarray, n_components: int, inflate: float, rng: np.ra
         keep, lab = [0], np.zeros(n, int)
     logw = np.log(np.array([np.sum(lab == m) for m in keep], float))
     mu = np.stack([rows[lab == m].mean(axis=0) for m in keep])
-    L = np.stack([_chol(np.cov(rows[lab == m], rowvar=False).reshape(d, d)) * inflate for m in keep])
+    L = np.stack([_safe_cholesky(np.cov(rows[lab == m], rowvar=False).reshape(d, d)) * inflate for m in keep])
     logdet = np.sum(np.log(np.diagonal(L, axis1=1, axis2=2)), axis=1)
     return logw - np.log(np.exp(logw).sum()), mu, L, logdet
 
@@ -264,7 +253,7 @@ class _Exact:
         if not np.all(np.isfinite(self.ll + self.c)):
             raise HbmError(f"joint_gibbs: a starting point of {name!r} has no finite target")
         rows = np.asarray(spec.scale_rows, float)
-        self.L = _chol(np.cov(rows, rowvar=False).reshape(self.dy, self.dy))
+        self.L = _safe_cholesky(np.cov(rows, rowvar=False).reshape(self.dy, self.dy))
         self.log_step = np.log(2.38 / np.sqrt(self.dy))
         self.coord_step = np.log(2.38 * np.sqrt(np.diag(self.L @ self.L.T)))
         self.mix = _fit_mixture(rows, int(n_components), float(inflate), rng)
@@ -286,7 +275,7 @@ class _Exact:
             K = L @ np.swapaxes(L, 1, 2)
             o = np.array([j for j in range(self.dy) if j != k])
             beta = K[:, o, k] / K[:, k, k][:, None]
-            Lc = np.stack([_chol(K[m][np.ix_(o, o)] - np.outer(beta[m], K[m, k, o])) for m in range(K.shape[0])])
+            Lc = np.stack([_safe_cholesky(K[m][np.ix_(o, o)] - np.outer(beta[m], K[m, k, o])) for m in range(K.shape[0])])
             self.cond[k] = (o, beta, Lc, K[:, k, k])
         return self.cond[k]
 
@@ -370,7 +359,7 @@ class _Exact:
     def adapt(self, rates: dict) -> None:
         """Burn-in only: covariance from the ensemble of chains, step scales toward the target acceptance."""
         if self.y.shape[0] > 2 * self.dy:
-            self.L = _chol(np.cov(self.y, rowvar=False).reshape(self.dy, self.dy))
+            self.L = _safe_cholesky(np.cov(self.y, rowvar=False).reshape(self.dy, self.dy))
         if "rw" in rates:
             self.log_step += float(np.clip(rates["rw"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
         for k in range(self.dy):
@@ -532,7 +521,7 @@ def joint_gibbs(
     lp, coef, cc = pop_logp(raw)
     if not np.all(np.isfinite(lp)):
         raise HbmError("joint_gibbs: the joint target is not finite at the starting points")
-    Lpsi = _chol(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
+    Lpsi = _safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
     pop_step = 0.0
     # non-centred moves: pooled columns k with free mu_k and sd_k that some exact specimen maps
     d = model.d
@@ -580,7 +569,7 @@ def joint_gibbs(
         lp = pop_logp(raw)[0]  # the specimens moved: refresh the population part of the target
         if burning and (sweep + 1) % adapt_every == 0:
             if n_chains > 2 * len(free):
-                Lpsi = _chol(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
+                Lpsi = _safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
             pop_step += float(np.clip(win_pop[0] / max(win_pop[1], 1) - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
             if win_nc[1]:
                 nc_step += float(np.clip(win_nc[0] / win_nc[1] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
