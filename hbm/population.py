@@ -329,7 +329,7 @@ def _fit_population(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str]
     Returns the result and its warnings (raised and kept ones, without repeats).
     """
     if cfg.groups:
-        return _fit_grouped(cfg, stage1, names, bounds, transforms, pooled, log_prior)
+        return _fit_grouped(cfg, stage1, names, bounds, transforms, pooled, log_prior, extra)
     # an int seed for the hierarchical layer, independent of the specimen streams
     seed = seeds.seed_int(seeds.stream(int(cfg.seed), "hierarchical"))
     with warnings.catch_warnings(record=True) as caught:
@@ -344,10 +344,12 @@ def _fit_population(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str]
 
 
 def _fit_grouped(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str], bounds, transforms: Mapping,
-                 pooled: Sequence[str], log_prior: Mapping | None = None):
+                 pooled: Sequence[str], log_prior: Mapping | None = None, extra: Mapping | None = None):
     """:func:`~hbm.samplers.grouped.grouped_hierarchical` with the run's settings (stream ``grouped``).
 
-    Returns the result and its warnings, as :func:`_fit_population`.
+    ``extra``: the stored stage-1 log-likelihoods for the reuse diagnostics (reference rows and
+    other two-level-only options are not used by the grouped layer).  Returns the result and its
+    warnings, as :func:`_fit_population`.
     """
     groups = {sid: cfg.groups.get(sid) for sid in stage1}
     _log("groups" + (f" ({cfg.group_by})" if cfg.group_by else "") + ": " + ", ".join(
@@ -355,7 +357,8 @@ def _fit_grouped(cfg: PopulationConfig, stage1: Mapping, names: Sequence[str], b
     options = dict(transforms=transforms, pooled=pooled, log_prior=log_prior, n_samples=int(cfg.samples),
                    seed=seeds.seed_int(seeds.stream(int(cfg.seed), "grouped")), progress=cfg.progress,
                    sd_range=tuple(cfg.sd_range), estimator=cfg.estimator,
-                   tmcmc_options={"max_steps": int(cfg.max_steps)})
+                   tmcmc_options={"max_steps": int(cfg.max_steps)},
+                   log_likelihood=(extra or {}).get("log_likelihood"))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         h = grouped_hierarchical(stage1, names, bounds, groups, **options)
@@ -688,7 +691,10 @@ def _exact_gibbs(cfg: PopulationConfig, h, exact_ids: Sequence[str], results: Ma
 
 
 def _check_exact(cfg: PopulationConfig) -> None:
-    """Bad settings of the exact fallback (HbmError)."""
+    """Bad settings of the exact fallback and the tail options (HbmError)."""
+    if cfg.groups and (cfg.reference or cfg.second_pass):
+        # the grouped layer has no deterministic-mixture weights: reference rows would count as posterior draws
+        raise HbmError("reference draws and the second pass are options of the two-level layer; not with groups")
     if cfg.exact is None:
         return
     if cfg.exact != "gibbs":

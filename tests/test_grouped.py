@@ -19,6 +19,7 @@ from scipy.special import logsumexp
 from scipy.stats import norm, truncnorm
 
 from hbm.errors import HbmError
+from hbm.population import run_population
 from hbm.samplers.grouped import grouped_hierarchical, truncnorm_ppf
 from hbm.samplers.tmcmc import tmcmc
 
@@ -169,6 +170,36 @@ def test_recovers_known_group_difference():
     assert abs(np.median(r.group_predictive[:, 1, 0]) - np.median(r.group_means[:, 1, 0])) < 0.1
     print(f"group difference: {diff['median']:.3f} [{diff['lo']:.3f}, {diff['hi']:.3f}] (truth 2.0), "
           f"P(>0) {diff['p_positive']:.3f}; {elapsed:.1f} s")
+
+
+def test_reuse_diagnostics_see_a_group_population_beyond_a_one_sided_specimen():
+    """Group "low": three specimens whose data put them near -6 (narrow Gaussian posteriors) and one
+    whose data bound the parameter only from above (likelihood flat below 0, zero above; its
+    stage-1 samples stop at -4).  Its group's population N(m_low, sd_within) sits at about -6,
+    beyond its samples: the population mass beyond them is nearly 1 and it is flagged, while the
+    informed specimens of both groups are not.  Against the population of its own group, not the
+    whole population's (group "high" sits at +3)."""
+    rng = np.random.default_rng(5)
+    n, s = 1500, 0.3
+    stage1, groups, ll = {}, {}, {}
+    for g, m in {"low": -6.0, "high": 3.0}.items():
+        for k in range(3):
+            c = m + 0.2 * rng.standard_normal()
+            x = c + s * rng.standard_normal(n)
+            stage1[f"{g}{k}"] = (x[:, None], -np.log(4 * L))  # normalised likelihood, uniform prior on the box
+            ll[f"{g}{k}"] = norm.logpdf(x, c, s)
+            groups[f"{g}{k}"] = g
+    stage1["low_onesided"] = (rng.uniform(-4.0, 0.0, (n, 1)), np.log(0.5))  # L = 1 below 0: half the box
+    ll["low_onesided"] = np.zeros(n)
+    groups["low_onesided"] = "low"
+    r = grouped_hierarchical(stage1, ["a"], [[-L * 2, L * 2]], groups, n_samples=600, seed=1, progress=False,
+                             tmcmc_options={"n_steps": 15}, log_likelihood=ll)
+    beyond = {k: v["population_beyond"] for k, v in r.reuse.items()}
+    # the trigger is 0.35; the informed specimens sit at 0.13-0.18
+    assert beyond["low_onesided"] > 0.6 and max(v for k, v in beyond.items() if k != "low_onesided") < 0.3, beyond
+    assert r.reuse["low_onesided"]["unreliable"], r.reuse["low_onesided"]
+    assert not any(r.reuse[k]["unreliable"] for k in stage1 if k != "low_onesided"), {
+        k: r.reuse[k].get("reasons") for k in stage1}
 
 
 def test_bad_groups():
@@ -334,3 +365,11 @@ def test_view_refines_a_specimen_like_its_updated_posterior():
     assert np.mean(b) < CENTRES[sid] - 0.02
     assert abs(np.mean(a) - np.mean(b)) < 0.03 and abs(np.std(a) / np.std(b) - 1) < 0.1, (a.mean(), b.mean(),
                                                                                           a.std(), b.std())
+
+
+@pytest.mark.parametrize("option", [{"reference": 1.0}, {"second_pass": True}])
+def test_two_level_tail_options_are_refused_with_groups(option):
+    """Reference rows need deterministic-mixture weights the grouped layer does not apply: refused
+    before any work instead of being counted as posterior draws."""
+    with pytest.raises(HbmError, match="two-level layer; not with groups"):
+        run_population({}, groups={"a": "x", "b": "y"}, **option)

@@ -65,7 +65,7 @@ from scipy.special import ndtr, ndtri
 
 from ..errors import HbmError
 from .hierarchical import (ESTIMATORS, HierarchicalModel, HierarchicalResult, _draw_population, _parse_stage1,
-                           systematic_resample)
+                           reuse_diagnostics, reuse_unreliable, systematic_resample)
 from .tmcmc import tmcmc as _tmcmc
 
 __all__ = ["GroupedModel", "GroupedResult", "grouped_hierarchical", "truncnorm_ppf", "group_differences",
@@ -315,6 +315,7 @@ def grouped_hierarchical(
     n_updated: int | None = None,
     n_hyper_updated: int = 1000,
     chunk_bytes: float = 4e6,
+    log_likelihood: Mapping[str, np.ndarray] | None = None,
 ) -> GroupedResult:
     """Three-level hyper-posterior, hyper-evidence, group means, updated individuals and predictives.
 
@@ -322,8 +323,10 @@ def grouped_hierarchical(
     ----------
     stage1, names, bounds, transforms, pooled, log_prior, estimator, bandwidth, n_samples, seed,
     progress, sampler, tmcmc_options, sd_prior, sd_range, mu_bounds, logit_range, ess_threshold,
-    n_updated, n_hyper_updated, chunk_bytes
-        As :func:`hbm.samplers.hierarchical.hierarchical` (no ``full_cov``, ``fix``, ``thin``).
+    n_updated, n_hyper_updated, chunk_bytes, log_likelihood
+        As :func:`hbm.samplers.hierarchical.hierarchical` (no ``full_cov``, ``fix``, ``thin``,
+        reference rows).  ``log_likelihood`` (the stage-1 rows' log-likelihoods) lets the reuse
+        diagnostics extrapolate the likelihood beyond the samples with its edge slope.
     specimen_group : mapping specimen -> group name
         The group of every specimen of ``stage1``; at least two groups.
 
@@ -429,6 +432,19 @@ def grouped_hierarchical(
     predictive = _draw_population(base, new_raw, n, rng_p)
     group_pred = np.stack([_draw_population(base, raw, n, rng_p) for raw in model.specimen_raw(x)], axis=1)
     t5 = time.perf_counter()
+
+    # what the reused samples cannot represent, each specimen against its own group's population
+    # (m_g(i), sd_within): the two-level diagnostics on the group's raw coordinates
+    group_raw = model.specimen_raw(x)
+    reuse = {}
+    for i, key in enumerate(specs):
+        ll = None if log_likelihood is None or key not in log_likelihood else np.asarray(log_likelihood[key], float)
+        reuse[key] = reuse_diagnostics(base, samples[i], group_raw[gidx[i]], log_prior=lps[i],
+                                       updated_weights=upd_w[key], log_likelihood=ll)
+        reuse[key].update(ess_q10=ess_summary[key]["q10"], ess_raw_q10=ess_summary[key]["raw_q10"])
+    for key, (bad, why) in reuse_unreliable(reuse, ess_threshold=ess_threshold).items():
+        reuse[key].update(unreliable=bad, reasons=why)
+    t6 = time.perf_counter()
     return GroupedResult(
         hyper_samples=model.natural(x), hyper_names=list(model.hyper_names), names=list(model.names),
         all_names=names, bounds=base.all_bounds.copy(), transforms=dict(base.transforms), specimens=specs,
@@ -438,8 +454,8 @@ def grouped_hierarchical(
         log_marginal=lm + logz[None, :], ess=ess, ess_raw=ess_raw, ess_summary=ess_summary,
         ess_collapsed=collapsed, hyper_ess_collapsed=hyper_collapsed, ess_trace=trace, updated=updated,
         updated_weights=upd_w, updated_ess=upd_ess, predictive=predictive, warnings=warn_list,
-        timings={"setup": t1 - t0, "tmcmc": t2 - t1, "updated": t4 - t3, "predictive": t5 - t4, "total": t5 - t0,
-                 "likelihood_calls": len(trace)},
+        timings={"setup": t1 - t0, "tmcmc": t2 - t1, "updated": t4 - t3, "predictive": t5 - t4,
+                 "diagnostics": t6 - t5, "total": t6 - t0, "likelihood_calls": len(trace)}, reuse=reuse,
         sampler_result=res, model=model, raw_samples=x,
         options={"n_samples": int(n_samples), "sd_prior": sd_prior, "sd_range": list(sd_range),
                  "ess_threshold": ess_threshold, "logit_range": logit_range, "mu_lo": base.mu_lo.tolist(),
