@@ -123,7 +123,7 @@ class RunConfig:
                                 transforms=self.hier_transforms, sd_range=self.hier_sd_range,
                                 stage1_samples=self.samples, noise=self.noise, fix=self.fix, bounds=self.bounds,
                                 retries=self.retries, progress=self.progress, exact=self.hier_exact,
-                                # a smoke run: the fallback's chains shorter too (a fifth of the draws kept)
+                                # a smoke run: the fallback's chains shorter too (a tenth of the draws kept)
                                 **({"exact_burn": 200, "exact_keep": 12} if self.quick else {}))
 
 

@@ -223,4 +223,4 @@ def test_run_option_hier_exact_reaches_the_population_layer(monkeypatch, tmp_pat
         got[label] = exc.value.args[0]
     assert got["default"].exact == "gibbs" and got["none"].exact is None
     assert (got["quick"].exact_burn, got["quick"].exact_keep) == (200, 12)
-    assert (got["default"].exact_burn, got["default"].exact_keep) == (600, 60)
+    assert (got["default"].exact_burn, got["default"].exact_keep) == (400, 120)

@@ -80,7 +80,11 @@ def test_end_to_end_outputs(first_run):
     th = theta_from_samples(m, h.pooled_names, h.new_specimen)
     assert th.shape == (h.new_specimen.shape[0], 8)
     assert np.all((th >= m.bounds[:, 0]) & (th <= m.bounds[:, 1]))
-    assert h.updated.shape == (100, 2, 9)
+    # joint draws: --hier-samples of them, or all chains x kept draws of the exact fallback (>= that)
+    n_draws = h.hyper_samples.shape[0]
+    assert h.updated.shape == (n_draws, 2, 9)
+    exact = h.attrs.get("exact")
+    assert n_draws == (exact["n_chains"] * exact["n_keep"] if exact else 100) and n_draws >= 100
     assert np.isfinite(h.log_evidence)
     # hyper-evidence includes both specimens' stage-1 evidence
     lz = sum(r.log_evidence for r in res.results.values())

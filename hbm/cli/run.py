@@ -81,7 +81,8 @@ def register(subparsers) -> None:
                    help="Sobol base sample size, a power of 2 (default 1024)")
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
     p.add_argument("--hier-samples", type=sample_size, default=1000, metavar="N",
-                   help="TMCMC population over the hyperparameters (default 1000)")
+                   help="TMCMC population over the hyperparameters (default 1000); when the exact fallback "
+                        "runs, the layer keeps all its chains x kept draws (at least N)")
     p.add_argument("--pool", type=name_list, metavar="auto|combinations|informed|all|P1,P2,...", default=["auto"],
                    help="what gets a population distribution: 'combinations' = the identifiable combinations "
                         "log G, log VOLF*P1, log (1-VOLF)*T1 with T2, THETA (and EOPT when informed); "

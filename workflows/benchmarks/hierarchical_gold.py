@@ -280,6 +280,8 @@ def main(argv=None) -> int:
                     help="PopulationConfig.exact: the joint Metropolis-within-Gibbs fallback for flagged specimens")
     ap.add_argument("--exact-all", type=int, choices=(0, 1), default=None,
                     help="PopulationConfig.exact_all (1: real likelihoods for all specimens, 0: flagged ones only)")
+    ap.add_argument("--exact-keep", type=int, default=None, help="PopulationConfig.exact_keep (kept draws per chain)")
+    ap.add_argument("--exact-burn", type=int, default=None, help="PopulationConfig.exact_burn (burn-in sweeps)")
     ap.add_argument("--variant", default="default", help="label of the layer settings in the output")
     ap.add_argument("--stage1-only", action="store_true")
     a = ap.parse_args(argv)
@@ -298,6 +300,9 @@ def main(argv=None) -> int:
         cfg["exact"] = None if a.exact == "none" else a.exact
         if a.exact_all is not None:
             cfg["exact_all"] = bool(a.exact_all)
+    for key in ("exact_keep", "exact_burn"):
+        if getattr(a, key) is not None:
+            cfg[key] = int(getattr(a, key))
     hfs = [layer(results, datasets, model, s, **cfg)[0:3:2] for s in seeds]  # (hf, cpu seconds)
     spec = peer_spec(results, datasets, hfs[0][0])
     p0_err = check_p0(spec, results, cache)
