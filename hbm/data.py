@@ -11,7 +11,10 @@ CSV format
     0.01,0.0031,45.45,1
     ...
 
-Columns (header names are case-insensitive; exactly one deformation and one stress column):
+Columns (header names are case-insensitive; exactly one deformation and one stress column;
+headers as labs write them, ``Strain (%)``, ``Nominal stress [kPa]``, ``Time (s)``, are read as the
+names below, see :func:`_canonical_header`; a header without ',' makes tab or ';' the separator and
+then decimal commas are read):
 
 * deformation — ``strain``: engineering strain ε = ΔL/L0 (dimensionless); or
   ``strain_percent``: 100·ε; or ``stretch`` λ = L/L0 (ε = λ − 1); or ``sarcomere_length_um``, the sarcomere length SL in µm
@@ -111,10 +114,21 @@ _MEASURES = ("cauchy", "nominal")
 _STRESS_COL_RE = re.compile(r"^(?:(nominal|cauchy)_)?stress(?:_(mpa|kpa|pa))?$")
 _LABEL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.+\-/()% ]{0,63}$")
 _LEADING_ZERO_RE = re.compile(r"^[+-]?0[0-9]+$")
+_DECIMAL_COMMA_RE = re.compile(r"^(\s*[+-]?[0-9]+),([0-9]+(?:[eE][+-]?[0-9]+)?\s*)$")
 _INT64 = 2 ** 63
 _EXPECTED_COLUMNS = ("strain|strain_percent|stretch|sarcomere_length_um, stress (or stress_MPa|stress_kPa|stress_Pa, "
                      "nominal_stress[_unit], cauchy_stress[_unit]), time, test")
 _SEPARATOR_HINT = " (cells are separated by ',', numbers use '.')"
+# headers as labs write them: "Strain (%)", "Nominal stress [kPa]", "Time (s)" -> the canonical names
+_UNIT_SUFFIX_RE = re.compile(r"^(?P<word>[^()\[\]]*?)\s*(?:\((?P<u1>[^()]*)\)|\[(?P<u2>[^\[\]]*)\])$")
+_STRAIN_WORDS = ("strain", "engineering strain", "nominal strain")
+_STRESS_WORDS = {"stress": "", "cauchy stress": "cauchy_", "true stress": "cauchy_", "nominal stress": "nominal_",
+                 "engineering stress": "nominal_"}
+_STRESS_UNIT_ALIASES = {"mpa": "mpa", "n/mm2": "mpa", "n/mm^2": "mpa", "n/mm\u00b2": "mpa", "kpa": "kpa",
+                        "mn/mm2": "kpa", "mn/mm^2": "kpa", "mn/mm\u00b2": "kpa", "pa": "pa", "n/m2": "pa",
+                        "n/m^2": "pa", "n/m\u00b2": "pa"}
+_NO_UNIT = ("", "-", "1", "mm/mm", "m/m")
+_MICRO = ("um", "\u00b5m", "\u03bcm", "micrometre", "micrometres", "micrometer", "micrometers", "micron", "microns")
 _LABEL_RULE = "a letter, then letters, digits, spaces or _ . + - / ( ) %, at most 64 characters"
 
 
@@ -204,6 +218,53 @@ class _Columns:
     measure: str | None  # stress measure carried by the column name
 
 
+def _canonical_header(text: str, where: str) -> str | None:
+    """The canonical column name of a header written as labs write it, or None.
+
+    ``Strain (%)`` -> ``strain_percent``, ``Strain [-]`` / ``Engineering strain`` -> ``strain``,
+    ``Stretch ratio`` -> ``stretch``, ``Sarcomere length (µm)`` -> ``sarcomere_length_um``,
+    ``Nominal stress (kPa)`` / ``Engineering stress [N/mm2]`` -> ``nominal_stress_kpa`` /
+    ``nominal_stress_mpa``, ``True stress (MPa)`` -> ``cauchy_stress_mpa``, ``Time (s)`` -> ``time``.
+    A known quantity with a unit hbm does not convert is a DataError naming what is accepted.
+    """
+    m = _UNIT_SUFFIX_RE.match(text.strip().lower())
+    word, unit = (m.group("word"), (m.group("u1") if m.group("u1") is not None else m.group("u2")).strip()) \
+        if m else (text.strip().lower(), None)
+    word = re.sub(r"[\s_]+", " ", word).strip()
+    if word in ("force", "load"):
+        raise DataError(f"{where}: column {_show(text)} is a force; hbm needs stress = force / cross-sectional "
+                        "area (a stress column in MPa, kPa or Pa)")
+    if word in _STRAIN_WORDS:
+        if unit == "%":
+            return "strain_percent"
+        if unit is None or unit in _NO_UNIT:
+            return "strain"
+        raise DataError(f"{where}: strain unit {_show(unit)} of column {_show(text)}: expected a fraction "
+                        "('-', 'mm/mm') or '%'")
+    if word in ("stretch", "stretch ratio"):
+        if unit is None or unit in _NO_UNIT:
+            return "stretch"
+        raise DataError(f"{where}: stretch L/L0 has no unit, got {_show(unit)} in column {_show(text)}")
+    if word == "sarcomere length":
+        if unit in _MICRO:
+            return "sarcomere_length_um"
+        raise DataError(f"{where}: column {_show(text)}: a sarcomere length needs its unit, micrometres "
+                        "('Sarcomere length (um)' or sarcomere_length_um)")
+    if word in _STRESS_WORDS:
+        if unit is None:
+            return _STRESS_WORDS[word] + "stress"
+        if unit in _STRESS_UNIT_ALIASES:
+            return f"{_STRESS_WORDS[word]}stress_{_STRESS_UNIT_ALIASES[unit]}"
+        raise DataError(f"{where}: stress unit {_show(unit)} of column {_show(text)}: expected MPa (N/mm2), "
+                        "kPa (mN/mm2) or Pa (N/m2)")
+    if word == "time" and unit is not None:
+        if unit in ("s", "sec", "second", "seconds"):
+            return "time"
+        raise DataError(f"{where}: time unit {_show(unit)} of column {_show(text)}: expected seconds "
+                        "(convert the column to s)")
+    return None
+
+
 def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
     index: dict[str, int] = {}
     names: dict[str, str] = {}
@@ -213,6 +274,8 @@ def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
         text = cell.strip()
         col = text.lower()
         where = f"{name}: line {lineno}, column {j + 1}"
+        if col not in DEFORMATIONS and col not in ("time", "test") and not _STRESS_COL_RE.match(col):
+            col = _canonical_header(text, where) or col
         if col in seen:
             raise DataError(f"{where}: duplicate column name {col!r} (also column {seen[col] + 1})")
         seen[col] = j
@@ -454,6 +517,7 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
     header_lineno = 0
     cols: _Columns | None = None
     rows: list[tuple[int, list[str]]] = []
+    delimiter = ","
     for lineno, line in enumerate(text.split("\n"), start=1):
         if not line.strip():
             continue
@@ -474,11 +538,15 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
                                 "(e.g. a species, muscle or protocol)")
             attrs[key], meta_line[key] = value, lineno
             continue
+        if header is None:  # the header fixes the separator: ',' or, in a header without one, tab or ';'
+            delimiter = "," if "," in line else "\t" if "\t" in line else ";" if ";" in line else ","
         try:
-            cells = next(csv.reader([line]))
+            cells = next(csv.reader([line], delimiter=delimiter))
         except csv.Error as exc:  # e.g. a cell over the csv module's 128 KiB field limit
             raise DataError(f"{name}: line {lineno}: unreadable CSV row ({exc}), expected "
                             "comma-separated numbers") from None
+        if delimiter != ",":  # spreadsheets that separate by tab/';' write decimal commas: 0,01 -> 0.01
+            cells = [_DECIMAL_COMMA_RE.sub(r"\1.\2", c) for c in cells]
         if header is None:
             if all(_is_float(c) for c in cells):
                 raise DataError(f"{name}: line {lineno}: expected a header with strain,stress before the data, "

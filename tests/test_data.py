@@ -59,7 +59,7 @@ ROWS5 = "".join(f"{0.1 * i},{0.01 * i}\n" for i in range(5))
     ("   \n\n", ["empty file"]),
     ("# id: a\n", ["no header"]),
     ("0,0\n" + ROWS5, ["line 1", "expected a header", "numeric row"]),
-    ("strain,force\n" + ROWS5, ["line 1", "unknown column 'force'"]),
+    ("strain,force\n" + ROWS5, ["line 1", "'force' is a force", "cross-sectional area"]),
     ("stress\n" + "".join(f"{i}\n" for i in range(5)), ["line 1", "no 'strain' column"]),
     ("strain,time\n" + ROWS5, ["line 1", "no 'stress' column"]),
     ("strain,stress,strain\n" + "".join(f"{i/10},{i},{i/10}\n" for i in range(5)),

@@ -253,7 +253,7 @@ def test_stress_just_below_the_limit_loads(tmp_path):
      ["line 2", "units_stress_original is 'Pa'", "'kPa'"]),
     ("# id: x", "strain,stretch,stress", ["line 2", "column 2", "second deformation column 'stretch'"]),
     ("# id: x", "strain,stress,stress_kPa", ["line 2", "column 3", "second stress column"]),
-    ("# id: x", "sarcomere_length,stress", ["line 2", "unknown column 'sarcomere_length'"]),
+    ("# id: x", "sarcomere_length,stress", ["line 2", "'sarcomere_length'", "needs its unit, micrometres"]),
     ("# id: x", "stretch,time", ["line 2", "no 'stress' column"]),
 ])
 def test_bad_metadata_values(tmp_path, meta, head, fragments):
@@ -300,9 +300,62 @@ def test_decimal_comma_files_are_refused(tmp_path, body, fragments):
     refused(write(tmp_path, "strain,stress,time,test\n" + body), fragments)
 
 
-def test_semicolon_header_hint(tmp_path):
-    with pytest.raises(DataError, match=r"unknown column 'strain;stress'.*separated by ','"):
-        load_specimen(write(tmp_path, "strain;stress\n0.1;0.2\n"))
+def test_semicolon_and_tab_files_with_decimal_commas_mean_what_they_say(tmp_path):
+    """A header without ',' fixes tab or ';' as the separator; cells then may use decimal commas."""
+    expected_strain = [e for e in E]
+    for sep, comma in ((";", True), ("\t", True), ("\t", False)):
+        body = "".join(sep.join((repr(e) if not comma else repr(e).replace(".", ","),
+                                 repr(x) if not comma else repr(x).replace(".", ","))) + "\n" for e, x in zip(E, S))
+        ds = load_specimen(write(tmp_path, f"strain{sep}stress_kPa\n" + body))
+        assert ds.strain.values.tolist() == expected_strain
+        assert ds.stress.values.tolist() == [x / 1000 for x in S]
+    # one row of a ';' file: read, then refused for its size (no longer as an unknown column)
+    refused(write(tmp_path, "strain;stress\n0.1;0.2\n"), ["1 data rows", "at least 5"])
+    # a comma header keeps ',' as the separator: decimal commas there stay an error
+    refused(write(tmp_path, "strain,stress\n" + "".join(f"0,{k};0,{k}\n" for k in range(1, 7))), ["ragged"])
+
+
+@pytest.mark.parametrize("head, strain_factor, stress_factor", [
+    ("Strain (%),Nominal stress (kPa),Time (s)", 0.01, "nominal_kpa"),
+    ("Strain [-],Cauchy stress [MPa],time [sec]", 1.0, 1.0),
+    ("Engineering strain,True stress (N/mm2),Time (s)", 1.0, 1.0),
+    ("Stretch ratio,Stress (Pa),Time (s)", "stretch", 1e-6),
+    ("Sarcomere length (um),Engineering stress [mN/mm2],Time (s)", "sl", "nominal_kpa"),
+    ("strain_percent,Stress [kPa],Time (seconds)", 0.01, 1e-3),
+])
+def test_lab_headers_with_units_in_brackets(tmp_path, head, strain_factor, stress_factor):
+    """Headers as labs write them map to the documented columns, and the numbers convert accordingly
+    (expected values computed here from the raw numbers)."""
+    raw_def = {0.01: [100 * e for e in E], 1.0: E, "stretch": [1 + e for e in E], "sl": [2.5 * (1 + e) for e in E]}[
+        strain_factor]
+    raw_stress = [x / 10 for x in S] if stress_factor in (1.0, 1e-3, "nominal_kpa") else [x * 1000 for x in S]
+    body = rows(raw_def, raw_stress, [10.0 * k for k in range(len(E))])
+    meta = "# reference_sarcomere_length_um: 2.5\n" if strain_factor == "sl" else ""
+    ds = load_specimen(write(tmp_path, meta + head + "\n" + body))
+    strain = {0.01: [v / 100 for v in raw_def], 1.0: raw_def, "stretch": [v - 1 for v in raw_def],
+              "sl": [v / 2.5 - 1 for v in raw_def]}[strain_factor]
+    np.testing.assert_allclose(ds.strain.values, strain, rtol=1e-14, atol=1e-15)
+    if stress_factor == "nominal_kpa":  # Cauchy = (1 + strain) * nominal, kPa -> MPa
+        stress = [(1 + e) * x / 1000 for e, x in zip(strain, raw_stress)]
+    else:
+        stress = [x * stress_factor for x in raw_stress]
+    np.testing.assert_allclose(ds.stress.values, stress, rtol=1e-14, atol=1e-18)
+    assert ds.time.values.tolist() == [10.0 * k for k in range(len(E))]
+
+
+@pytest.mark.parametrize("head, fragments", [
+    ("Strain (%),Force (N)", ["column 2", "'Force (N)' is a force", "cross-sectional area"]),
+    ("strain,load", ["column 2", "is a force"]),
+    ("Strain (mm),Stress (kPa)", ["column 1", "strain unit 'mm'", "'%'"]),
+    ("Strain (%),Stress (g/mm2)", ["column 2", "stress unit 'g/mm2'", "kPa (mN/mm2)"]),
+    ("Strain (%),Stress (kPa),Time (ms)", ["column 3", "time unit 'ms'", "seconds"]),
+    ("Sarcomere length,Stress (kPa)", ["column 1", "micrometres"]),
+    ("Stretch (mm),Stress (kPa)", ["column 1", "no unit"]),
+])
+def test_lab_headers_with_units_hbm_does_not_convert_are_refused(tmp_path, head, fragments):
+    n = len(head.split(","))
+    body = rows(*([[100 * e for e in E]] + [[x / 10 for x in S]] * (n - 1)))
+    refused(write(tmp_path, head + "\n" + body), ["line 1"] + fragments)
 
 
 @pytest.mark.parametrize("content, fragment", [

@@ -52,6 +52,53 @@ def _stress_name(col):
     return None
 
 
+# headers as labs write them (README "Data format"): word, optional unit in () or []
+LAB_STRAIN = {"strain", "engineering strain", "nominal strain"}
+LAB_STRESS = {"stress": "", "cauchy stress": "cauchy_", "true stress": "cauchy_", "nominal stress": "nominal_",
+              "engineering stress": "nominal_"}
+LAB_STRESS_UNITS = {"mpa": "mpa", "n/mm2": "mpa", "n/mm^2": "mpa", "n/mm²": "mpa", "kpa": "kpa",
+                    "mn/mm2": "kpa", "mn/mm^2": "kpa", "mn/mm²": "kpa", "pa": "pa", "n/m2": "pa", "n/m^2": "pa",
+                    "n/m²": "pa"}
+NO_UNIT = {"", "-", "1", "mm/mm", "m/m"}
+
+
+def _lab_name(name):
+    """Documented column name of a header cell (lower case, stripped); False: refused; None: not a lab form."""
+    word, unit = name, None
+    for op, cl in ("()", "[]"):
+        if name.endswith(cl) and op in name:
+            k = name.rindex(op)
+            inner = name[k + 1:-1]
+            if not any(c in inner for c in "()[]") and not any(c in name[:k] for c in "()[]"):
+                word, unit = name[:k], inner.strip()
+            break
+    word = " ".join(word.replace("_", " ").split())
+    if word in ("force", "load"):
+        return False
+    if word in LAB_STRAIN:
+        return "strain_percent" if unit == "%" else "strain" if unit is None or unit in NO_UNIT else False
+    if word in ("stretch", "stretch ratio"):
+        return "stretch" if unit is None or unit in NO_UNIT else False
+    if word == "sarcomere length":
+        return "sarcomere_length_um" if unit in ("um", "µm", "μm", "micrometre", "micrometres", "micrometer",
+                                                 "micrometers", "micron", "microns") else False
+    if word in LAB_STRESS:
+        if unit is None:
+            return LAB_STRESS[word] + "stress"
+        return LAB_STRESS[word] + "stress_" + LAB_STRESS_UNITS[unit] if unit in LAB_STRESS_UNITS else False
+    if word == "time" and unit is not None:
+        return "time" if unit in ("s", "sec", "second", "seconds") else False
+    return None
+
+
+def _documented(name):
+    """The documented name a header cell stands for, or False if it is refused."""
+    if name in DEFORMATION_NAMES or name in ("time", "test") or _stress_name(name):
+        return name
+    lab = _lab_name(name)
+    return name if lab is None else lab
+
+
 def _value(cell):
     """A finite number written with '.', else None."""
     t = cell.strip()
@@ -98,7 +145,7 @@ def meaning(raw: bytes, sl0=None):
     except UnicodeDecodeError:
         return None
     text = text.replace("\r\n", "\n").replace("\r", "\n")
-    meta, header, body = {}, None, []
+    meta, header, header_raw, body, sep = {}, None, None, [], ","
     for line in text.split("\n"):
         s = line.strip()
         if not s:
@@ -110,16 +157,23 @@ def meaning(raw: bytes, sl0=None):
                 return None
             meta[key] = m.group(2).strip()
             continue
+        if header is None:
+            sep = "," if "," in line else "\t" if "\t" in line else ";" if ";" in line else ","
         try:
-            cells = next(csv.reader([line]))
+            cells = next(csv.reader([line], delimiter=sep))
         except csv.Error:
             return None
+        if sep != ",":  # decimal commas: digits, one ',', digits (and an exponent)
+            cells = [re.sub(r"^(\s*[+-]?[0-9]+),([0-9]+([eE][+-]?[0-9]+)?\s*)$", r"\1.\2", c) for c in cells]
         names = [c.strip().lower() for c in cells]
         if header is None:
             if all(_float(c) is not None for c in cells):
                 return None
-            header = names
-        elif names == header:
+            if any(_documented(n) is False for n in names):
+                return None
+            header_raw, header = names, [_documented(n) for n in names]
+            continue
+        elif names == header_raw:
             return None
         elif len(cells) != len(header):
             return None
@@ -263,8 +317,20 @@ def _base_sl_argument():
     return "sarcomere_length_um,nominal_stress_kPa,test\n" + "\n".join(rows) + "\n"
 
 
+def _base_lab_semicolon():
+    """A spreadsheet export: ';' separated, decimal commas, units in the header."""
+    rows = [f"{2 * i};{0.4 * i * i + 0.1:.2f};{1.5 * i:.1f}".replace(".", ",") for i in range(10)]
+    return "# id: lab\nStrain (%);Nominal stress (kPa);Time (s)\n" + "\n".join(rows) + "\n"
+
+
+def _base_lab_tab():
+    rows = [f"{0.03 * i + 0.01:.2f}\t{0.002 * i * i:.4f}\t{'load' if i < 6 else 'unload'}" for i in range(9)]
+    return "Engineering strain\tTrue stress [N/mm2]\ttest\n" + "\n".join(rows) + "\n"
+
+
 BASES = [(_base_int_tests(), None), (_base_sl_labels(), None), (_base_stretch_pa(), None),
-         (_base_sl_argument(), 2.5), (_base_tests_no_time(), None), (_base_percent(), None)]
+         (_base_sl_argument(), 2.5), (_base_tests_no_time(), None), (_base_percent(), None),
+         (_base_lab_semicolon(), None), (_base_lab_tab(), None)]
 
 CELLS = st.one_of(
     st.text(max_size=12),
