@@ -65,7 +65,8 @@ def decisive(c: CandidateResult) -> bool:
 
     Yes when its likelihood gain would allow a name (Δmax log L > ``DELTA_LOGZ_MIN``: the gain
     is capped by it) but its TMCMC gain is not clearly above the threshold (Δlog Z − 2 SE ≤
-    ``DELTA_LOGZ_MIN``): a low bias of the larger model's evidence decides the verdict there.
+    ``DELTA_LOGZ_MIN``): there the low, scattered evidence of the 25-step runs of the larger
+    model decides the verdict.
     """
     return bool(c.physical and c.refit and c.fit is not None
                 and c.delta_max_log_likelihood > DELTA_LOGZ_MIN
@@ -96,11 +97,11 @@ def to_refine(refitted: Sequence[CandidateResult]) -> list[CandidateResult]:
 def refine_decisive(refitted: Sequence[CandidateResult], base: FitSummary, fitter: Fitter, seed: int) -> list[str]:
     """Rerun the evidence of a round's decisive comparisons with the refined sampler settings.
 
-    The base and the refits of :func:`to_refine` are rerun with the refined settings (the local walk, more MH steps
-    per stage, :meth:`.fitting.Fitter.refine`) and those refits' gains are measured between the
-    reruns: base and refit of one comparison always come from runs of the same settings.  The
-    other refits keep their standard comparison, and a round without a decisive candidate (a
-    clean curve, a strong effect) costs nothing extra.
+    The base and the refits of :func:`to_refine` are rerun with the local-covariance walk and
+    more MH steps per stage (:meth:`.fitting.Fitter.refine`), and those refits' gains are
+    measured between the reruns: base and refit of one comparison always come from runs of the
+    same settings.  The other refits keep their standard comparison, and a round without a
+    decisive candidate (a clean curve, a strong effect) costs nothing extra.
 
     Returns the effects whose gain was remeasured.
     """
