@@ -309,3 +309,108 @@ def test_power_limit_of_a_linear_effect_scales_with_the_noise():
     assert 0.4 < limits[1] / limits[0] < 0.62, limits
     strict = detection_power(fit, d, [make_effect("offset")], seed=3, n_rep=100)["effects"][0]["limit"]
     assert strict is not None and strict >= limits[1]
+
+
+# ------------------------------------------------------------------------------------------
+# refined evidence of the decisive comparisons
+# ------------------------------------------------------------------------------------------
+def _refit(name, dz, dl, se=1.0, physical=True):
+    """A refitted candidate with TMCMC gain ``dz`` ± ``se`` and likelihood gain ``dl``."""
+    c = _cand(name, dz, dl, physical=physical)
+    c.delta_log_evidence_tmcmc, c.delta_log_evidence_se = dz, se
+    c.fit = SimpleNamespace(effects=[name])
+    return c
+
+
+@pytest.mark.parametrize("cands, rerun", [
+    # a clean curve: nothing could pass the threshold -> nothing rerun
+    ([("offset", 1.0, 4.0, True), ("local_misfit", -3.0, 4.5, False)], []),
+    # a clearly named effect, the rest far behind it: its verdict cannot change
+    ([("viscoelastic", 51.9, 58.3, True), ("offset", 3.0, 7.4, True), ("time_trend", 39.4, 45.8, False)], []),
+    # round 2 of qlv>offset: the offset gains 12 nats of max log L but -1.5 of evidence -> the
+    # base, the offset and the controls that can pass the threshold are rerun (not a weak one)
+    ([("offset", -1.5, 12.3, True), ("local_misfit", -7.6, 8.6, False), ("local_step", -2.0, 3.9, False)],
+     ["offset", "local_misfit"]),
+    # decided by evidence: 12 - 2 SE > 5
+    ([("offset", 12.0, 14.0, True)], []),
+    # within 2 SE of the threshold: rerun
+    ([("offset", 8.0, 14.0, True)], ["offset"]),
+])
+def test_decisive_comparisons_are_those_that_can_change_the_verdict(cands, rerun):
+    from hbm.detective.refits import to_refine
+    cs = [_refit(n, dz, dl, se=1.9, physical=p) for n, dz, dl, p in cands]
+    assert [c.effect for c in to_refine(cs)] == rerun
+
+
+def test_refined_gains_compare_runs_of_the_same_settings():
+    """The decisive refits are measured against the base's refined run, the others against its
+    standard run; the base is rerun once, and its standard evidence (the next round's and the
+    controls' yardstick) is left alone."""
+    from hbm.detective.refits import refine_decisive
+    from hbm.detective.results import FitSummary
+    from hbm.detective.rules import TMCMC_SE_FACTOR
+
+    def fs(name, z, z_ref, se=0.5, se_ref=0.3):
+        f = FitSummary(effects=[name], noise="iid", names=["a"], theta_max=np.zeros(1), max_log_likelihood=0.0,
+                       bic=0.0, rmse=0.0, log_evidence=z, log_evidence_se=se)
+        f.likelihood = (z_ref, se_ref)       # what the stub's rerun will report
+        return f
+
+    calls = []
+
+    def refine(f, seed):
+        if np.isfinite(f.refined_log_evidence):
+            return
+        calls.append(f.effects[0])
+        f.refined_log_evidence, f.refined_log_evidence_se = f.likelihood
+
+    fitter = SimpleNamespace(refine=refine, log=lambda msg: None)
+    base = fs("base", 375.0, 377.0)
+    off = _refit("offset", -1.5, 12.3, se=2.6)
+    off.fit = fs("offset", 373.5, 383.0)
+    bump = _refit("local_misfit", -7.6, 8.6, physical=False)
+    bump.fit = fs("local_misfit", 367.4, 377.5)
+    weak = _refit("local_step", -2.0, 3.9, physical=False)
+    weak.fit = fs("local_step", 373.0, 399.0)
+    assert refine_decisive([off, bump, weak], base, fitter, 0) == ["offset", "local_misfit"]
+    assert calls == ["base", "offset", "local_misfit"]
+    assert off.delta_log_evidence == pytest.approx(6.0) and off.evidence_method == "tmcmc-refined"
+    assert off.delta_log_evidence_se == pytest.approx(TMCMC_SE_FACTOR * np.hypot(0.3, 0.3))
+    assert bump.delta_log_evidence == pytest.approx(0.5)
+    assert weak.delta_log_evidence == -2.0 and weak.evidence_method == ""   # untouched
+    assert base.log_evidence == 375.0 and off.fit.log_evidence == 373.5
+    # a second call (the next round, same base) reruns nothing already rerun
+    refine_decisive([off, bump], base, fitter, 1)
+    assert calls == ["base", "offset", "local_misfit"]
+
+
+@pytest.mark.slow
+def test_refined_evidence_credits_a_second_effect_the_25_step_runs_under_credit():
+    """QLV relaxation + a load-cell offset added after it (hbm's own viscoelastic and offset
+    effects), three rates, 30 points each: the offset's evidence gain beside the viscoelastic
+    model.  The standard runs (25 global MH steps per stage) leave the larger model's late stages
+    under-mixed and its log Z low; the refined runs (the local walk) credit the offset above the
+    naming threshold on every seed, and by more than the standard runs on average."""
+    from hbm.detective.fitting import sample
+    from hbm.detective.rules import DELTA_LOGZ_MIN, TMCMC_REFINE_PROPOSAL, TMCMC_REFINE_STEPS
+
+    th = dict(VOLF=0.75, EOPT=0.08, P1=0.20, T1=0.6, T2=18.0, THETA=58.0, GF=0.02, GM=0.008,
+              G1=0.3, LOGTAU1=1.6, S0=0.0065)
+    m2 = spyrou_model() + make_effect("viscoelastic") + make_effect("offset")
+    prot = protocol(ramp(0.36, 1e-3, 30), ramp(0.36, 1e-2, 30), ramp(0.36, 1e-1, 30))
+    d = as_data(synthetic_specimen(m2, th, prot, 0.012, seed=3, relative=True))
+    mf = model_free_noise(d.stress, d.segment)
+    f = Fitter(d, None, 0, 800, noise_prior_box(mf, d.stress), False)
+    m1 = spyrou_model() + make_effect("viscoelastic")
+    a = f.fit(m1, ["iid"], None, 1, sample=False, global_restarts=2)
+    b = f.fit(m2, ["iid"], f.warm_starts(a, m2, ["iid"], [{"S0": 0.0}, {"S0": 0.005}]), 2, sample=False,
+              global_restarts=1)
+    assert b.max_log_likelihood - a.max_log_likelihood > DELTA_LOGZ_MIN + 3   # the offset is in the data
+    std, ref = [], []
+    for s in range(2):
+        std.append(sample(b.likelihood, 800, 20 + s).log_evidence - sample(a.likelihood, 800, 10 + s).log_evidence)
+        kw = dict(max_steps=TMCMC_REFINE_STEPS, proposal=TMCMC_REFINE_PROPOSAL)
+        ref.append(sample(b.likelihood, 800, 20 + s, **kw).log_evidence
+                   - sample(a.likelihood, 800, 10 + s, **kw).log_evidence)
+    assert min(ref) > DELTA_LOGZ_MIN, (std, ref)
+    assert np.mean(ref) > np.mean(std) + 1.0, (std, ref)

@@ -300,7 +300,10 @@ def run_case(c: dict, seed: int, diagnose, **kw) -> dict:
     wall = _time.perf_counter() - t0
     row = {"case": c["name"], "group": c["group"], "expect": c["expect"], "verdict": dg["verdict"],
            "selected": list(dg.get("selected") or []), "message": dg.get("message", ""),
-           "windows": len(dg.get("misfit_windows") or []), "seconds": round(wall, 1)}
+           "windows": len(dg.get("misfit_windows") or []), "seconds": round(wall, 1),
+           "cpu_seconds": round(float((dg.get("timings") or {}).get("cpu", float("nan"))), 1),
+           # wall time of the refined evidence reruns of decisive comparisons (part of "seconds")
+           "refine_seconds": round(float((dg.get("timings") or {}).get("refine", 0.0)), 1)}
     row.update(judge(c, dg))
     return row
 

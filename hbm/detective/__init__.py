@@ -251,6 +251,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
             # named here), with the noise of the final model (the starting fit's holds the misfit)
             extra["power"] = detection_power(first.base, d, cands, _seed(seed, 91), noise_fit=current)
 
+    timings["refine"] = fitter.refine_seconds     # part of "refits": the decisive comparisons' reruns
     timings["total"] = _time.perf_counter() - t_start
     timings["cpu"] = _time.process_time() - cpu_start
     cov = first.base.predictive

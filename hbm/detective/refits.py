@@ -20,9 +20,10 @@ from ..model.core import Effect
 from .fitting import Fitter, cma_maximise, laplace_occam
 from .inputs import added_effects
 from .results import CandidateResult, FitSummary
-from .rules import MIN_REFIT_SCORE, N_CONTROL_REFITS, TMCMC_SE_FACTOR
+from .rules import DELTA_LOGZ_MIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN, TMCMC_SE_FACTOR
 
-__all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains"]
+__all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains", "decisive",
+           "to_refine", "refine_decisive"]
 
 #: the order in which noise models are tried (the first gets the global search)
 _NOISE_ORDER = ("iid", "proportional", "ar1")
@@ -55,7 +56,66 @@ def refit_candidates(results: list[CandidateResult], controls: list[CandidateRes
     if reoptimise_base(base, done, fitter, seed + 77):
         fitter.log(f"base re-optimised from the refits: max logL {base.max_log_likelihood:.2f} [{base.noise}]")
     evidence_gains(done, base)
+    refine_decisive(done, base, fitter, seed + 555)
     return done
+
+
+def decisive(c: CandidateResult) -> bool:
+    """Does naming the physical candidate ``c`` hinge on its evidence estimate?
+
+    Yes when its likelihood gain would allow a name (Δmax log L > ``DELTA_LOGZ_MIN``: the gain
+    is capped by it) but its TMCMC gain is not clearly above the threshold (Δlog Z − 2 SE ≤
+    ``DELTA_LOGZ_MIN``): there the low, scattered evidence of the 25-step runs of the larger
+    model decides the verdict.
+    """
+    return bool(c.physical and c.refit and c.fit is not None
+                and c.delta_max_log_likelihood > DELTA_LOGZ_MIN
+                and np.isfinite(c.delta_log_evidence_tmcmc)
+                and c.delta_log_evidence_tmcmc - 2.0 * c.delta_log_evidence_se <= DELTA_LOGZ_MIN)
+
+
+def to_refine(refitted: Sequence[CandidateResult]) -> list[CandidateResult]:
+    """The refits whose evidence a round reruns with more steps (empty: none, the usual case).
+
+    A round is rerun when a :func:`decisive` candidate can change its verdict: its gain, at most
+    its likelihood gain, could reach the best gain of the other physical refits within
+    ``RUNNER_UP_MARGIN`` (a candidate far behind a clearly named effect changes nothing).  Then
+    every refit whose likelihood gain exceeds ``DELTA_LOGZ_MIN`` is rerun -- the gains that can
+    pass the threshold, physical or control, all take part in the verdict (the runner-up
+    margin, "beats the best control", "a generic shape gains").
+    """
+    phys = [c for c in refitted if c.physical and c.refit and c.fit is not None]
+    open_ = [c for c in phys if decisive(c)]
+    others = [min(c.delta_log_evidence, c.delta_max_log_likelihood) for c in phys
+              if c not in open_ and np.isfinite(c.delta_log_evidence)]
+    top = max(others, default=-np.inf)
+    if not any(c.delta_max_log_likelihood >= top - RUNNER_UP_MARGIN for c in open_):
+        return []
+    return [c for c in refitted if c.refit and c.fit is not None and c.delta_max_log_likelihood > DELTA_LOGZ_MIN]
+
+
+def refine_decisive(refitted: Sequence[CandidateResult], base: FitSummary, fitter: Fitter, seed: int) -> list[str]:
+    """Rerun the evidence of a round's decisive comparisons with the refined sampler settings.
+
+    The base and the refits of :func:`to_refine` are rerun with the local-covariance walk and
+    more MH steps per stage (:meth:`.fitting.Fitter.refine`), and those refits' gains are
+    measured between the reruns: base and refit of one comparison always come from runs of the
+    same settings.  The other refits keep their standard comparison, and a round without a
+    decisive candidate (a clean curve, a strong effect) costs nothing extra.
+
+    Returns the effects whose gain was remeasured.
+    """
+    todo = to_refine(refitted)
+    if not todo:
+        return []
+    fitter.refine(base, seed)
+    for k, c in enumerate(todo):
+        fitter.refine(c.fit, seed + 1 + k)
+        std = c.delta_log_evidence_tmcmc
+        _evidence_gain(c, c.fit, base)
+        fitter.log(f"  {c.effect}: refined Δlog Z {c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f} "
+                   f"(standard {std:.1f})")
+    return [c.effect for c in todo]
 
 
 def reoptimise_base(base: FitSummary, refitted: Sequence[CandidateResult], fitter: Fitter, seed: int) -> bool:
@@ -200,8 +260,14 @@ def _evidence_gain(c: CandidateResult, fs: FitSummary, base: FitSummary) -> None
     Occam(dropped); "dropped" appears when the noise model changes, e.g. AR(1) → iid) is kept
     as a screen and a fallback when no TMCMC run exists.
     """
-    dz_t = fs.log_evidence - base.log_evidence
-    se = TMCMC_SE_FACTOR * float(math.hypot(fs.log_evidence_se, base.log_evidence_se))
+    refined = np.isfinite(fs.refined_log_evidence) and np.isfinite(base.refined_log_evidence)
+    if refined:
+        # both rerun with more steps per stage (:func:`refine_decisive`): compare the reruns
+        dz_t = fs.refined_log_evidence - base.refined_log_evidence
+        se = TMCMC_SE_FACTOR * float(math.hypot(fs.refined_log_evidence_se, base.refined_log_evidence_se))
+    else:
+        dz_t = fs.log_evidence - base.log_evidence
+        se = TMCMC_SE_FACTOR * float(math.hypot(fs.log_evidence_se, base.log_evidence_se))
     c.delta_max_log_likelihood = fs.max_log_likelihood - base.max_log_likelihood
     new = [n for n in fs.names if n not in base.names]
     gone = [n for n in base.names if n not in fs.names]
@@ -209,7 +275,7 @@ def _evidence_gain(c: CandidateResult, fs: FitSummary, base: FitSummary) -> None
             - laplace_occam(base.likelihood, base.theta_max, base.names, gone, base.samples))
     c.delta_log_evidence_tmcmc, c.delta_log_evidence_laplace = dz_t, dz_l
     if np.isfinite(dz_t):
-        c.delta_log_evidence, c.evidence_method = dz_t, "tmcmc"
+        c.delta_log_evidence, c.evidence_method = dz_t, "tmcmc-refined" if refined else "tmcmc"
     else:
         c.delta_log_evidence, c.evidence_method = dz_l, "laplace"
     c.delta_log_evidence_se = se

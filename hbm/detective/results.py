@@ -36,6 +36,11 @@ class FitSummary:
     rmse: float
     log_evidence: float = NAN
     log_evidence_se: float = NAN
+    #: log Z ± SE of the rerun with the refined settings (decisive
+    #: comparisons only, :func:`hbm.detective.refits.refine_decisive`); NaN when not rerun, and
+    #: reset whenever the fit is sampled again (it belongs to the chosen noise model)
+    refined_log_evidence: float = NAN
+    refined_log_evidence_se: float = NAN
     samples: np.ndarray | None = None     # posterior samples (n, d) of the free parameters
     coverage: float = NAN
     noise_bic: dict = field(default_factory=dict)

@@ -25,6 +25,16 @@ SCREEN_STEPS = (1e-4, 0.1, 0.3)  # derivative and secant steps (fractions of the
 # --- evidence runs
 TMCMC_MAX_STEPS = 25      # MH steps per stage cap: the time budget of a diagnosis (≤ 60 s)
 TMCMC_MIN_SAMPLES = 250
+# decisive comparisons (naming hinges on the evidence, refits.to_refine) are rerun, base and refit
+# alike, with the local-covariance random walk (hbm.samplers.local_proposal) and twice the step cap:
+# at 25 steps of the global walk the late stages of the larger model stay under-mixed and its log Z
+# low.  Measured on the qlv>offset dev case (base + viscoelastic vs + offset, N 800, 6 seeds each,
+# mean ± sd of Δlog Z; results/detective_validation.md): global walk 1.9 ± 3.5 at 25 steps, 4.1 ± 0.9
+# at 100, 5.2 at 400 (one seed); local walk 2.9 at 25 (two seeds), 5.6 ± 1.4 at 50, 5.4 ± 0.8 at 100.
+# 50 local steps reach the converged mean at half the cost of 100 (the reported SE × TMCMC_SE_FACTOR,
+# 1.7, covers their scatter); the stages still run to the cap (the decorrelation criterion is not met)
+TMCMC_REFINE_STEPS = 50
+TMCMC_REFINE_PROPOSAL = "local"
 TMCMC_SE_FACTOR = 2.5     # reported SE × this covers the seed-to-seed scatter of Δlog Z (12 seeds, README)
 MIN_POINTS = 5            # the smallest curve diagnose/extend accept (as hbm fit)
 FEW_POINTS = 10           # below this a one-line warning says the detective has little power
