@@ -251,15 +251,28 @@ def _population(wres, base: Path) -> str:
         txt.append("\nIdentifiable quantities of a new specimen (population predictive):\n\n"
                    + _table(["quantity", "90% interval", "median", "median over updated individuals"], rows))
     ess = h.attrs.get("ess_summary", {})
+    exact = h.attrs.get("exact") or {}
     if ess:
         low = {k: v for k, v in ess.items() if v.get("q10", np.inf) < 50}
-        txt.append("\nImportance ESS per specimen (min / 10% quantile over hyper-posterior draws): "
+        real = set(exact.get("exact") or [])
+        if low and low.keys() <= real:
+            # the fallback replaced the reuse estimates of exactly these specimens by their real likelihoods
+            consequence = (f". ESS collapsed for {', '.join(sorted(low))} in the reuse pass; the exact fallback "
+                           "sampled the population and these specimens with their real likelihoods, so the "
+                           "population estimates above do not rest on those importance estimates (see \"Reuse "
+                           "of the stage-1 samples\" for its convergence).")
+        elif low:
+            consequence = (f". **ESS collapsed for {', '.join(sorted(low))}**: their updated posteriors come from "
+                           f"a fresh TMCMC run (done for: {', '.join(h.attrs.get('refined') or []) or 'none'}), but "
+                           f"the hyper-posterior itself rests on importance estimates with few effective samples "
+                           f"for them: read the population estimates with care, increase --samples, or pool "
+                           f"fewer quantities (`--pool informed` or a list).")
+        else:
+            consequence = "."
+        txt.append("\nImportance ESS per specimen (min / 10% quantile over hyper-posterior draws"
+                   + (" of the reuse pass" if exact else "") + "): "
                    + ", ".join(f"{k} {fmt(v.get('min'), 3)}/{fmt(v.get('q10'), 3)}" for k, v in ess.items())
-                   + (f". **ESS collapsed for {', '.join(sorted(low))}**: their updated posteriors come from "
-                      f"a fresh TMCMC run (done for: {', '.join(h.attrs.get('refined') or []) or 'none'}), but "
-                      f"the hyper-posterior itself rests on importance estimates with few effective samples "
-                      f"for them: read the population estimates with care, increase --samples, or pool "
-                      f"fewer quantities (`--pool informed` or a list)." if low else "."))
+                   + consequence)
     if h.attrs.get("warnings"):
         txt.append("\nWarnings: " + "; ".join(map(str, h.attrs["warnings"][:5])))
     return "\n".join(txt)

@@ -173,6 +173,15 @@ def test_population_section(wres, tmp_path):
     assert "(rejected): 0.012." in txt
     assert "ratA 3/12, ratB 150/210. **ESS collapsed for ratA**" in txt and "(done for: ratA)" in txt
     assert txt.endswith("Warnings: w1; w2")
+    # when the exact fallback sampled the collapsed specimen with its real likelihood, the population
+    # estimates do not rest on its importance estimates: the report must not claim they do
+    wres.hierarchical.attrs["exact"] = {"exact": ["ratA", "ratB"]}
+    txt = report._population(wres, tmp_path)
+    assert "draws of the reuse pass): ratA 3/12" in txt and "rests on importance" not in txt
+    assert "ESS collapsed for ratA in the reuse pass; the exact fallback sampled" in txt
+    wres.hierarchical.attrs["exact"] = {"exact": ["ratB"]}  # flagged-only run that left ratA to reuse
+    assert "**ESS collapsed for ratA**" in report._population(wres, tmp_path)
+    del wres.hierarchical.attrs["exact"]
     wres.hierarchical = _hierarchical("informed")
     txt = report._population(wres, tmp_path)
     assert "\n- T2: informed in 2 of 2\n- GF: not informed\n" in txt
