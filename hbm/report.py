@@ -212,9 +212,7 @@ def _population(wres, base: Path) -> str:
            f"Each parameter θ_k ~ Normal(mu_k, sd_k) in a transformed space (column 'transform': log for "
            f"positive moduli spanning decades, logit on the prior box for bounded quantities, identity "
            f"(truncated to the box) for THETA whose posteriors pile up at 60°); uniform hyperprior on mu, "
-           f"{h.attrs.get('hyperprior', {}).get('sd', 'log-uniform sd')}; hyper-posterior by TMCMC "
-           f"reusing the stage-1 samples. Hyper-evidence "
-           f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**.\n",
+           f"{h.attrs.get('hyperprior', {}).get('sd', 'log-uniform sd')}; " + _how_sampled(h) + "\n",
            _table(["quantity", "transform", "population median [90%]", "new specimen 90%",
                    "population sd (transformed units)"], rows)]
     reasons = dict(h.attrs.get("pool_reasons") or {})
@@ -276,6 +274,18 @@ def _population(wres, base: Path) -> str:
     if h.attrs.get("warnings"):
         txt.append("\nWarnings: " + "; ".join(map(str, h.attrs["warnings"][:5])))
     return "\n".join(txt)
+
+
+def _how_sampled(h) -> str:
+    """Where the hyper-posterior and the hyper-evidence come from (the exact fallback replaces the first
+    but does not estimate the second)."""
+    ev = f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**"
+    if not (h.attrs.get("exact") or {}):
+        return f"hyper-posterior by TMCMC reusing the stage-1 samples. Hyper-evidence {ev}."
+    return ("hyper-posterior by the exact fallback (joint Metropolis-within-Gibbs with the specimens' real "
+            "likelihoods; see \"Reuse of the stage-1 samples\"). Hyper-evidence " + ev + ", the importance "
+            "estimate of the reuse pass (the fallback does not estimate evidence): it rests on the reused samples "
+            "of the flagged specimens, so compare it across models with their caveats in mind.")
 
 
 def _reuse(wres, base: Path) -> str:

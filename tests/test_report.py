@@ -179,6 +179,8 @@ def test_population_section(wres, tmp_path):
     txt = report._population(wres, tmp_path)
     assert "draws of the reuse pass): ratA 3/12" in txt and "rests on importance" not in txt
     assert "ESS collapsed for ratA in the reuse pass; the exact fallback sampled" in txt
+    assert "hyper-posterior by the exact fallback" in txt and "the importance estimate of the reuse pass" in txt
+    assert "Hyper-evidence **4.568 ± 0.123**" in txt
     wres.hierarchical.attrs["exact"] = {"exact": ["ratB"]}  # flagged-only run that left ratA to reuse
     assert "**ESS collapsed for ratA**" in report._population(wres, tmp_path)
     del wres.hierarchical.attrs["exact"]
