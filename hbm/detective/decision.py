@@ -33,7 +33,7 @@ import numpy as np
 from ..effects import CONFUSABLE_GROUPS
 from .protocols import describe_protocol, experiments_for, protocol_features
 from .refits import primary_parameters
-from .results import CandidateResult
+from .results import CandidateResult, gain
 from .rules import DELTA_LOGZ_MIN, REMOVE_TOL, RUNNER_UP_MARGIN
 
 __all__ = ["Verdict", "decide", "gain"]
@@ -52,14 +52,6 @@ class Verdict:
     #: for verdict ``"partial"``: the unexplained verdict that stands if the next greedy round
     #: does not account for what the named effect leaves
     fallback: "Verdict | None" = None
-
-
-def gain(c: CandidateResult | None) -> float:
-    """Evidence gain, capped by the likelihood gain (a noisy evidence estimate must not
-    create a gain that the best fit does not show); −inf when not refitted."""
-    if c is None or not c.refit or not np.isfinite(c.delta_log_evidence):
-        return -np.inf
-    return min(c.delta_log_evidence, c.delta_max_log_likelihood)
 
 
 def misfit_signs(check_noise: dict, windows: list[dict], best_ctrl: CandidateResult | None,

@@ -19,7 +19,7 @@ import numpy as np
 from ..model.core import Effect
 from .fitting import Fitter, cma_maximise, laplace_occam
 from .inputs import added_effects
-from .results import CandidateResult, FitSummary
+from .results import CandidateResult, FitSummary, gain
 from .rules import DELTA_LOGZ_MIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN, TMCMC_SE_FACTOR
 
 __all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains", "decisive",
@@ -86,9 +86,7 @@ def to_refine(refitted: Sequence[CandidateResult]) -> list[CandidateResult]:
     """
     phys = [c for c in refitted if c.physical and c.refit and c.fit is not None]
     open_ = [c for c in phys if decisive(c)]
-    others = [min(c.delta_log_evidence, c.delta_max_log_likelihood) for c in phys
-              if c not in open_ and np.isfinite(c.delta_log_evidence)]
-    top = max(others, default=-np.inf)
+    top = max((gain(c) for c in phys if c not in open_), default=-np.inf)
     if not any(c.delta_max_log_likelihood >= top - RUNNER_UP_MARGIN for c in open_):
         return []
     return [c for c in refitted if c.refit and c.fit is not None and c.delta_max_log_likelihood > DELTA_LOGZ_MIN]

@@ -18,7 +18,7 @@ from ..fit import format_at_bounds
 from ..model.core import Effect, Model
 from .rules import BAND, DELTA_LOGZ_MIN
 
-__all__ = ["FitSummary", "CandidateResult", "Diagnosis", "Extension"]
+__all__ = ["FitSummary", "CandidateResult", "gain", "Diagnosis", "Extension"]
 
 NAN = float("nan")
 
@@ -122,6 +122,14 @@ class CandidateResult:
                 "windows_after": self.windows_after,
                 "region": list(self.region) if self.region else None,
                 "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None}
+
+
+def gain(c: CandidateResult | None) -> float:
+    """Evidence gain, capped by the likelihood gain (a noisy evidence estimate must not
+    create a gain that the best fit does not show); −inf when not refitted."""
+    if c is None or not c.refit or not np.isfinite(c.delta_log_evidence):
+        return -np.inf
+    return min(c.delta_log_evidence, c.delta_max_log_likelihood)
 
 
 @dataclass(slots=True)

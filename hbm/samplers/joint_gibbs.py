@@ -416,7 +416,8 @@ def _noncentred(model: HierarchicalModel, states: dict, raw: np.ndarray, lp: np.
     nat, natp = model.natural(raw), model.natural(rawp)
     mu, sd, mup, sdp = nat[:, k], nat[:, d + k], natp[:, k], natp[:, d + k]
     coefp, ccp = model.coefficients(rawp)
-    tot = model.log_hyperprior_correction(rawp) - lp
+    corr = model.log_hyperprior_correction(rawp)
+    tot = corr - lp
     moved = []
     for st in states.values():
         cols = [j for j, kk in getattr(st, "pooled_cols", {}).items() if kk == k]
@@ -434,11 +435,22 @@ def _noncentred(model: HierarchicalModel, states: dict, raw: np.ndarray, lp: np.
     acc = inside & (np.log(rng.random(n)) < tot)
     for st, y, ll, F, c in moved:
         st.y[acc], st.ll[acc], st.F[acc], st.c[acc] = y[acc], ll[acc], F[acc], c[acc]
-    lpp = model.log_hyperprior_correction(rawp)  # population part of the target at the new states
+    lpp = _population_terms(states, coefp, ccp, corr)  # population part of the target at the new states
+    return acc, rawp, lpp, coefp, ccp
+
+
+def _population_terms(states: dict, coef: np.ndarray, cc: np.ndarray, tot: np.ndarray) -> np.ndarray:
+    """``tot`` + Σ_i log r(x_i, ψ) over the specimens' current states, chain by chain."""
     for st in states.values():
         F, c = st.terms()
-        lpp = lpp + _log_r(coefp, ccp, F, c)
-    return acc, rawp, lpp, coefp, ccp
+        tot = tot + _log_r(coef, cc, F, c)
+    return tot
+
+
+def _population_target(model: HierarchicalModel, states: dict, raw: np.ndarray, coef: np.ndarray,
+                       cc: np.ndarray) -> np.ndarray:
+    """log p(ψ) + Σ_i log r(x_i, ψ): the population part of the joint target (coef, cc those of ``raw``)."""
+    return _population_terms(states, coef, cc, model.log_hyperprior_correction(raw))
 
 
 def joint_gibbs(
@@ -512,11 +524,7 @@ def joint_gibbs(
 
     def pop_logp(raw_: np.ndarray):
         coef, cc = model.coefficients(raw_)
-        tot = model.log_hyperprior_correction(raw_)
-        for st in states.values():
-            F, c = st.terms()
-            tot = tot + _log_r(coef, cc, F, c)
-        return tot, coef, cc
+        return _population_target(model, states, raw_, coef, cc), coef, cc
 
     lp, coef, cc = pop_logp(raw)
     if not np.all(np.isfinite(lp)):
@@ -566,7 +574,7 @@ def joint_gibbs(
                 for move, a in st.move(coef, cc, rng, k, nat).items():
                     tally = (win_spec if burning else acc_spec)[sid].setdefault(move, np.zeros(2))
                     tally += (a.sum(), n_chains)
-        lp = pop_logp(raw)[0]  # the specimens moved: refresh the population part of the target
+        lp = _population_target(model, states, raw, coef, cc)  # the specimens moved, ψ did not
         if burning and (sweep + 1) % adapt_every == 0:
             if n_chains > 2 * len(free):
                 Lpsi = _safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
