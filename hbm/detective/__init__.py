@@ -54,7 +54,7 @@ from .results import CandidateResult, Diagnosis, Extension, FitSummary
 from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, RUNNER_UP_MARGIN
 from .screen import local_refit_screen, score_screen, screen_candidates
 
-__all__ = ["diagnose", "extend", "Diagnosis", "Extension", "CandidateResult", "FitSummary",
+__all__ = ["diagnose", "extend", "place_as_diagnosed", "Diagnosis", "Extension", "CandidateResult", "FitSummary",
            "LocalMisfit", "StepMisfit", "KinkMisfit", "TimeTrend", "model_free_noise", "misfit_windows",
            "score_screen", "local_refit_screen", "DELTA_LOGZ_MIN", "RUNNER_UP_MARGIN"]
 
@@ -270,10 +270,12 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
 
 
 def _step_record(r: _Step) -> dict:
+    named = next((c for c in r.results if r.verdict.selected and c.effect == r.verdict.selected[0]), None)
     return {"model": added_effects(r.base.model), "verdict": r.verdict.verdict, "selected": r.verdict.selected,
             "group": r.verdict.group, "message": r.verdict.message,
             "windows": [(w["eps_lo"], w["eps_hi"], w["sign"]) for w in r.check.windows],
-            "candidates": {c.effect: round(float(gain(c)), 2) for c in r.results + r.controls if c.refit}}
+            "candidates": {c.effect: round(float(gain(c)), 2) for c in r.results + r.controls if c.refit},
+            "placements": dict(named.placements) if named is not None else {}}
 
 
 def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lambda msg: None):
@@ -450,14 +452,29 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         by_name = {c.effect: c for c in dg.candidates}
+        placed = {st["selected"][0]: st["placements"] for st in dg.steps if st["selected"]}
         for name in dg.selected:
+            current, placed_as = place_as_diagnosed(current, name, placed.get(name, {}))
             chosen = by_name.get(name)
-            inst = chosen.effect_instance if chosen is not None else resolve_effect(name)
+            inst = chosen.effect_instance if chosen is not None else resolve_effect(placed_as)
             start = dict(zip(chosen.fit.names, chosen.fit.theta_max)) if chosen is not None and chosen.fit else None
             k += 1
             add_step(inst, k, start=start)
     return Extension(steps=steps, decisions=decisions, data=d,
                      timings={"total": _time.perf_counter() - t_start}, noise=mf)
+
+
+def place_as_diagnosed(model, name: str, moves: Mapping[str, str]):
+    """Apply a named effect's placements (a diagnosis step's ``"placements"``) before adding it.
+
+    Returns the model with every effect it already has moved as the diagnosis moved it (a
+    load-cell offset that became a pre-stress once a viscoelastic effect came in), and the id
+    of the placement to add for ``name`` itself.
+    """
+    for old, new in moves.items():
+        if old != name and old in model.effect_names:
+            model = model.replacing(old, resolve_effect(new))
+    return model, moves.get(name, name)
 
 
 def _effects_to_add(add) -> list[Effect]:

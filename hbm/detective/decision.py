@@ -106,9 +106,21 @@ def _effect(best: CandidateResult) -> Verdict:
     iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
                    if k in primary_parameters(best.effect_instance))
     return Verdict("effect", [best.effect], [], "",
-                   f"missing effect: {best.effect} (Δlog Z = {best.delta_log_evidence:.1f} ± "
+                   f"missing effect: {best.effect}{placement_words(best)} (Δlog Z = {best.delta_log_evidence:.1f} ± "
                    f"{best.delta_log_evidence_se:.1f}, RMSE {best.rmse_before:.3g} → {best.rmse_after:.3g} MPa; "
                    f"{iv})")
+
+
+def placement_words(c: CandidateResult) -> str:
+    """Where the kept refit placed the candidate or an effect of the model, in words ("" if as is)."""
+    effects = c.fit.model.effects if c.fit is not None and c.fit.model is not None else ()
+    from_effects = {e.name: e for e in effects}
+    parts = []
+    for old, new in c.placements.items():
+        what = from_effects.get(new)
+        desc = f": {what.description}" if what is not None and what.description else ""
+        parts.append(f"{'' if old == c.effect else 'with the ' + old + ' '}placed as {new}{desc}")
+    return f", {'; '.join(parts)}" if parts else ""
 
 
 def _beats(c: CandidateResult, ctrl: CandidateResult | None) -> bool:

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..data import load_specimen
-from ..effects import REGISTRY, load_effect, make_effect
+from ..effects import REGISTRY, family, load_effect, make_effect
 from ..errors import HbmError, HbmWarning
 from ..model.core import Effect, Loading, Model
 from ..model.spyrou import BASE_EFFECTS, spyrou_model
@@ -123,7 +123,8 @@ def resolve_model(model) -> Model:
 
 
 def resolve_candidates(candidates, model: Model) -> list[Effect]:
-    """The candidate effects to screen, without those already in ``model`` and duplicates."""
+    """The candidate effects to screen, without those already in ``model``, duplicates and
+    other placements of a listed effect (or of one in ``model``)."""
     if candidates is None or (isinstance(candidates, str) and candidates == "all"):
         effs = [resolve_effect(k) for k in REGISTRY]
     else:
@@ -136,12 +137,17 @@ def resolve_candidates(candidates, model: Model) -> list[Effect]:
                 effs += [resolve_effect(k) for k in REGISTRY]
             else:
                 effs.append(resolve_effect(c.strip() if isinstance(c, str) else c))
-    have = set(model.effect_names)
+    # another placement of an effect is the same candidate (``Effect.placement_of``): the refit
+    # tries the placements where the model makes them differ, so screen each family once, by
+    # the effect the family is named after when it is listed
+    have = {family(e) for e in model.effects} | set(model.effect_names)
+    heads = {e.name for e in effs}
     out, seen = [], set()
     for e in effs:
-        if e.name in have or e.name in seen:
+        fam = family(e)
+        if e.name in have or fam in have or fam in seen or (fam != e.name and fam in heads):
             continue
-        seen.add(e.name)
+        seen.add(fam)
         out.append(e)
     return out
 

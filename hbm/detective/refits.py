@@ -16,14 +16,14 @@ from typing import Sequence
 
 import numpy as np
 
-from ..model.core import Effect
+from ..effects import placements
+from ..model.core import Effect, Model
 from .fitting import Fitter, cma_maximise, laplace_occam
-from .inputs import added_effects
 from .results import CandidateResult, FitSummary, gain
 from .rules import DELTA_LOGZ_MIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN, TMCMC_SE_FACTOR
 
 __all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains", "decisive",
-           "to_refine", "refine_decisive"]
+           "to_refine", "refine_decisive", "placement_models"]
 
 #: the order in which noise models are tried (the first gets the global search)
 _NOISE_ORDER = ("iid", "proportional", "ar1")
@@ -168,11 +168,66 @@ def white_vs_ar1(c: CandidateResult, base: FitSummary) -> float | None:
                                                            base.samples))
 
 
+def placement_models(model: Model, e: Effect, loading) -> list[tuple[Model, Effect, dict[str, str]]]:
+    """``model`` + ``e``, and the same with ``e`` or an effect of ``model`` at another placement
+    (:func:`hbm.effects.placements`) where that changes the stress on ``loading``.
+
+    A pre-stress relaxes with a viscoelastic tissue while a load-cell offset does not, so with
+    a history effect in the model the two are different candidates; without one they are the
+    same model and only the first is kept.  An effect already in ``model`` is moved only when
+    its placements are the same model without the candidate and differ with it (a load-cell
+    offset named first, then a viscoelastic candidate).  Each entry is (model, the candidate's instance,
+    {effect: placement used instead}).
+    """
+    first = model.with_effects(e)
+    out = [(first, e, {})] + [(model.with_effects(v), v, {e.name: v.name}) for v in placements(e)]
+    for x in model.effects:
+        # an effect of the model is moved only where the candidate is what makes its placement
+        # matter; where the model already tells them apart, its placement was chosen by evidence
+        # in the round that named it (or by the user)
+        out += [(first.replacing(x.name, v), e, {x.name: v.name}) for v in placements(x)
+                if _same_stress(model, model.replacing(x.name, v), loading)]
+    return [o for k, o in enumerate(out) if k == 0 or not _same_stress(first, o[0], loading)]
+
+
+def _same_stress(a: Model, b: Model, loading, draws: int = 4) -> bool:
+    """Do two models with the same parameters give the same stress on ``loading``?  Checked at a
+    few random points of the prior box (deterministic): equal placements agree to round-off."""
+    if a.parameter_names != b.parameter_names:
+        return False
+    bnd = a.bounds
+    theta = bnd[:, 0] + (bnd[:, 1] - bnd[:, 0]) * np.random.default_rng(0).uniform(0.1, 0.9, (draws, a.n_params))
+    sa, sb = np.asarray(a.stress(loading, theta)), np.asarray(b.stress(loading, theta))
+    scale = 1e-9 * (1.0 + float(np.nanmax(np.abs(sa))))
+    return bool(np.array_equal(np.isnan(sa), np.isnan(sb)) and np.nanmax(np.abs(sa - sb)) <= scale)
+
+
 def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises: Sequence[str],
                     seed: int) -> None:
-    """Fit base model + ``c``'s effect; fill in its evidence gain, RMSE and null test."""
-    e = c.effect_instance
-    mc = base.model.with_effects(e)
+    """Fit base model + ``c``'s effect; fill in its evidence gain, RMSE and null test.
+
+    Where another placement of the effect (or of one already in the model) changes the model
+    (:func:`placement_models`), each is fitted and the one with the higher evidence is kept;
+    ``c.placements`` records it.
+    """
+    best = None
+    for k, (mc, e, moved) in enumerate(placement_models(base.model, c.effect_instance, fitter.data.loading)):
+        fs = _refit_model(c, mc, e, base, fitter, noises, seed + 31 * k)
+        if moved:
+            fitter.log(f"  {c.effect} with {', '.join(f'{a} placed as {b}' for a, b in moved.items())}: "
+                       f"log Z {fs.log_evidence:.2f}")
+        if best is None or fs.log_evidence > best[0].log_evidence:
+            best = (fs, e, moved)
+    fs, e, moved = best
+    c.refit, c.fit, c.noise = True, fs, fs.noise
+    c.effect_instance, c.placements = e, dict(moved)
+    c.rmse_after = fs.rmse
+    c.excludes_null = _null_test(c, e, fs)
+
+
+def _refit_model(c: CandidateResult, mc: Model, e: Effect, base: FitSummary, fitter: Fitter,
+                 noises: Sequence[str], seed: int) -> FitSummary:
+    """CMA-ES (warm and global) + TMCMC of ``mc``, the base model with ``c``'s effect ``e``."""
     starts = fitter.warm_starts(base, mc, noises, [c.start, {q.name: q.null for q in e.parameters}, c.score_start])
     if c.local_full:
         # the local refit's optimum with its own base parameters
@@ -191,11 +246,7 @@ def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises
 
     # a global search besides the warm starts: absorbing the misfit may have moved the base
     # parameters far from where the model with the new term fits best
-    fs = fitter.fit(mc, noises, starts, seed, global_restarts=1, names_effects=added_effects(base.model) + [e.name],
-                    expected_log_z=expect)
-    c.refit, c.fit, c.noise = True, fs, fs.noise
-    c.rmse_after = fs.rmse
-    c.excludes_null = _null_test(c, e, fs)
+    return fitter.fit(mc, noises, starts, seed, global_restarts=1, expected_log_z=expect)
 
 
 def _null_test(c: CandidateResult, e: Effect, fs: FitSummary) -> bool | None:

@@ -102,6 +102,9 @@ class CandidateResult:
     local_full: dict = field(default_factory=dict, repr=False)
     #: Laplace Δlog Z of this refit at white noise against an AR(1) base (None otherwise)
     white_gain: float | None = None
+    #: effects the kept refit places elsewhere than the plain model: {effect: placement used},
+    #: e.g. {"offset": "prestress"} (:func:`.refits.placement_models`)
+    placements: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (one entry of ``candidates`` in ``hbm diagnose --json``)."""
@@ -121,7 +124,8 @@ class CandidateResult:
                 "excludes_null": self.excludes_null,
                 "windows_after": self.windows_after,
                 "region": list(self.region) if self.region else None,
-                "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None}
+                "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None,
+                "placements": dict(self.placements)}
 
 
 def gain(c: CandidateResult | None) -> float:

@@ -9,6 +9,7 @@ switches the effect off; other parameters' nulls are placeholders).
 id                            stage        parameters (null)
 ============================  ===========  ==========================================
 ``offset``                    output       S0 (0)
+``prestress``                 elastic      S0 (0)            — placement of ``offset``
 ``slack``                     kinematics   SLACK (0)
 ``fiber_exponential``         elastic      FEXP_A (0), FEXP_B
 ``recruitment``               elastic      REC_W (0)
@@ -19,7 +20,8 @@ id                            stage        parameters (null)
 ============================  ===========  ==========================================
 
 ``make_effect(id, **kwargs)`` builds a library effect, ``load_effect("path.py:ClassName")`` a
-user's effect from their own file, ``resolve_effect(spec)`` either.  ``CONFUSABLE_GROUPS`` and
+user's effect from their own file, ``resolve_effect(spec)`` either.  ``placements(effect)`` lists the other placements of an
+effect (``prestress`` is ``offset`` carried by the tissue, before the history stage).  ``CONFUSABLE_GROUPS`` and
 ``SEPARATING_EXPERIMENT`` record which effects one monotonic curve cannot tell apart
 (DESIGN.md §2) and what experiment would.
 """
@@ -37,6 +39,7 @@ from .damage import Damage
 from .dispersion import Dispersion
 from .fiber_exponential import FiberExponential
 from .offset import Offset
+from .prestress import Prestress
 from .recruitment import Recruitment
 from .series_compliance import SeriesCompliance, solve_series
 from .slack import Slack
@@ -45,7 +48,7 @@ from .viscoelastic import Viscoelastic
 #: effect id -> Effect subclass
 REGISTRY: dict[str, type[Effect]] = {
     cls.name: cls
-    for cls in (Offset, Slack, FiberExponential, Recruitment, Dispersion, SeriesCompliance, Viscoelastic, Damage)
+    for cls in (Offset, Prestress, Slack, FiberExponential, Recruitment, Dispersion, SeriesCompliance, Viscoelastic, Damage)
 }
 
 #: groups of effects whose signatures on one monotonic ramp look alike (DESIGN.md §2)
@@ -78,6 +81,19 @@ def group_of(effect_id: str) -> frozenset[str] | None:
         if effect_id in g:
             return g
     return None
+
+
+def family(effect: Effect) -> str:
+    """The id an effect is a placement of (its own name for an effect without placements)."""
+    return effect.placement_of or effect.name
+
+
+def placements(effect: Effect) -> list[Effect]:
+    """The library's *other* placements of ``effect`` (same parameters at another stage), new
+    instances; empty for most effects.  ``placements(Offset())`` is ``[Prestress()]``."""
+    fam = family(effect)
+    return [cls() for cls in REGISTRY.values()
+            if (cls.placement_of or cls.name) == fam and cls is not type(effect)]
 
 
 def make_effect(effect_id: str, **kwargs) -> Effect:
@@ -140,6 +156,6 @@ def resolve_effect(spec: str, **kwargs) -> Effect:
     return make_effect(spec, **kwargs)  # raises the 'unknown effect' error
 
 
-__all__ = ["REGISTRY", "CONFUSABLE_GROUPS", "SEPARATING_EXPERIMENT", "group_of", "make_effect", "load_effect",
-           "resolve_effect", "solve_series", "Offset", "Slack", "FiberExponential", "Recruitment", "Dispersion",
+__all__ = ["REGISTRY", "CONFUSABLE_GROUPS", "SEPARATING_EXPERIMENT", "group_of", "family", "placements",
+           "make_effect", "load_effect", "resolve_effect", "solve_series", "Offset", "Prestress", "Slack", "FiberExponential", "Recruitment", "Dispersion",
            "SeriesCompliance", "Viscoelastic", "Damage"]

@@ -162,6 +162,12 @@ class Effect:
         missing-physics detective (:mod:`hbm.detective`) names an effect only when these
         parameters move away from their null, and quotes their intervals.  ``None``: the
         detective takes the parameters whose null sits on a bound or at zero.
+    placement_of : str or None
+        The id of another effect of which this one is a second *placement*: the same
+        parameters acting at another stage (a pre-stress carried by the tissue is the
+        load-cell offset moved before the history stage).  The two give identical stresses
+        unless an effect between their stages is present; the detective screens them as one
+        candidate and refits both placements only where they differ.
 
     The detective also needs a ``null`` on every parameter of a candidate effect: the
     candidate is screened and refitted starting from the base model with the effect at its
@@ -187,6 +193,7 @@ class Effect:
     stage: str = "elastic"
     description: str = ""
     strength: str | tuple[str, ...] | None = None
+    placement_of: str | None = None
 
     # -- hooks (override the one of your stage) ---------------------------------------
     def strain(self, state: State, p: Mapping[str, np.ndarray],
@@ -334,6 +341,18 @@ class Model:
         extra = [e for e in effects]
         name = self.name + "+" + "+".join(e.name for e in extra) if extra else self.name
         return Model(self.effects + tuple(extra), parameters=self.parameters, name=name)
+
+    def replacing(self, old: str, new: Effect) -> "Model":
+        """A new model with effect ``old`` replaced by ``new`` in its place (``new`` may declare
+        parameters of the same names, e.g. another placement of ``old``; the order of the
+        parameter table is kept)."""
+        if old not in self.effect_names:
+            raise ValueError(f"replacing: no effect {old!r} in the model {self.effect_names}")
+        mine = {q.name: q for q in new.parameters}
+        gone = {q.name for e in self.effects if e.name == old for q in e.parameters} - set(mine)
+        effects = [new if e.name == old else e for e in self.effects]
+        parameters = [mine.get(q.name, q) for q in self.parameters if q.name not in gone]
+        return Model(effects, parameters=parameters, name=self.name.replace(old, new.name))
 
     def __add__(self, other: Effect) -> "Model":
         if isinstance(other, Effect):
