@@ -275,7 +275,8 @@ def _step_record(r: _Step) -> dict:
             "group": r.verdict.group, "message": r.verdict.message,
             "windows": [(w["eps_lo"], w["eps_hi"], w["sign"]) for w in r.check.windows],
             "candidates": {c.effect: round(float(gain(c)), 2) for c in r.results + r.controls if c.refit},
-            "placements": dict(named.placements) if named is not None else {}}
+            "placements": dict(named.placements) if named is not None else {},
+            "placement_ties": dict(named.placement_ties) if named is not None else {}}
 
 
 def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lambda msg: None):

@@ -120,6 +120,9 @@ def placement_words(c: CandidateResult) -> str:
         what = from_effects.get(new)
         desc = f": {what.description}" if what is not None and what.description else ""
         parts.append(f"{'' if old == c.effect else 'with the ' + old + ' '}placed as {new}{desc}")
+    for what, (dz, dl) in c.placement_ties.items():
+        parts.append(f"placement not told apart by the data (with the {what}: Δlog Z {dz:+.1f}, "
+                     f"Δmax log L {dl:+.1f})")
     return f", {'; '.join(parts)}" if parts else ""
 
 

@@ -105,6 +105,9 @@ class CandidateResult:
     #: effects the kept refit places elsewhere than the plain model: {effect: placement used},
     #: e.g. {"offset": "prestress"} (:func:`.refits.placement_models`)
     placements: dict = field(default_factory=dict)
+    #: other placements the data do not tell apart from the kept one: {"offset placed as
+    #: prestress": (Δlog Z, Δmax log L) against the kept refit}
+    placement_ties: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (one entry of ``candidates`` in ``hbm diagnose --json``)."""
@@ -125,7 +128,8 @@ class CandidateResult:
                 "windows_after": self.windows_after,
                 "region": list(self.region) if self.region else None,
                 "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None,
-                "placements": dict(self.placements)}
+                "placements": dict(self.placements),
+                "placement_ties": {k: [_num(x) for x in v] for k, v in self.placement_ties.items()}}
 
 
 def gain(c: CandidateResult | None) -> float:
