@@ -210,8 +210,9 @@ def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises
     (:func:`placement_models`), each is fitted and its evidence rerun with the refined sampler
     settings (:meth:`.fitting.Fitter.refine`): the 25-step runs of these larger models scatter by
     up to ±10 nats between seeds, as do the optima of CMA-ES, while the refined runs agree within
-    a few.  One placement replaces the plain one only when its refined log Z beats every other
-    by more than ``DELTA_LOGZ_MIN``; ``c.placements`` records a kept placement,
+    a few.  One placement replaces the plain one only when it beats every other clearly: by
+    more than ``DELTA_LOGZ_MIN`` in refined log Z, or by more than that in maximum
+    log-likelihood with a higher refined log Z; ``c.placements`` records a kept placement,
     ``c.placement_ties`` the placements the data do not tell apart.
     """
     fits = []
@@ -226,14 +227,20 @@ def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises
     def z(f):
         return f[0].refined_log_evidence if np.isfinite(f[0].refined_log_evidence) else f[0].log_evidence
 
-    best = next((f for f in fits if all(z(f) - z(g) > DELTA_LOGZ_MIN for g in fits if g is not f)), fits[0])
+    def clearly(f, g):
+        # f beats g: by its refined evidence, or by its maximum likelihood with the evidence
+        # agreeing in sign (the refined runs still under-credit a model whose mode is narrow)
+        dz, dl = z(f) - z(g), f[0].max_log_likelihood - g[0].max_log_likelihood
+        return dz > DELTA_LOGZ_MIN or (dz > 0 and dl > DELTA_LOGZ_MIN)
+
+    best = next((f for f in fits if all(clearly(f, g) for g in fits if g is not f)), fits[0])
     fs, e, moved = best
     c.refit, c.fit, c.noise = True, fs, fs.noise
     c.effect_instance, c.placements = e, dict(moved)
     # (a tie is only possible with the plain placement kept: a replacement beats every other)
     c.placement_ties = {placement_text(g[2]): (float(z(g) - z(best)),
                                                float(g[0].max_log_likelihood - fs.max_log_likelihood))
-                        for g in fits if g is not best and z(best) - z(g) <= DELTA_LOGZ_MIN}
+                        for g in fits if g is not best and not clearly(best, g)}
     c.rmse_after = fs.rmse
     c.excludes_null = _null_test(c, e, fs)
 
