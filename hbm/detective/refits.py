@@ -176,8 +176,8 @@ def placement_models(model: Model, e: Effect, loading) -> list[tuple[Model, Effe
     a history effect in the model the two are different candidates; without one they are the
     same model and only the first is kept.  An effect already in ``model`` is moved only when
     its placements are the same model without the candidate and differ with it (a load-cell
-    offset named first, then a viscoelastic candidate).  Each entry is (model, the candidate's instance,
-    {effect: placement used instead}).
+    offset named first, then a viscoelastic candidate).  Each entry is (model, the candidate's
+    instance, {effect: placement used instead}).
     """
     first = model.with_effects(e)
     out = [(first, e, {})] + [(model.with_effects(v), v, {e.name: v.name}) for v in placements(e)]
@@ -185,21 +185,33 @@ def placement_models(model: Model, e: Effect, loading) -> list[tuple[Model, Effe
         # an effect of the model is moved only where the candidate is what makes its placement
         # matter; where the model already tells them apart, its placement was chosen by evidence
         # in the round that named it (or by the user)
-        out += [(first.replacing(x.name, v), e, {x.name: v.name}) for v in placements(x)
-                if _same_stress(model, model.replacing(x.name, v), loading)]
-    return [o for k, o in enumerate(out) if k == 0 or not _same_stress(first, o[0], loading)]
+        alts = placements(x)
+        if alts:
+            same = _stress_probe(model, loading)
+            out += [(first.replacing(x.name, v), e, {x.name: v.name}) for v in alts
+                    if same(model.replacing(x.name, v))]
+    if len(out) == 1:
+        return out
+    same = _stress_probe(first, loading)
+    return [out[0]] + [o for o in out[1:] if not same(o[0])]
 
 
-def _same_stress(a: Model, b: Model, loading, draws: int = 4) -> bool:
-    """Do two models with the same parameters give the same stress on ``loading``?  Checked at a
-    few random points of the prior box (deterministic): equal placements agree to round-off."""
-    if a.parameter_names != b.parameter_names:
-        return False
+def _stress_probe(a: Model, loading, draws: int = 4):
+    """A test ``same(b)``: does model ``b`` (same parameters) give ``a``'s stress on ``loading``?
+    Checked at a few fixed random points of the prior box, ``a`` evaluated once: equal
+    placements agree to round-off."""
     bnd = a.bounds
     theta = bnd[:, 0] + (bnd[:, 1] - bnd[:, 0]) * np.random.default_rng(0).uniform(0.1, 0.9, (draws, a.n_params))
-    sa, sb = np.asarray(a.stress(loading, theta)), np.asarray(b.stress(loading, theta))
-    scale = 1e-9 * (1.0 + float(np.nanmax(np.abs(sa))))
-    return bool(np.array_equal(np.isnan(sa), np.isnan(sb)) and np.nanmax(np.abs(sa - sb)) <= scale)
+    sa = np.asarray(a.stress(loading, theta))
+    tol = 1e-9 * (1.0 + float(np.nanmax(np.abs(sa))))
+
+    def same(b: Model) -> bool:
+        if b.parameter_names != a.parameter_names:
+            return False
+        sb = np.asarray(b.stress(loading, theta))
+        return bool(np.array_equal(np.isnan(sa), np.isnan(sb)) and np.nanmax(np.abs(sa - sb)) <= tol)
+
+    return same
 
 
 def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises: Sequence[str],

@@ -20,9 +20,9 @@ id                            stage        parameters (null)
 ============================  ===========  ==========================================
 
 ``make_effect(id, **kwargs)`` builds a library effect, ``load_effect("path.py:ClassName")`` a
-user's effect from their own file, ``resolve_effect(spec)`` either.  ``placements(effect)`` lists the other placements of an
-effect (``prestress`` is ``offset`` carried by the tissue, before the history stage).  ``CONFUSABLE_GROUPS`` and
-``SEPARATING_EXPERIMENT`` record which effects one monotonic curve cannot tell apart
+user's effect from their own file, ``resolve_effect(spec)`` either.  ``placements(effect)``
+lists the other placements of an effect (``prestress`` is ``offset`` carried by the tissue,
+before the history stage).  ``CONFUSABLE_GROUPS`` and ``SEPARATING_EXPERIMENT`` record which effects one monotonic curve cannot tell apart
 (DESIGN.md §2) and what experiment would.
 """
 
@@ -48,7 +48,8 @@ from .viscoelastic import Viscoelastic
 #: effect id -> Effect subclass
 REGISTRY: dict[str, type[Effect]] = {
     cls.name: cls
-    for cls in (Offset, Prestress, Slack, FiberExponential, Recruitment, Dispersion, SeriesCompliance, Viscoelastic, Damage)
+    for cls in (Offset, Prestress, Slack, FiberExponential, Recruitment, Dispersion, SeriesCompliance, Viscoelastic,
+                Damage)
 }
 
 #: groups of effects whose signatures on one monotonic ramp look alike (DESIGN.md §2)
@@ -83,7 +84,7 @@ def group_of(effect_id: str) -> frozenset[str] | None:
     return None
 
 
-def family(effect: Effect) -> str:
+def family(effect: Effect | type[Effect]) -> str:
     """The id an effect is a placement of (its own name for an effect without placements)."""
     return effect.placement_of or effect.name
 
@@ -92,8 +93,7 @@ def placements(effect: Effect) -> list[Effect]:
     """The library's *other* placements of ``effect`` (same parameters at another stage), new
     instances; empty for most effects.  ``placements(Offset())`` is ``[Prestress()]``."""
     fam = family(effect)
-    return [cls() for cls in REGISTRY.values()
-            if (cls.placement_of or cls.name) == fam and cls is not type(effect)]
+    return [cls() for cls in REGISTRY.values() if family(cls) == fam and cls is not type(effect)]
 
 
 def make_effect(effect_id: str, **kwargs) -> Effect:
@@ -157,5 +157,5 @@ def resolve_effect(spec: str, **kwargs) -> Effect:
 
 
 __all__ = ["REGISTRY", "CONFUSABLE_GROUPS", "SEPARATING_EXPERIMENT", "group_of", "family", "placements",
-           "make_effect", "load_effect", "resolve_effect", "solve_series", "Offset", "Prestress", "Slack", "FiberExponential", "Recruitment", "Dispersion",
-           "SeriesCompliance", "Viscoelastic", "Damage"]
+           "make_effect", "load_effect", "resolve_effect", "solve_series", "Offset", "Prestress", "Slack",
+           "FiberExponential", "Recruitment", "Dispersion", "SeriesCompliance", "Viscoelastic", "Damage"]

@@ -352,7 +352,8 @@ class Model:
         gone = {q.name for e in self.effects if e.name == old for q in e.parameters} - set(mine)
         effects = [new if e.name == old else e for e in self.effects]
         parameters = [mine.get(q.name, q) for q in self.parameters if q.name not in gone]
-        return Model(effects, parameters=parameters, name=self.name.replace(old, new.name))
+        parts = self.name.split("+")   # the label's part, not a substring of another effect's id
+        return Model(effects, parameters=parameters, name="+".join(new.name if x == old else x for x in parts))
 
     def __add__(self, other: Effect) -> "Model":
         if isinstance(other, Effect):
