@@ -26,6 +26,7 @@ class Offset(Effect):
     strength = "S0"
     description = "constant stress offset (load-cell zero error)"
     reference = "Van Loocke M, Lyons CG, Simms CK (2006) J Biomech 39:2999-3009"
+    linear_parameters = ("S0",)  # a constant column added after the history stage
 
     def modify(self, state, p, stress):
         return stress + p["S0"]

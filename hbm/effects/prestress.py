@@ -35,6 +35,7 @@ class Prestress(Effect):
     strength = "S0"
     description = "constant stress carried by the tissue (pre-stress; relaxes/softens with it)"
     reference = "Van Loocke M, Lyons CG, Simms CK (2006) J Biomech 39:2999-3009"
+    linear_parameters = ("S0",)  # a constant column, filtered by a history effect after it
 
     def stress(self, state, p):
         s0 = p["S0"]

@@ -39,6 +39,7 @@ class Slack(Effect):
     strength = "SLACK"
     description = "reference-length error: stress-free until the slack is taken up"
     reference = "Hawkins D, Bey M (1994) J Biomech 27:1223-1235"
+    preserves_linearity = True  # the strain map does not depend on the stress
 
     def strain(self, state, p, elastic):
         eps = state.eps

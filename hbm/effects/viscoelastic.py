@@ -49,6 +49,7 @@ class Viscoelastic(Effect):
     strength = "G1"
     description = "quasi-linear viscoelasticity (Fung), Prony series, along each loading history"
     reference = "Fung YC (1981) Biomechanics: Mechanical Properties of Living Tissues, Springer"
+    preserves_linearity = True  # a linear operator on the elastic stress: it filters each column
     parameters = (Parameter("G1", 0.0, 0.9, "-", "relaxing fraction of the Prony term 1", null=0.0),
                   Parameter("LOGTAU1", -1.0, 3.5, "log10 s", "log10 relaxation time of Prony term 1", null=1.0))
 
