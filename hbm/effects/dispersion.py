@@ -6,7 +6,7 @@ import numpy as np
 
 from ..model.core import Effect, Parameter
 from ..model.spyrou import unit_contribution
-from ._common import collagen_excess, collagen_kernel
+from ._common import collagen_excess, collagen_kernel, COLLAGEN_IMAGING, needs
 
 # Gauss–Legendre rule on [-1, 1].  The quadrature runs only over the engaged part of the
 # angle interval (its end, the angle at which λH = 1, is known in closed form), so the
@@ -46,6 +46,7 @@ class Dispersion(Effect):
     strength = "DISP"
     description = "collagen helix-angle dispersion (uniform over THETA ± DISP)"
     reference = "Gasser TC, Ogden RW, Holzapfel GA (2006) J R Soc Interface 3:15-35"
+    experiment = needs(COLLAGEN_IMAGING)
     linear_parameters = ("T1",)  # a correction to the collagen column, (1 − c)·T1 times a shape
 
     def amplitude_coefficients(self, p):

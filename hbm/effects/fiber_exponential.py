@@ -6,7 +6,7 @@ import numpy as np
 
 from ..model.core import Effect, Parameter
 from ..model.spyrou import unit_contribution
-from ._common import EXP_CLIP
+from ._common import EXP_CLIP, REFERENCE_LENGTH, needs
 
 
 class FiberExponential(Effect):
@@ -38,6 +38,7 @@ class FiberExponential(Effect):
     strength = "FEXP_A"
     description = "titin-like exponential stiffening of the passive fibers beyond EOPT"
     reference = "Blemker SS, Pinsky PM, Delp SL (2005) J Biomech 38:657-665"
+    experiment = needs(REFERENCE_LENGTH)
     linear_parameters = ("FEXP_A",)
 
     def amplitude_coefficients(self, p):

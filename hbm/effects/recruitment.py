@@ -6,7 +6,7 @@ import numpy as np
 
 from ..model.core import Effect, Parameter
 from ..model.spyrou import unit_contribution
-from ._common import EXP_CLIP, collagen_excess, collagen_kernel
+from ._common import COLLAGEN_IMAGING, EXP_CLIP, collagen_excess, collagen_kernel, needs
 
 
 class Recruitment(Effect):
@@ -40,6 +40,7 @@ class Recruitment(Effect):
     strength = "REC_W"
     description = "gradual collagen recruitment (uniform distribution of straightening stretches)"
     reference = "Shearer T (2015) J Biomech 48:290-297"
+    experiment = needs(COLLAGEN_IMAGING)
     linear_parameters = ("T1",)  # a correction to the collagen column, (1 − c)·T1 times a shape
 
     def amplitude_coefficients(self, p):

@@ -69,6 +69,17 @@ class Viscoelastic(Effect):
                                         f"log10 relaxation time of Prony term {i}", null=float(i)))
         self.parameters = tuple(params)
 
+    def experiment(self, f):
+        add, have = [], []
+        if not f["time"]:
+            add.append("a time column (the strain rate of each test)")
+        if len(f["rates"]) >= 2 and max(f["rates"]) / min(f["rates"]) >= 9:
+            have.append(f"{len(f['rates'])} strain rates")
+        else:
+            add.append("ramps at strain rates at least a decade apart (e.g. 0.01, 0.1, 1 %/s)")
+        (have if f["hold"] else add).append("a relaxation hold" + ("" if f["hold"] else " of a few minutes"))
+        return add, have
+
     def _taus(self, p):
         if self.tau is not None:
             return [np.asarray(t) for t in self.tau]

@@ -256,6 +256,17 @@ class Effect:
                 out[a] = self.modify(state, q, np.zeros_like(state.eps, dtype=float))
         return out
 
+    def experiment(self, protocol: Mapping[str, object]) -> tuple[list[str], list[str]]:
+        """The experiment that would reveal this effect: ``(what to add, what the file already has)``.
+
+        ``protocol`` is :func:`hbm.detective.protocols.protocol_features` of the specimen (keys
+        ``time``, ``rates``, ``hold``, ``unloading``, ``reload_beyond``, ``near_zero``,
+        ``n_points``).  The detective quotes it when it names or groups the effect.  Override it
+        in your effect; the default says that hbm knows no protocol for it rather than
+        claiming the file already contains one."""
+        return ([f"an experiment that isolates {self.name!r} (hbm knows no protocol for this effect; "
+                 "describe one in its experiment() method)"], [])
+
     # -- conveniences -------------------------------------------------------------------
     @property
     def null_values(self) -> dict[str, float]:
