@@ -28,7 +28,7 @@ import numpy as np
 from . import seeds
 from ._dask_worker import drop_dask_unraisables
 from .errors import HbmError, OutputError
-from .samplers.tmcmc import checkpoint_progress
+from .samplers.checkpoint import checkpoint_progress
 
 __all__ = ["BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
            "checkpoint_status"]
