@@ -38,7 +38,7 @@ from .linalg import batched_cholesky
 from .local_proposal import LocalMetric, fit_local_metric, local_step, nearest_reference
 
 __all__ = ["Walkers", "MoveStep", "Tuning", "StageSetup", "Move", "RandomWalk", "Manifold", "LocalWalk",
-           "MOVES", "register_move", "get_move", "adapt_scale"]
+           "MOVES", "register_move", "get_move", "adapt_scale", "metropolis"]
 
 
 class Walkers(NamedTuple):
