@@ -33,7 +33,7 @@ def resample(w: np.ndarray, n: int, rng: np.random.Generator, scheme: str = "sys
     -------
     ndarray (n,) of int
     """
-    c = np.cumsum(w)
+    c = np.cumsum(np.asarray(w, float))
     c /= c[-1]
     if scheme == "systematic":
         u = (rng.random() + np.arange(n)) / n
