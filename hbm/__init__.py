@@ -16,7 +16,7 @@ from ._process import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` im
 from .model import Effect, Loading, Model, Parameter, State, spyrou_model
 from .data import load_specimen, load_specimens, save_specimen, synthetic_specimen
 from .likelihood import Likelihood, make_likelihood
-from .samplers import TMCMCResult, tmcmc
+from .samplers.tmcmc import TMCMCResult, tmcmc
 from .samplers.hierarchical import HierarchicalResult, hierarchical
 from .sensitivity import SobolResult, sobol
 from .identify import identifiable_directions, volf_t1_manifold

@@ -35,7 +35,7 @@ from .model import COMBINATIONS, identifiable_combinations, spyrou_model
 from .noise import get_noise
 from .prior import Prior, PriorError, load_prior
 from .optimization import optimize as _cma
-from .samplers import tmcmc as _tmcmc
+from .samplers.tmcmc import tmcmc as _tmcmc
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",

@@ -57,7 +57,7 @@ import xarray as xr
 
 from ._version import __version__
 from .errors import HbmError
-from .samplers.tmcmc import StageInfo
+from .samplers.types import StageInfo
 from .utils import atomic_path, write_error
 
 __all__ = ["SpecimenResult", "HierarchicalFile", "write_specimen_result", "read_specimen_result",

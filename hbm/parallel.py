@@ -27,16 +27,12 @@ import numpy as np
 
 from . import seeds
 from ._dask_worker import drop_dask_unraisables
+from .blas import BLAS_ENV, single_thread_env
 from .errors import HbmError, OutputError
-from .samplers.tmcmc import checkpoint_progress
+from .samplers.checkpoint import checkpoint_progress
 
 __all__ = ["BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
            "checkpoint_status"]
-
-#: environment of the worker processes: one BLAS/OpenMP thread each (workers are the parallelism)
-BLAS_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-            "VECLIB_MAXIMUM_THREADS": "1", "NUMEXPR_NUM_THREADS": "1"}
-
 
 def spawn_specimen_seeds(seed: int, ids) -> dict[str, np.random.SeedSequence]:
     """The ``specimen`` stream of :mod:`hbm.seeds` for each id, numbered in sorted-id order."""
@@ -131,8 +127,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
             except OSError as exc:
                 raise HbmError(f"cannot connect to dask scheduler {address}: {exc}") from None
         else:
-            for k, v in BLAS_ENV.items():  # also for anything spawned from this process
-                os.environ.setdefault(k, v)
+            single_thread_env()  # also for anything spawned from this process
             # both objects exist before a Ctrl-C during startup is raised, so both get closed
             with _sigint_deferred():
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,

@@ -16,13 +16,13 @@ import re
 import sys
 import tempfile
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 
 from .errors import OutputError, OutputLockedError, TooLargeError
 
-__all__ = ["atomic_path", "atomic_write_text", "atomic_write", "as_generator", "current_umask",
+__all__ = ["atomic_path", "atomic_write_text", "as_generator", "current_umask",
            "file_mode", "remove_stale_temps", "prepare_output_dir", "prepare_output_file", "output_lock",
            "LOCK_NAME", "available_memory", "require_memory", "format_bytes", "write_error"]
 
@@ -113,12 +113,6 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` atomically (temp file + rename)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
-
-
-def atomic_write(path: str | os.PathLike, writer: Callable[[Path], None]) -> None:
-    """Call ``writer(tmp_path)`` and atomically move the result onto ``path``."""
-    with atomic_path(path) as tmp:
-        writer(tmp)
 
 
 def remove_stale_temps(folder: str | os.PathLike, *, recursive: bool = True, target: str | None = None) -> list[Path]:

@@ -28,7 +28,6 @@ import contextlib
 import dataclasses
 import hashlib
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from . import identity, io
+from .blas import single_thread_env
 from ._version import __version__
 from .data import GROUP_KEY, load_specimens, specimen_groups
 from .errors import DataError, HbmError
@@ -140,8 +140,7 @@ def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, 
     resumes from the TMCMC checkpoint.  A file that is already complete with the same key is
     returned untouched (idempotent).
     """
-    for k, v in (("OMP_NUM_THREADS", "1"), ("OPENBLAS_NUM_THREADS", "1"), ("MKL_NUM_THREADS", "1")):
-        os.environ.setdefault(k, v)
+    single_thread_env()
     if io.is_complete(out_path) and _stored_hash(out_path) == settings_hash:
         return out_path
     ck = Path(checkpoint)

@@ -96,14 +96,12 @@ def test_results_honour_the_umask(tmp_path):
 
 
 def test_failed_write_leaves_no_temp_file(tmp_path):
-    from hbm.utils import atomic_write
-
-    def boom(path: Path) -> None:
-        path.write_text("partial")
-        raise OSError(28, "No space left on device")
+    from hbm.utils import atomic_path
 
     with pytest.raises(Exception, match="(?i)space|disk"):
-        atomic_write(tmp_path / "r.nc", boom)
+        with atomic_path(tmp_path / "r.nc") as tmp:
+            tmp.write_text("partial")
+            raise OSError(28, "No space left on device")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -195,7 +195,7 @@ def test_atomic_path_leaves_nothing_on_failure_or_interrupt(tmp_path):
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o027, 0o640), (0o002, 0o664)])
 def test_written_files_honour_the_umask(umask, mode, tmp_path, specimen, capsys):
     from hbm.plots import plt, save
-    from hbm.samplers import tmcmc
+    from hbm.samplers.tmcmc import tmcmc
 
     old = os.umask(umask)
     try:

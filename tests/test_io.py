@@ -10,7 +10,8 @@ import pytest
 import xarray as xr
 
 from hbm import io
-from hbm.samplers import StageInfo, tmcmc
+from hbm.samplers import StageInfo
+from hbm.samplers.tmcmc import tmcmc
 
 
 def _result(n=200, p=15, seed=1, complete=True):

@@ -15,8 +15,9 @@ from scipy.stats import norm, truncnorm
 
 from hbm.combinations import CombinationCoordinates, onset_strain
 from hbm.errors import HbmError
-from hbm.samplers import tmcmc
-from hbm.samplers.tmcmc import LogitCoordinates, _to_logit
+from hbm.samplers.tmcmc import tmcmc
+from hbm.samplers.coordinates import LogitCoordinates
+from hbm.samplers.coordinates import to_logit as _to_logit
 
 MU, S, HI = 1.0, 0.6, 5.0  # N(1, 0.6²) on [0, 5]^d: truncated at 1.67 sd on the left
 D = 3

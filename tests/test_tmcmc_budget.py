@@ -10,7 +10,7 @@ import pytest
 import hbm.cli as cli
 import hbm.cli.fit as cli_fit
 import hbm.cli.run as cli_run
-from hbm.samplers import tmcmc
+from hbm.samplers.tmcmc import tmcmc
 
 ROOT = Path(__file__).resolve().parents[1]
 SPECIMEN = str(ROOT / "data" / "specimens" / "calvo2010_rat1.csv")

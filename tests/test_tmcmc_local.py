@@ -1,4 +1,4 @@
-"""Locally adapted random walk (``proposal="local"``): exact MH kernel, neighbourhood covariances."""
+"""Locally adapted random walk (``move="local"``, :class:`hbm.samplers.moves.LocalWalk`): exact MH kernel, neighbourhood covariances."""
 
 from __future__ import annotations
 
@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from hbm.errors import HbmError
-from hbm.samplers import tmcmc
 from hbm.samplers.local_proposal import fit_local_metric, local_step, nearest_reference
+from hbm.samplers.moves import LocalWalk
+from hbm.samplers.resampling import islands, resample_islands
+from hbm.samplers.tmcmc import tmcmc
 
 
 def _curved(n, rng, sd=0.05):
@@ -76,42 +78,36 @@ def test_local_proposal_tmcmc_evidence_on_a_gaussian():
         return -0.5 * np.sum((x - 1.0) ** 2, axis=1) / 0.09
 
     truth = 3 * (0.5 * math.log(2 * math.pi) + math.log(0.3)) - 3 * math.log(10.0)
-    r = tmcmc(ll, b, 400, seed=3, progress=False, proposal="local", local_neighbours=15, local_ridge=1e-3)
+    r = tmcmc(ll, b, 400, seed=3, progress=False, move=LocalWalk(neighbours=15, ridge=1e-3))
     assert abs(r.log_evidence - truth) <= 4 * r.log_evidence_se + 0.05
     assert np.allclose(r.samples.mean(axis=0), 1.0, atol=0.05)
 
 
-def test_persistent_sampling_evidence_and_pool_resampling():
-    # persistent sampling (resampling from the pool of all stages) on a 3-D Gaussian on a box:
-    # Z = (√(2π)·0.3)³ / 10³; the islands draw only from their own rows of the pool
-    from hbm.samplers.tmcmc import _islands, _resample_pool
-
-    b = np.array([[-5.0, 5.0]] * 3)
-
-    def ll(x):
-        return -0.5 * np.sum((x - 1.0) ** 2, axis=1) / 0.09
-
-    truth = 3 * (0.5 * math.log(2 * math.pi) + math.log(0.3)) - 3 * math.log(10.0)
-    errs = []
-    for seed in range(2):
-        r = tmcmc(ll, b, 300, seed=seed, progress=False, recycle=True, persistent=True, n_islands=4)
-        errs.append(r.log_evidence - truth)
-        assert abs(errs[-1]) <= 4 * r.log_evidence_se + 0.05
-        assert np.allclose(r.samples.mean(axis=0), 1.0, atol=0.06)
-    assert np.mean(np.abs(errs)) < 0.2
+def test_island_resampling_stays_in_its_island_with_systematic_counts():
+    # every island draws its own size from its own particles, and systematic resampling gives each
+    # particle floor or ceil of its expected count (size · normalised weight within the island)
     n, k = 100, 4
-    starts, sizes, isl = _islands(n, k)
-    w = np.random.default_rng(0).random(3 * n)
-    idx = _resample_pool(w, n, starts, sizes, isl, np.random.default_rng(1), "systematic")
-    assert np.array_equal(np.tile(isl, 3)[idx], isl)  # island k drew from island k's rows only
+    starts, sizes, isl = islands(n, k)
+    logw = np.log(np.random.default_rng(0).random(n))
+    m_k = np.maximum.reduceat(logw, starts)
+    idx = resample_islands(logw, m_k, starts, sizes, isl, np.random.default_rng(1), "systematic")
+    assert np.array_equal(isl[idx], isl)
+    w = np.exp(logw)
+    expected = sizes[isl] * w / np.add.reduceat(w, starts)[isl]
+    counts = np.bincount(idx, minlength=n)
+    assert np.all((counts >= np.floor(expected)) & (counts <= np.ceil(expected)))
 
 
 @pytest.mark.parametrize("kw, msg", [({"proposal": "local", "transform": "none"}, "needs transform='logit'"),
-                                     ({"proposal": "local", "local_neighbours": 1}, "local_neighbours"),
-                                     ({"proposal": "local", "local_ridge": 0.0}, "local_ridge"),
-                                     ({"persistent": True}, "needs recycle=True"),
-                                     ({"recycle": True, "persistent": True, "persistent_ess": 0.0}, "persistent_ess"),
+                                     ({"move": "local", "transform": "none"}, "needs transform='logit'"),
+                                     ({"recycle": True}, "unknown options"),
                                      ({"proposal": "nope"}, "proposal must be")])
-def test_bad_local_and_persistent_options(kw, msg):
+def test_bad_local_options(kw, msg):
     with pytest.raises(HbmError, match=msg):
         tmcmc(lambda x: -np.sum(x * x, axis=1), np.array([[-1.0, 1.0]] * 2), 50, seed=0, progress=False, **kw)
+
+
+@pytest.mark.parametrize("kw, msg", [({"neighbours": 1}, "local_neighbours"), ({"ridge": 0.0}, "local_ridge")])
+def test_bad_local_walk_settings(kw, msg):
+    with pytest.raises(HbmError, match=msg):
+        LocalWalk(**kw)

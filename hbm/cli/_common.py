@@ -25,7 +25,37 @@ from ..effects import resolve_effect
 from ..errors import DataError, HbmError, HbmWarning, SettingError
 from ..prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
+from ..noise import get_noise, noise_model_names
 from ..utils import format_bytes, require_memory
+
+
+class RegistryChoices:
+    """argparse ``choices`` read from a registry whenever argparse looks (help, checks, errors).
+
+    A model registered after the parser was built (a plug-in, a test) is a valid choice and
+    appears in ``--help`` without editing any command.
+    """
+
+    def __init__(self, names: Callable[[], Iterable[str]]):
+        self._names = names
+
+    def __iter__(self):
+        return iter(tuple(self._names()))
+
+    def __contains__(self, value) -> bool:
+        return value in tuple(self._names())
+
+    def __len__(self) -> int:
+        return len(tuple(self._names()))
+
+
+#: ``--noise`` choices of every command: the registered noise models (:mod:`hbm.noise`)
+NOISE_CHOICES = RegistryChoices(noise_model_names)
+
+
+def n_noise_parameters(noise: str) -> int:
+    """Number of parameters of the registered noise model ``noise`` (appended to the model's)."""
+    return len(get_noise(noise).names)
 
 SPECIMEN_FOLDER = Path("data") / "specimens"
 #: the shipped specimens of this checkout (an editable install), for ids given outside it

@@ -10,6 +10,7 @@ from ..errors import HbmWarning
 from ..fit import fit_specimen, format_at_bounds
 from ..io import specimen_path
 from ..utils import prepare_output_dir, prepare_output_file, remove_stale_temps
+from ._common import NOISE_CHOICES, n_noise_parameters
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
                       power_of_two_or_zero, sample_size, sweep, value_range)
@@ -38,7 +39,7 @@ def register(subparsers) -> None:
                    help="TMCMC population size (default 2000)")
     p.add_argument("--kernel", default="rw", choices=["rw", "manifold"],
                    help="TMCMC move: random walk (default) or gradient/Fisher-metric manifold MALA")
-    p.add_argument("--noise", default="iid", choices=["iid", "weighted", "proportional", "ar1"],
+    p.add_argument("--noise", default="iid", choices=NOISE_CHOICES,
                    help="noise model (default iid Gaussian with unknown sigma)")
     p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
     add_model_arguments(p)
@@ -71,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
     prior = build_prior(model, args)
     data = load_specimen_arg(args.specimen, args.sl0, model)
     points = n_points(data)
-    check_population_memory(f"--samples {args.samples}", args.samples, points, model.n_params + 2)
+    check_population_memory(f"--samples {args.samples}", args.samples, points,
+                            model.n_params + n_noise_parameters(args.noise))
     if args.sobol:
         check_sobol_memory(f"--sobol {args.sobol}", args.sobol, len(free_parameters(model, fix)), model.n_params,
                            points)

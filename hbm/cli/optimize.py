@@ -6,6 +6,7 @@ import argparse
 
 from ..likelihood import make_likelihood
 from ..optimization import optimize
+from ._common import NOISE_CHOICES, n_noise_parameters
 from ._common import (add_model_arguments, add_seed, build_model, build_prior, check_population_memory, format_table,
                       integer, load_specimen_arg, n_points, positive_int, print_json, sweep, value_range)
 
@@ -39,7 +40,7 @@ def register(subparsers) -> None:
     p.add_argument("--restarts", type=positive_int, default=4, metavar="K", help="CMA-ES runs (IPOP), default 4")
     p.add_argument("--sweep", type=sweep, metavar="NAME:WIDTH", help="bound sweep, e.g. VOLF:0.01")
     add_model_arguments(p)
-    p.add_argument("--noise", default="iid", choices=["iid", "weighted", "proportional", "ar1"],
+    p.add_argument("--noise", default="iid", choices=NOISE_CHOICES,
                    help="noise model of the likelihood (default iid)")
     p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
     p.add_argument("--objective", default="map", choices=["map", "wls"], help="map (default) or wls")
@@ -61,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     if args.popsize is not None:  # IPOP doubles the population at every restart
         largest = args.popsize * 2 ** (args.restarts - 1)
         check_population_memory(f"--popsize {args.popsize} with --restarts {args.restarts} (IPOP: up to {largest})",
-                                largest, n_points(ds), model.n_params + 2)
+                                largest, n_points(ds), model.n_params + n_noise_parameters(args.noise))
     sweep_spec = (args.sweep.name, args.sweep.width) if args.sweep else None
     lik = make_likelihood(model, ds, noise=args.noise, fix=fix, bounds=None if prior is not None else bounds,
                           sigma_bounds=args.sigma_bounds, prior=prior)

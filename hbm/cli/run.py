@@ -10,6 +10,8 @@ from ..errors import SettingError
 from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
 from ..workflow import RunConfig, run_workflow
+from ..model import BASE_EFFECTS
+from ._common import NOISE_CHOICES, n_noise_parameters
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
                       sample_size, sweep)
@@ -62,7 +64,7 @@ def register(subparsers) -> None:
     p.add_argument("--samples", type=sample_size, default=2000, metavar="N",
                    help="TMCMC population size (default 2000)")
     p.add_argument("--kernel", default="rw", choices=["rw", "manifold"], help="TMCMC move kernel (default rw)")
-    p.add_argument("--noise", default="iid", choices=["iid", "weighted", "proportional", "ar1"],
+    p.add_argument("--noise", default="iid", choices=NOISE_CHOICES,
                    help="noise model (default iid)")
     add_model_arguments(p)
     p.add_argument("--workers", type=non_negative_int, default=None, metavar="K",
@@ -129,8 +131,8 @@ def _pool(names: list[str], free: list[str]) -> str | list[str]:
 def _check_sizes(cfg: RunConfig, datasets, model, fix: dict) -> None:
     """Refuse population/Sobol sizes whose memory cannot exist (one specimen task at least)."""
     points = max(n_points(ds) for ds in datasets.values())
-    n_noise = 2  # sd plus at most one shape parameter (ar1 rho)
-    check_population_memory(f"--samples {cfg.samples}", cfg.samples, points, model.n_params + n_noise)
+    check_population_memory(f"--samples {cfg.samples}", cfg.samples, points,
+                            model.n_params + n_noise_parameters(cfg.noise))
     if cfg.sobol:
         free = len(free_parameters(model, fix))
         check_sobol_memory(f"--sobol-n {cfg.sobol_n}", cfg.sobol_n, free, model.n_params, points)
@@ -171,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         # the geometry is read now, so a bad file fails before hours of fitting
         hooks.append(organ_report_hook(args.geometry, model=model, seed=args.seed, figures=not args.no_figures))
     out = prepare_output_dir(args.out, "--out", files=OUT_FILES, subdirs=OUT_DIRS)
-    is_base = model.effect_names == ("matrix", "fibers", "collagen") and model.name == "spyrou"
+    is_base = model.effect_names == BASE_EFFECTS and model.name == "spyrou"
     with output_lock(out):
         # under the lock no other run writes here: temp files now are leftovers of a killed run
         stale = remove_stale_temps(out)

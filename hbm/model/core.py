@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -533,8 +533,3 @@ class Model:
     def __repr__(self) -> str:
         return f"<Model {self.name}: {', '.join(self.parameter_names)}>"
 
-
-def as_effects(effects: Iterable[Effect] | Effect) -> tuple[Effect, ...]:
-    if isinstance(effects, Effect):
-        return (effects,)
-    return tuple(effects)

@@ -13,8 +13,6 @@ from . import RELEVANCE_COLORS, plt, save
 
 __all__ = ["corner_plot", "predictive_plot", "sobol_plot", "specimen_figures", "model_theta"]
 
-_NOISE = ("sigma", "scale", "sigma_rel", "rho")
-
 
 def _thin(n: int, m: int, seed: int = 0) -> np.ndarray:
     if n <= m:

@@ -1,7 +1,16 @@
-"""Samplers: Transitional MCMC (pure init/step core + driver)."""
+"""Samplers: Transitional MCMC by concept, and the hierarchical layer.
 
-from .tmcmc import (DEFAULT_N_SAMPLES, StageInfo, TMCMCConfig, TMCMCResult, TMCMCState, checkpoint_progress, init,
-                    step, tmcmc)
+TMCMC: :mod:`.tmcmc` (pure ``init``/``step`` and the driver ``tmcmc``), :mod:`.types` (settings,
+state, stage info, result), :mod:`.moves` (the Move protocol and registry: random walk,
+manifold, local walk), :mod:`.coordinates`, :mod:`.resampling`, :mod:`.checkpoint`, :mod:`.linalg`.
+``hbm.samplers.tmcmc`` is the module; the driver function is ``hbm.samplers.tmcmc.tmcmc`` (also
+``hbm.tmcmc``).
+"""
+
+from .checkpoint import checkpoint_progress
+from .moves import MOVES, LocalWalk, Manifold, Move, RandomWalk, register_move
+from .tmcmc import init, step
+from .types import DEFAULT_N_SAMPLES, StageInfo, TMCMCConfig, TMCMCResult, TMCMCState
 
 __all__ = ["DEFAULT_N_SAMPLES", "StageInfo", "TMCMCConfig", "TMCMCResult", "TMCMCState", "checkpoint_progress",
-           "init", "step", "tmcmc"]
+           "init", "step", "MOVES", "Move", "RandomWalk", "Manifold", "LocalWalk", "register_move"]

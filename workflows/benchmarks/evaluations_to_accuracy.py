@@ -47,8 +47,10 @@ for p in (str(ROOT), str(HERE)):
 
 import muscle_posterior as mp  # noqa: E402
 from hbm.combinations import CombinationCoordinates  # noqa: E402
-from hbm.samplers import tmcmc  # noqa: E402
-from hbm.samplers.tmcmc import LogitCoordinates, _eval, _free_cov, _rw_de_step, _safe_cholesky  # noqa: E402
+from hbm.samplers.coordinates import LogitCoordinates, log_likelihood_of  # noqa: E402
+from hbm.samplers.linalg import free_covariance, safe_cholesky  # noqa: E402
+from hbm.samplers.moves import RandomWalk, StageSetup, Tuning, Walkers  # noqa: E402
+from hbm.samplers.tmcmc import tmcmc  # noqa: E402
 from hbm.utils import atomic_write_text  # noqa: E402
 
 MS_PER_ROW = 1e-3
@@ -59,11 +61,6 @@ SETTINGS = {
     "default (N=2000, RW)": ({}, None),
     "cov_target 1.5 (N=2000, RW)": ({"cov_target": 1.5}, None),
     "lean preset (N=1500, CoV target 1.5)": ({"preset": "lean"}, None),
-    "frugal preset (N=1000, mixture moves, ≤30 steps)": ({"preset": "frugal"}, None),
-    "frugal, budget 120k": ({"preset": "frugal", "max_evaluations": 120_000}, 3),
-    "recycle + local moves (N=1000, ≤50 steps)": ({"n_samples": 1000, "cov_target": 1.5, "recycle": True,
-                                                   "n_islands": 8, "max_steps": 50, "proposal": "local",
-                                                   "local_neighbours": 10, "local_ridge": 1e-4}, 3),
     # sampling coordinates of hbm.combinations.CombinationCoordinates ("coordinates": its theta=):
     # log c / log(1−c) shear of P1, GF / T1, GM and THETA → log collagen onset strain
     "coords: default (N=2000)": ({"coordinates": "onset"}, 5),
@@ -71,12 +68,10 @@ SETTINGS = {
     "N=1000, CoV 1.5, ≤50 steps (logit)": ({"n_samples": 1000, "cov_target": 1.5, "max_steps": 50}, None),
     "coords: N=1000, CoV 1.5, ≤50 steps": ({"coordinates": "onset", "n_samples": 1000, "cov_target": 1.5,
                                             "max_steps": 50}, None),
-    "recycled N=1000, CoV 1.5, ≤50 steps (logit)": ({"n_samples": 1000, "cov_target": 1.5, "max_steps": 50,
-                                                     "recycle": True, "n_islands": 8}, 5),
-    "coords: recycled N=1000, CoV 1.5, ≤50 steps": ({"coordinates": "onset", "n_samples": 1000, "cov_target": 1.5,
-                                                     "max_steps": 50, "recycle": True, "n_islands": 8}, 5),
-    "coords: frugal preset": ({"coordinates": "onset", "preset": "frugal"}, 5),
 }
+# Settings of earlier rounds that used the experiments retired from the package at 287c749 (the
+# frugal preset, recycling/MBAR, fitted-mixture moves, recycled local moves) are no longer run; their
+# rows in results/benchmarks/evaluations_to_accuracy.md were made with the code of that commit.
 # name -> (script, arguments after "run --bench DIR", wall-time cap s): the peers' own accuracy knobs
 # at their defaults (pocoMC n_effective 512, nautilus n_live 2000, dynesty nlive 500); the caps keep
 # a round within ~15 min on the shared machine (a capped run is reported with what it had spent)
@@ -91,6 +86,16 @@ PEERS = {
 #: kept in the report on every regeneration: the table of the previous session and the levers
 #: measured while building this one (exploratory runs, 1–4 seeds each, same machine and problem)
 HISTORY = """\
+> **Where the code went (issue 25).** The experimental TMCMC options measured here — the `frugal` preset,
+> recycling/MBAR (`recycle`), persistent sampling, the fitted t-mixture moves (`proposal="mixture"`),
+> differential evolution (`de_fraction` …) and the `pca`/`ll_rank`/`max_corr_ll` mixing measures — left
+> the package after commit 287c749 (no move changed the cost–accuracy curve).  The rows below that use
+> them were made with that commit's code (`git show 287c749:hbm/samplers/tmcmc.py`).  Differential
+> evolution survives as a benchmark move, `workflows/benchmarks/experimental_moves.py`
+> (`DifferentialEvolution`, built on the public `hbm.samplers.moves` API, bitwise equal to the old
+> `de_fraction` runs); the others are not ported, and `evaluations_to_accuracy.py` no longer runs
+> the settings that used them.
+
 ## Before (previous session, 2026-11-23 14:11 UTC)
 
 | setting | seeds | evaluations (median) | CPU s | time with 1 ms/row (virtual) s | \\|log Ẑ error\\| (median) | SE covers (2 SE) | worst mean err (gold sd, median) | runs reaching target |
@@ -230,17 +235,21 @@ def geometry(lik, n_points: int = 20, steps: int = 100, seed: int = 0) -> tuple[
         lp = m.inverse(x)[1]
         sup = np.asarray(m.support, float)
         box = sup if np.isfinite(sup).any() else None
-        rw_chol = _safe_cholesky(_free_cov(x, np.ones(len(x))))
+        sigma = free_covariance(x, np.ones(len(x)))
 
         def evaluate(v, m=m):
             t, lj = m.inverse(v)
-            return _eval(lik, t), lj
+            return log_likelihood_of(lik, t), lj
+        walk = RandomWalk()
+        kernel, walkers = walk.prepare(StageSetup(Walkers(x, ll, lp), sigma, safe_cholesky(sigma), 1.0, box, evaluate,
+                                                  np.asarray(lik.bounds, float), lik, None, np.arange(len(x))))
         scale, acc = 0.2, []
         for _ in range(steps):
-            x, ll, lp, a, _, _ = _rw_de_step(x, ll, lp, 1.0, rw_chol, scale, box, evaluate, rng, x,
-                                             np.arange(len(x)), 0.0, 1.0, 0.1, 0.05)
-            acc.append(float(a.mean()))
+            res = walk.step(kernel, walkers, 1.0, Tuning(scale, 1.0), rng)
+            walkers = res.walkers
+            acc.append(float(res.accepted.mean()))
             scale = float(np.clip(scale * np.exp(0.5 * (acc[-1] - 0.3) / 0.3), 1e-4, 10.0))
+        x, ll = walkers.x, walkers.ll
         now = np.column_stack([_combos(lik.names, m.inverse(x)[0]), ll])
         corr = _rank_corr(start, now)
         rows.append({"coordinates": label, "lambda_max_median": float(np.median(ev[:, -1])),

@@ -52,7 +52,7 @@ if str(ROOT) not in sys.path:
 from hbm.data import load_specimens  # noqa: E402
 from hbm.likelihood import make_likelihood  # noqa: E402
 from hbm.model import spyrou_model  # noqa: E402
-from hbm.samplers import tmcmc  # noqa: E402
+from hbm.samplers.tmcmc import tmcmc  # noqa: E402
 from hbm.samplers.hierarchical import HierarchicalModel, hierarchical  # noqa: E402
 from hbm.utils import atomic_write_text  # noqa: E402
 from hbm.population import DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS  # noqa: E402
