@@ -209,3 +209,34 @@ def test_cli_export(run_cli, energy_nc, tmp_path):
     assert "--summary" in err
     err = cli_error(run_cli, ["export", energy_nc, "--to", "febio-energy", "--summary", "population"])
     assert "hierarchical" in err
+
+
+@pytest.mark.skipif(__import__("shutil").which("gfortran") is None, reason="no gfortran to compile the subroutine")
+def test_uanisohyper_subroutine(energy_nc, tmp_path):
+    """The compiled UANISOHYPER_INV reproduces hbm's energy form in uniaxial tension, and its second
+    derivatives (the tangent Abaqus uses) equal finite differences of its first derivatives."""
+    from hbm.export import abaqus_uanisohyper as ua
+
+    rep = export(energy_nc, "abaqus-uanisohyper", "median", tmp_path / "u.f")
+    (c,) = rep.written.checks
+    assert c.exact and c.passed and c.error_tested < 1e-8
+    src = load_source(energy_nc, "median")
+    lib = ua.compile_subroutine(tmp_path)
+    pr, dirs = ua.props(src), ua.directions(src)
+    ninv = 3 + 2 * 7 * 8 // 2
+    ainv = np.zeros(ninv)
+    ainv[0], ainv[2] = 3.2, 1.01
+    for al in range(1, 8):
+        ainv[ua.inv4_index(al)] = 1.3 + 0.02 * al  # every fibre and family taut
+    _, ui1, ui2 = ua.call_subroutine(lib, pr, dirs, ainv)
+    for k in [0, 2] + [ua.inv4_index(al) for al in range(1, 8)]:
+        h = 1e-6
+        ap, am = ainv.copy(), ainv.copy()
+        ap[k] += h
+        am[k] -= h
+        fd = (ua.call_subroutine(lib, pr, dirs, ap)[1][k] - ua.call_subroutine(lib, pr, dirs, am)[1][k]) / (2 * h)
+        kk = k + 1  # Abaqus's triangular index of (k, k), 1-based
+        assert ui2[kk + kk * (kk - 1) // 2 - 1] == pytest.approx(fd, rel=1e-5, abs=1e-9), k
+        # and UI1 is the derivative of the energy UA(1)
+        fd_u = (ua.call_subroutine(lib, pr, dirs, ap)[0][0] - ua.call_subroutine(lib, pr, dirs, am)[0][0]) / (2 * h)
+        assert ui1[k] == pytest.approx(fd_u, rel=1e-5, abs=1e-9), k

@@ -20,7 +20,7 @@ from pathlib import Path
 from hbm.errors import HbmError
 from hbm.export import FORMATS, export
 
-CARDS = ("febio-uniaxial", "febio-energy", "abaqus-marlow")
+CARDS = ("febio-uniaxial", "febio-energy", "abaqus-marlow", "abaqus-uanisohyper")
 
 
 def main(argv: list[str]) -> int:

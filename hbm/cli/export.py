@@ -24,6 +24,8 @@ formats:
   febio-energy    Mooney-Rivlin + fiber-pow-linear + helical fiber-exp-pow families (energy form only)
   febio-optimize  FEBio optimisation input: summary as start, 1-99 % posterior interval as bounds
   abaqus-marlow   *HYPERELASTIC, MARLOW with *UNIAXIAL TEST DATA (isotropic, exact in uniaxial tension)
+  abaqus-uanisohyper  UANISOHYPER_INV subroutine of the energy form (exact in uniaxial; needs gfortran
+                  here to compile and check it)
   csv, json       parameter draws / the summary's parameter set with units
 
 summaries: median (the draw nearest the pointwise median curve), p05/p95 (pointwise quantile

@@ -15,6 +15,7 @@ FORMATS: dict[str, str] = {
     "febio-energy": "febio_energy",
     "febio-optimize": "febio_optimize",
     "abaqus-marlow": "abaqus_marlow",
+    "abaqus-uanisohyper": "abaqus_uanisohyper",
     "csv": "table_csv",
     "json": "table_json",
 }
