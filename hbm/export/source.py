@@ -104,10 +104,12 @@ class ExportSource:
 
     def table(self) -> tuple[np.ndarray, np.ndarray]:
         """(strain, stress) the curve cards tabulate: every other point of the curve grid plus the
-        kinks of the summary's draw (fibre onset EOPT, collagen onset λ* − 1), so that a linear
-        table does not cut the corners there."""
+        kinks of the summary's draw (zero strain, fibre onset EOPT, collagen onset λ* − 1), so that
+        a linear table does not cut the corners there."""
         p = self.params()
-        kinks = [p["EOPT"], float(collagen_onset_stretch(p["THETA"])) - 1.0]
+        # λ = 1 too: above the magic angle the helix is also taut under compression, so the collagen
+        # stress has a kink at zero strain
+        kinks = [0.0, p["EOPT"], float(collagen_onset_stretch(p["THETA"])) - 1.0]
         lo, hi = self.curve_strain[0], self.curve_strain[-1]
         strain = np.unique(np.concatenate([self.curve_strain[::2], [k for k in kinks if lo < k < hi]]))
         if self.quantile is None:
