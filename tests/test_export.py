@@ -144,8 +144,10 @@ def test_thesis_form_refused_for_energy_card(tmp_path):
     with pytest.raises(HbmError, match="not derived from a strain energy"):
         export(nc, "febio-energy", "median", tmp_path / "x.feb")
     assert not (tmp_path / "x.feb").exists()
-    # the uniaxial card is exact for the thesis form too
+    # the uniaxial card is exact for the thesis form too, and its optimisation input brackets the start
     assert export(nc, "febio-uniaxial", "median").passed
+    for p in export(nc, "febio-optimize", "median").written.card["parameters"]:
+        assert p["lower"] <= p["start"] <= p["upper"] and p["lower"] < p["upper"]
 
 
 def test_every_febio_tag_is_pinned(energy_nc, tmp_path):

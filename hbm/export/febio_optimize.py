@@ -39,15 +39,18 @@ def parameters(src) -> list[tuple[str, float, float, float, str]]:
         e0 = p["VOLF"] * p["P1"] * (1 + p["EOPT"])
         out.append(("fem.material[0].solid[1].E", e0, *np.quantile(e, QUANTILES), "fibre modulus E (MPa)"))
     else:
-        # smax scales the tabulated fibre + collagen stress: its spread is that of the stress at the
+        # smax scales the tabulated fibre + collagen stress: its spread is that of that stress at the
         # largest tested strain relative to the summary's
         hi = np.array([src.strain_range[1]])
-        model = src.model()
-        matrix = lambda t: src.k_iso * (t[..., 0] * t[..., 6] + (1 - t[..., 0]) * t[..., 7]) * (  # noqa: E731
-            (1 + hi) ** 2 - 1 / (1 + hi))
-        s_all = model.stress(hi, d)[:, 0] - matrix(d)
-        s0 = float(model.stress(hi, src.theta)[0] - matrix(src.theta))
-        ratio = s_all / s0 if s0 > 0 else np.ones(1)
+        lam = 1.0 + hi[0]
+
+        def fibre_collagen(t):
+            t = np.atleast_2d(t)
+            g = t[:, 0] * t[:, 6] + (1 - t[:, 0]) * t[:, 7]
+            return src.model().stress(hi, t)[:, 0] - src.k_iso * g * (lam ** 2 - 1 / lam)
+
+        s0 = float(fibre_collagen(src.theta)[0])
+        ratio = fibre_collagen(d) / s0 if s0 > 0 else np.ones(1)
         out.append(("fem.material[0].solid[1].smax", 1.0, *np.quantile(ratio, QUANTILES),
                     "active fibre stress scale smax (MPa per load-curve unit)"))
     return [(n, float(x0), float(min(lo, x0)), float(max(hi_, x0)), m) for n, x0, lo, hi_, m in out]
