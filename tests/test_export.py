@@ -211,6 +211,7 @@ def test_cli_export(run_cli, energy_nc, tmp_path):
     assert "--summary" in err
     err = cli_error(run_cli, ["export", energy_nc, "--to", "febio-energy", "--summary", "population"])
     assert "hierarchical" in err
+    assert "no such result file" in cli_error(run_cli, ["export", tmp_path / "none.nc", "--to", "csv"])
 
 
 @pytest.mark.skipif(__import__("shutil").which("gfortran") is None, reason="no gfortran to compile the subroutine")

@@ -213,6 +213,8 @@ def load_source(path: str | Path, summary: str) -> ExportSource:
     """
     path = Path(path)
     kind, n_req = parse_summary(summary)
+    if not path.is_file():
+        raise HbmError(f"{path}: no such result file")
     attrs = read_attrs(path)
     if not attrs:
         raise HbmError(f"{path}: not a readable hbm result file")
