@@ -160,6 +160,7 @@ def run_sobol(model, data, *, n: int, seed: int, fix=None, bounds=None, qoi: str
     out["qoi"] = str(res.qoi)
     out["n"] = int(res.n)
     out["n_evaluations"] = int(res.n_evaluations)
+    out.update(res.settings)  # SALib settings: attributes of the file's sobol group
     return out
 
 
@@ -399,9 +400,10 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
     Returns
     -------
     dict
-        ``rmse`` (MPa, MAP curve vs data), ``rmse_rel`` (percent of the peak |stress|),
-        ``coverage90`` (fraction of observed points inside the central ``prob`` band of the
-        noisy posterior predictive; None without a stored predictive), ``n_points``,
+        ``rmse`` (MPa, MAP curve vs data), ``rmse_rel`` (fraction of the peak |stress|; every
+        share in hbm's JSON is a fraction), ``coverage90`` (fraction of observed points inside the
+        central 90 % band of the noisy posterior predictive; None without a stored predictive),
+        ``coverage`` and ``coverage_prob`` (the same at ``prob``), ``n_points``,
         ``noise`` ({name: {"map", "median", "lower", "upper"}}), ``map`` ({name: value}, a usable
         parameter set), ``map_source`` ("sample" or "optimum"), ``map_log_likelihood``,
         ``combinations`` ({name: {"median", "lower", "upper"}}), ``log_evidence``,
@@ -421,10 +423,12 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
                        f"the fit {pred.size}")
     rmse = float(np.sqrt(np.mean((pred - obs) ** 2))) if pred is not None else float("nan")
     peak = float(np.max(np.abs(obs)))
-    cov = None
+    cov, cov90 = None, None
     if r.predictive is not None and np.shape(r.predictive)[-1] == obs.size:
-        lo, hi = np.quantile(np.asarray(r.predictive, float), [(1 - prob) / 2, (1 + prob) / 2], axis=0)
-        cov = float(np.mean((obs >= lo) & (obs <= hi)))
+        def inside(p):
+            lo, hi = np.quantile(np.asarray(r.predictive, float), [(1 - p) / 2, (1 + p) / 2], axis=0)
+            return float(np.mean((obs >= lo) & (obs <= hi)))
+        cov, cov90 = inside(prob), inside(0.9)
     s = summarize(r, prob=prob)
     mp = map_estimate(r)
     noise = {n: {"map": mp[n], "median": s[n]["median"], "lower": s[n]["lower"], "upper": s[n]["upper"]}
@@ -432,7 +436,8 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
     combos = {k: {"median": v["median"], "lower": v["lower"], "upper": v["upper"]}
               for k, v in s.items() if k in COMBINATIONS}
     return {"specimen_id": r.specimen_id, "n_points": int(obs.size), "rmse": rmse,
-            "rmse_rel": 100.0 * rmse / peak if peak > 0 else float("nan"), "coverage90": cov,
+            "rmse_rel": rmse / peak if peak > 0 else float("nan"), "coverage90": cov90,
+            "coverage": cov, "coverage_prob": float(prob),
             "noise": noise, "map": mp, "map_source": source, "map_log_likelihood": float(ll_map),
             "combinations": combos, "log_evidence": float(r.log_evidence),
             "log_evidence_se": float(r.log_evidence_se),
@@ -448,7 +453,7 @@ def _prior_line(r: SpecimenResult) -> str:
 def quality_lines(q: Mapping[str, Any]) -> list[str]:
     """The :func:`fit_quality` numbers as text lines (fit quality first, then the best fit)."""
     cov = "n/a" if q["coverage90"] is None else f"{100 * q['coverage90']:.0f}% of {q['n_points']} points"
-    lines = [f"fit quality: RMSE {q['rmse']:.4g} MPa ({q['rmse_rel']:.2f}% of peak |stress|), "
+    lines = [f"fit quality: RMSE {q['rmse']:.4g} MPa ({100 * q['rmse_rel']:.2f}% of peak |stress|), "
              f"90% predictive coverage {cov}",
              f"log-evidence {q['log_evidence']:.3f} ± {q['log_evidence_se']:.3f}"]
     if q["noise"]:
@@ -539,7 +544,7 @@ class FitResult:
     def to_json(self, prob: float = 0.9) -> dict[str, Any]:
         """One JSON-able dict: :func:`fit_quality` plus identification of the run.
 
-        Keys include ``rmse``, ``rmse_rel`` (percent of peak |stress|), ``coverage90``,
+        Keys include ``rmse``, ``rmse_rel`` (fraction of peak |stress|), ``coverage90``,
         ``log_evidence``, ``log_evidence_se``, ``map`` (name -> value), ``combinations``,
         ``at_bounds`` (list of {parameter, side, edge, fraction, map_at_edge}), ``noise``,
         ``prior``, ``names``, ``n_samples``, ``summary`` (raw-parameter statistics) and ``path``.
@@ -757,7 +762,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         pointwise_log_likelihood=pll, predictive=pred, predictive_model=pred_model, optima=optima, sobol=sob,
         model=model.name, effects=list(model.effect_names), config=config, seed=root_seed,
         fixed=dict(lik.fixed), version=__version__,
-        prior={n: lik.prior[n].to_dict() for n in lik.names})
+        prior={n: lik.prior[n].to_dict() for n in lik.names},
+        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())})
     res.at_bounds = at_bounds(res)
     path = None
     if out is not None:

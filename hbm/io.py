@@ -55,6 +55,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import xarray as xr
 
+from . import conventions
 from ._version import __version__
 from .errors import HbmError
 from .samplers.types import StageInfo
@@ -79,6 +80,7 @@ G_DIAG = "diagnostics"
 G_MANIFOLD = "manifolds"
 G_COMBOS = "combinations"
 G_GROUPS = "groups"
+G_PRIOR = "prior"
 
 #: per-stage variables of ``sample_stats``: the sampler's stage record is the schema
 STAGE_KEYS = StageInfo._fields
@@ -168,6 +170,7 @@ class SpecimenResult:
     version: str = __version__
     prior: dict | None = None
     at_bounds: list[dict] | None = None
+    parameter_info: dict = field(default_factory=dict)
 
     def prior_dict(self) -> dict[str, dict[str, Any]]:
         """``{name: {"lo", "hi", "form"}}`` per free parameter (uniform on ``bounds`` when not recorded)."""
@@ -235,16 +238,26 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
     if len(r.names) != d:
         raise HbmError(f"specimen {r.specimen_id}: {d} sample columns but {len(r.names)} names")
     draws = {"chain": [0], "draw": np.arange(n)}
+    info = r.parameter_info
     post = xr.Dataset({nm: (("chain", "draw"), r.samples[None, :, i]) for i, nm in enumerate(r.names)},
                       coords=draws)
-    groups: dict[str, xr.Dataset] = {G_POSTERIOR: post}
+    groups: dict[str, xr.Dataset] = {G_POSTERIOR: conventions.annotate(post, "parameters", info)}
+    pd = r.prior_dict()
+    if len(pd) == d:  # ArviZ's prior group: draws from the prior box, as many as the posterior's
+        pdraws = conventions.prior_draws(r.names, pd, n, r.seed, r.config.get("seed_spawn_key", ()))
+        groups[G_PRIOR] = conventions.annotate(xr.Dataset(
+            {nm: (("chain", "draw"), pdraws[None, :, i]) for i, nm in enumerate(r.names)}, coords=draws),
+            "parameters", info)
 
+    ll_sum = np.asarray(r.log_likelihood, float)
     stats = {"log_marginal_likelihood": (("chain",), [float(r.log_evidence)]),
              "log_marginal_likelihood_se": (("chain",), [float(r.log_evidence_se)]),
-             "log_likelihood_sum": (("chain", "draw"), np.asarray(r.log_likelihood, float)[None, :])}
+             "log_likelihood_sum": (("chain", "draw"), ll_sum[None, :]),
+             # ArviZ's lp: log posterior density up to the evidence (log likelihood + log prior)
+             "lp": (("chain", "draw"), (ll_sum + conventions.log_prior(r.samples, r.names, pd))[None, :])}
     coords = dict(draws)
     _add_stage_stats(stats, coords, r.stages)
-    groups[G_STATS] = xr.Dataset(stats, coords=coords)
+    groups[G_STATS] = conventions.annotate(xr.Dataset(stats, coords=coords), "stats")
 
     if r.stress is not None:
         p = len(r.stress)
@@ -255,22 +268,25 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
             pc["time"] = ("point", np.asarray(r.time, float))
         if r.test is not None:
             pc["test"] = ("point", np.asarray(r.test).astype(np.int64))
-        groups[G_OBS] = xr.Dataset({"stress": ("point", np.asarray(r.stress, float))}, coords=pc)
+        groups[G_OBS] = conventions.annotate(
+            xr.Dataset({"stress": ("point", np.asarray(r.stress, float))}, coords=pc), "observed")
         dcp = {**draws, **pc}
         if r.pointwise_log_likelihood is not None:
-            groups[G_LOGLIK] = xr.Dataset(
-                {"stress": (("chain", "draw", "point"), r.pointwise_log_likelihood[None])}, coords=dcp)
+            groups[G_LOGLIK] = conventions.annotate(xr.Dataset(
+                {"stress": (("chain", "draw", "point"), r.pointwise_log_likelihood[None])}, coords=dcp),
+                "log_likelihood")
         pred = {}
         if r.predictive is not None:
             pred["stress"] = (("chain", "draw", "point"), r.predictive[None])
         if r.predictive_model is not None:
             pred["stress_model"] = (("chain", "draw", "point"), r.predictive_model[None])
         if pred:
-            groups[G_PRED] = xr.Dataset(pred, coords=dcp)
+            groups[G_PRED] = conventions.annotate(xr.Dataset(pred, coords=dcp), "predictive")
 
     b = np.asarray(r.bounds, float)
-    groups[G_CONST] = xr.Dataset({"prior_lower": ("parameter", b[:, 0]), "prior_upper": ("parameter", b[:, 1])},
-                                 coords={"parameter": list(r.names)})
+    groups[G_CONST] = conventions.annotate(
+        xr.Dataset({"prior_lower": ("parameter", b[:, 0]), "prior_upper": ("parameter", b[:, 1])},
+                   coords={"parameter": list(r.names)}), "constant", info)
 
     if r.optima:
         pnames = list(r.optima[0]["params"])
@@ -564,9 +580,10 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
     path = Path(path)
     n = h.hyper_samples.shape[0]
     draws = {"chain": [0], "draw": np.arange(n)}
-    groups: dict[str, xr.Dataset] = {
-        G_POSTERIOR: xr.Dataset({nm: (("chain", "draw"), h.hyper_samples[None, :, i])
-                                 for i, nm in enumerate(h.hyper_names)}, coords=draws)}
+    transforms = dict(h.attrs.get("transforms") or {})
+    post = xr.Dataset({nm: (("chain", "draw"), h.hyper_samples[None, :, i], conventions.hyper_attrs(nm, transforms))
+                       for i, nm in enumerate(h.hyper_names)}, coords=draws)
+    groups: dict[str, xr.Dataset] = {G_POSTERIOR: conventions.annotate(post, "other")}
     stats: dict[str, Any] = {"log_marginal_likelihood": (("chain",), [float(h.log_evidence)]),
                              "log_marginal_likelihood_se": (("chain",), [float(h.log_evidence_se)])}
     coords: dict[str, Any] = {"chain": [0]}
@@ -579,9 +596,9 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
             coords={"chain": [0], "draw": np.arange(m), "specimen": list(h.specimen_ids)})
     if h.new_specimen is not None:
         m = h.new_specimen.shape[0]
-        groups[G_NEW] = xr.Dataset({nm: (("chain", "draw"), h.new_specimen[None, :, i])
-                                    for i, nm in enumerate(h.pooled_names or h.param_names)},
-                                   coords={"chain": [0], "draw": np.arange(m)})
+        groups[G_NEW] = conventions.annotate(xr.Dataset({nm: (("chain", "draw"), h.new_specimen[None, :, i])
+                                                         for i, nm in enumerate(h.pooled_names or h.param_names)},
+                                                        coords={"chain": [0], "draw": np.arange(m)}), "parameters")
     diag_vars = _reuse_vars(h)
     if h.ess is not None:
         diag_vars["importance_ess"] = ("specimen", np.asarray(h.ess, float))

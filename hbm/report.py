@@ -151,7 +151,7 @@ def _fit_quality(wres, base: Path) -> str:
         except Exception as exc:  # a quality table is a bonus; never lose the report over it
             rows.append([sid, f"(failed: {exc})", "", ""])
             continue
-        rows.append([sid, fmt(q["rmse"]), f"{q['rmse_rel']:.2f}", f"{100 * q['coverage90']:.0f}%"])
+        rows.append([sid, fmt(q["rmse"]), f"{100 * q['rmse_rel']:.2f}", f"{100 * q['coverage90']:.0f}%"])
         edges += [f"- {sid}: " + line.removeprefix("warning: ") for line in format_at_bounds(at_bounds(r))]
     text = ("## Fit quality and box edges\n\nRMSE of the best fit (MAP) and the fraction of points inside "
             "the 90% posterior-predictive band.\n\n"

@@ -29,6 +29,8 @@ stream                     spawn key                 draws
 ``grouped``                ``(40000,)``              the grouped population sampler (population →
                                                      group → specimen, ``--group-by``/``# group:``);
                                                      used instead of ``hierarchical``
+``prior`` (of a fit)       ``(50000,)`` after the    the ``prior`` group of a result file (draws from
+                           fit's own key             the prior box, hbm.conventions)
 =========================  ========================  ==============================================
 
 A single ``hbm fit --seed S`` is specimen-free: its phases use keys ``(j,)`` of ``SeedSequence(S)``.
@@ -54,6 +56,7 @@ _HIER = 10_000
 _ORGAN = 20_000
 _DETECTIVE = 30_000
 _GROUPED = 40_000
+_PRIOR = 50_000
 
 #: name -> function of the stream's indices returning its spawn key (the table above).
 def _specimen_key(k: int) -> tuple[int, ...]:
@@ -74,6 +77,7 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "organ_new_specimen": lambda: (_ORGAN, 2),
     "detective": lambda: (_DETECTIVE,),
     "grouped": lambda: (_GROUPED,),
+    "prior": lambda: (_PRIOR,),
 }
 
 

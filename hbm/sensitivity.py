@@ -95,6 +95,7 @@ class SobolResult:
     n_evaluations: int
     wall_time: float
     S2: np.ndarray | None = None
+    settings: dict[str, Any] = field(default_factory=dict)  # SALib calls and their options
     relevance: dict[str, str] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -174,6 +175,7 @@ def sobol(model: Model, strain=None, *, bounds: Mapping[str, tuple[float, float]
     -------
     SobolResult
     """
+    import SALib
     from SALib.analyze import sobol as sobol_analyze
     from SALib.sample import sobol as sobol_sample
 
@@ -255,7 +257,13 @@ def sobol(model: Model, strain=None, *, bounds: Mapping[str, tuple[float, float]
     return SobolResult(names=names, bounds=box[free], S1=d("S1"), ST=d("ST"), S1_conf=d("S1_conf"),
                        ST_conf=d("ST_conf"), qoi=qoi, n=n, strain=loading.strain.copy(), per_point=pp,
                        n_evaluations=X.shape[0], wall_time=wall,
-                       S2=np.asarray(res["S2"]) if calc_second_order and "S2" in res else None)
+                       S2=np.asarray(res["S2"]) if calc_second_order and "S2" in res else None,
+                       settings={"salib_version": str(getattr(SALib, "__version__", "")),
+                                 "salib_sampler": "SALib.sample.sobol.sample(scramble=True)",
+                                 "salib_analyzer": "SALib.analyze.sobol.analyze",
+                                 "calc_second_order": int(bool(calc_second_order)),
+                                 "num_resamples": int(num_resamples), "conf_level": float(conf_level),
+                                 "sampler_seed": int(seed)})
 
 
 def _stress_chunks(model: Model, loading: Loading, theta: np.ndarray, chunk: int = 1 << 16) -> np.ndarray:

@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 GEOMETRY = ROOT / "data" / "geometry" / "fusiform.toml"
 TRUTH = np.array([0.97, 0.192, 0.005, 0.127, 162.0, 59.8, 0.006, 0.006])
 ENGINES = {"run": ["run_workflow"], "fit": ["fit_specimen"], "optimize": ["optimize"], "sobol": ["sobol"],
-           "diagnose": ["diagnose", "extend"], "predict": ["predict_organ"]}
+           "diagnose": ["diagnose", "extend"], "predict": ["predict_organ"], "export": ["export"]}
 
 
 class EngineReached(Exception):
@@ -138,7 +138,8 @@ def _cases(tmp_path, specimen):
 def test_walk_covers_every_command_and_rule(tmp_path, specimen):
     cases = _cases(tmp_path, specimen)
     commands = {c[0][0] for c in cases}
-    assert commands == {"run", "fit", "optimize", "sobol", "diagnose", "extend", "predict", "data"}  # data: --sl0
+    assert commands == {"run", "fit", "optimize", "sobol", "diagnose", "extend", "predict", "data",  # data: --sl0
+                        "export"}  # export: --to
     options = {(c[0][0], c[1]) for c in cases}
     for cmd in ("run", "fit", "optimize", "sobol", "diagnose", "extend", "predict"):
         assert (cmd, "--seed") in options, cmd

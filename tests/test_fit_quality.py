@@ -36,7 +36,7 @@ def test_rmse_coverage_map_against_hand_computation():
     # MAP = best sample (index 1); residuals 0.5, 0.5, -0.5, 8 -> RMSE sqrt((0.25*3 + 64)/4)
     rmse = np.sqrt((0.25 * 3 + 64.0) / 4)
     assert q["rmse"] == pytest.approx(rmse, rel=1e-14)
-    assert q["rmse_rel"] == pytest.approx(100 * rmse / 5.0, rel=1e-14)
+    assert q["rmse_rel"] == pytest.approx(rmse / 5.0, rel=1e-14)  # a fraction, like coverage90
     # points 1 and 2 are inside [1, 19]; 0 and 3 are not
     assert q["coverage90"] == 0.5
     assert q["map"] == {"A": 2.0, "sigma": 0.2} and q["map_source"] == "sample"

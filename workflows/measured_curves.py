@@ -60,7 +60,7 @@ def main() -> None:
             q = res.to_json()
             records.append({"specimen": ds.attrs["id"], "prior": label, **{k: q[k] for k in (
                 "rmse", "rmse_rel", "coverage90", "log_evidence", "log_evidence_se", "map", "at_bounds")}})
-            rows.append(f"| {ds.attrs['id']} | {label} | {1e3 * q['rmse']:.3f} | {q['rmse_rel']:.2f} | "
+            rows.append(f"| {ds.attrs['id']} | {label} | {1e3 * q['rmse']:.3f} | {100 * q['rmse_rel']:.2f} | "
                         f"{100 * q['coverage90']:.0f}% | {q['log_evidence']:.2f} ± {q['log_evidence_se']:.2f} | "
                         f"{_edges(q['at_bounds'])} |")
     table = ("| curve | prior | RMSE (kPa) | RMSE (% of peak) | 90% coverage | log Z ± SE | on a box edge |\n"

@@ -7,6 +7,7 @@ import warnings
 from pathlib import Path
 
 from ..errors import HbmWarning
+from ..export.stability import fit_line as stability_line
 from ..fit import fit_specimen, format_at_bounds
 from ..io import specimen_path
 from ..utils import prepare_output_dir, prepare_output_file, remove_stale_temps
@@ -105,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         print_json(res.to_json())
         return 0
     print(res.report())
+    print(stability_line(res.result))
     t = res.timings
     print("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
     print(f"wrote {res.path}" + (f" and {figure}" if figure is not None else ""))

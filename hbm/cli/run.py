@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import json
+import time
+from pathlib import Path
 import sys
 
 from ..data import load_specimens, specimen_groups
@@ -70,6 +73,9 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=non_negative_int, default=None, metavar="K",
                    help="dask worker processes of the embedded cluster (default: all cores; 0 = no dask)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing dask scheduler, e.g. tcp://host:8786")
+    p.add_argument("--scheduler-file", metavar="FILE",
+                   help="dask scheduler file (JSON with 'address', as written by dask-mpi or "
+                        "'dask scheduler --scheduler-file') of a cluster started by an MPI/HPC script")
     add_seed(p)
     p.add_argument("--restarts", type=non_negative_int, default=3, metavar="K",
                    help="CMA-ES restarts per specimen (0 = skip; default 3)")
@@ -141,6 +147,28 @@ def _check_sizes(cfg: RunConfig, datasets, model, fix: dict) -> None:
         check_population_memory(f"--hier-samples {cfg.hier_samples}", cfg.hier_samples, 256, 2 * model.n_params)
 
 
+def scheduler_address(address: str | None, scheduler_file: str | None, wait: float = 30.0) -> str | None:
+    """The scheduler address: --scheduler, or the ``address`` of --scheduler-file (waited for up to
+    ``wait`` s, as ``distributed.Client(scheduler_file=...)`` does, since an MPI launcher may start the
+    scheduler and hbm together)."""
+    if scheduler_file is None:
+        return address
+    if address is not None:
+        raise SettingError("--scheduler and --scheduler-file: give one of them")
+    path = Path(scheduler_file)
+    deadline = time.monotonic() + wait
+    while not path.is_file() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    try:
+        addr = json.loads(path.read_text(encoding="utf-8"))["address"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SettingError(f"--scheduler-file {path}: expected a dask scheduler file (JSON with 'address'); "
+                           f"{type(exc).__name__}: {exc}") from None
+    if not isinstance(addr, str) or "://" not in addr:
+        raise SettingError(f"--scheduler-file {path}: 'address' is {addr!r}, expected e.g. tcp://host:8786")
+    return addr
+
+
 def _budget(args: argparse.Namespace) -> dict | None:
     """TMCMC options of --max-evaluations (None without it: the stored config is unchanged)."""
     m = check_max_evaluations(args.max_evaluations, min(args.samples, 500) if args.quick else args.samples)
@@ -158,7 +186,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_hierarchical:  # groups matter to the hierarchical layer only
         specimen_groups(datasets, args.group_by)  # every specimen has its group, two groups at least
     cfg = RunConfig(data=args.data, out=args.out, samples=args.samples, kernel=args.kernel, noise=args.noise,
-                    workers=args.workers, scheduler=args.scheduler, seed=args.seed, sobol=not args.no_sobol,
+                    workers=args.workers, scheduler=scheduler_address(args.scheduler, args.scheduler_file),
+                    seed=args.seed, sobol=not args.no_sobol,
                     sobol_n=args.sobol_n, restarts=args.restarts,
                     sweep=args.sweep.text if args.sweep else None, maxfevals=args.maxfevals,
                     fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,

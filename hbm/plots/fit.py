@@ -69,7 +69,7 @@ def fit_plot(result, data=None, *, likelihood=None, prob: float = 0.9,
         ax.set_ylabel("stress (MPa)")
     axes[0, 0].legend(fontsize=8, frameon=False)
     cov = "n/a" if q["coverage90"] is None else f"{100 * q['coverage90']:.0f}%"
-    fig.suptitle(f"{r.specimen_id}: RMSE {q['rmse']:.3g} MPa ({q['rmse_rel']:.1f}% of peak), "
+    fig.suptitle(f"{r.specimen_id}: RMSE {q['rmse']:.3g} MPa ({100 * q['rmse_rel']:.1f}% of peak), "
                  f"coverage {cov}, log Z {q['log_evidence']:.2f} ± {q['log_evidence_se']:.2f}", fontsize=9)
     if path is None:
         return fig

@@ -1,0 +1,52 @@
+"""``hbm summary RESULT.nc [--csv]``: the parameter table of a fit, with units, for a spreadsheet."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+
+from ..conventions import parameter_attrs
+from ..fit import summarize
+from ..io import read_specimen_result
+from ._common import format_table
+
+DESCRIPTION = """\
+The posterior of a fit as a table: per parameter (and identifiable combination) its unit
+(UDUNITS, "1" = dimensionless), mean, sd, 5 %, median and 95 % quantiles.  Marginal
+summaries: a row of medians is not a parameter set the data support (use 'hbm export' for one).
+
+examples:
+  hbm summary results/specimens/calvo2010_rat1.nc
+  hbm summary fit.nc --csv > fit.csv
+"""
+
+#: units of the identifiable combinations
+COMBINATION_UNITS = {"G": "MPa", "VOLF*P1": "MPa", "(1-VOLF)*T1": "MPa"}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("summary", help="parameter table (with units) of a fit, text or CSV",
+                              description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("result", metavar="RESULT.nc", help="specimen result file (hbm fit / hbm run)")
+    p.add_argument("--csv", action="store_true", help="CSV on stdout instead of a text table")
+    p.set_defaults(func=run)
+
+
+def rows(path) -> list[list[str]]:
+    """Header + one row per parameter/combination."""
+    r = read_specimen_result(path)
+    out = [["parameter", "units", "mean", "sd", "q05", "median", "q95"]]
+    for name, s in summarize(r, prob=0.9).items():
+        unit = COMBINATION_UNITS.get(name) or parameter_attrs(name).get("units", "")
+        out.append([name, unit] + [f"{s[k]:.6g}" for k in ("mean", "sd", "lower", "median", "upper")])
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    table = rows(args.result)
+    if args.csv:
+        csv.writer(sys.stdout, lineterminator="\n").writerows(table)
+    else:
+        print(format_table(table[0], table[1:]))
+    return 0
