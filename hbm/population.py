@@ -54,10 +54,9 @@ from .combinations import (COMBINATION_PARAMS, combination_features, fibre_point
 from .errors import HbmError
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, spyrou_model
-from .samplers.grouped import GroupedResult, grouped_hierarchical
-from .samplers.hierarchical import (auto_pool, defensive_log_weights, hierarchical, mixture_log_weights,
+from .samplers.hierarchical import (ExactSpecimen, GroupedResult, ReuseSpecimen, auto_pool, defensive_log_weights,
+                                    grouped_hierarchical, hierarchical, joint_gibbs, mixture_log_weights,
                                     refine_individual, systematic_resample)
-from .samplers.joint_gibbs import ExactSpecimen, ReuseSpecimen, joint_gibbs
 from .utils import log_progress as _log
 
 __all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS",

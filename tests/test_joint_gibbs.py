@@ -1,4 +1,4 @@
-"""The exact fallback of the hierarchical layer (hbm.samplers.joint_gibbs) against independent truths.
+"""The exact fallback of the hierarchical layer (hbm.samplers.hierarchical.joint_gibbs) against independent truths.
 
 Conjugate Gaussian toy: six specimens with Gaussian likelihoods N(y_i; θ_i, s_i²), a normal population
 N(mu, sd²) (identity transform, truncated to a wide box) and the layer's hyperprior (mu uniform, log sd
@@ -14,7 +14,7 @@ import hbm.cli as cli
 import hbm.cli.run as cli_run
 from hbm.errors import HbmError
 from hbm.samplers.hierarchical import HierarchicalModel
-from hbm.samplers.joint_gibbs import ExactSpecimen, ReuseSpecimen, joint_gibbs, rhat_ess
+from hbm.samplers.hierarchical import ExactSpecimen, ReuseSpecimen, joint_gibbs, rhat_ess
 
 Y = np.array([-1.5, -0.3, 0.2, 0.9, 2.1, 3.0])
 S = np.array([0.5, 1.0, 1.5, 0.7, 2.0, 1.0])
