@@ -160,24 +160,27 @@ def test_bad_input():
 def test_population_exact_settings_and_combination_coordinates():
     from hbm.combinations import log_density, support_hull, to_features
     from hbm.model import spyrou_model
-    from hbm.population import PopulationConfig, _PhiCoordinates, _check_exact, _exact_applies
+    from hbm.population import PopulationConfig
+    from hbm.population.config import check_config
+    from hbm.population.fallbacks import exact_applies
+    from hbm.population.pooling import PhiCoordinates
 
     with pytest.raises(HbmError, match="gibbs"):
-        _check_exact(PopulationConfig(exact="nuts"))
+        check_config(PopulationConfig(exact="nuts"))
     with pytest.raises(HbmError, match="exact_chains"):
-        _check_exact(PopulationConfig(exact_chains=2))
+        check_config(PopulationConfig(exact_chains=2))
     assert PopulationConfig().exact == "gibbs"  # on by default (README, results/benchmarks/hierarchical_gold.md)
     data = {"a": None, "b": None}
-    assert not _exact_applies(PopulationConfig(groups={"a": "x"}), ["a"], data, "ab")  # grouped: refinements
-    assert not _exact_applies(PopulationConfig(), [], data, "ab")  # nothing flagged: plain reuse
-    assert not _exact_applies(PopulationConfig(), ["a"], None, "ab")  # no data: reuse (flag warned)
-    assert _exact_applies(PopulationConfig(), ["a"], data, "abc") == ["a", "b"]  # all with data
-    assert _exact_applies(PopulationConfig(exact_all=False), ["a"], data, "ab") == ["a"]
+    assert not exact_applies(PopulationConfig(groups={"a": "x"}), ["a"], data, "ab")  # grouped: refinements
+    assert not exact_applies(PopulationConfig(), [], data, "ab")  # nothing flagged: plain reuse
+    assert not exact_applies(PopulationConfig(), ["a"], None, "ab")  # no data: reuse (flag warned)
+    assert exact_applies(PopulationConfig(), ["a"], data, "abc") == ["a", "b"]  # all with data
+    assert exact_applies(PopulationConfig(exact_all=False), ["a"], data, "ab") == ["a"]
     # the fibre map: a θ with the given combinations exactly where p0(φ) > 0 (its support)
     m = spyrou_model()
     names, b = list(m.parameter_names), np.asarray(m.bounds)
     hull = np.log(support_hull(b, names))
-    co = _PhiCoordinates(names, b, hull, 0.0)
+    co = PhiCoordinates(names, b, hull, 0.0)
     rng = np.random.default_rng(0)
     phi = rng.uniform(hull[:, 0], hull[:, 1], (3000, 3))
     rest = b[co.other, 0] + rng.random((3000, len(co.other))) * np.ptp(b[co.other], axis=1)
