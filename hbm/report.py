@@ -23,7 +23,7 @@ from ._version import __version__
 from .fit import at_bounds, fit_quality, format_at_bounds, summarize
 from .identify import compare_manifolds
 from .model import COMBINATIONS, SHAPE_PARAMETERS
-from .samplers.grouped import group_differences, variance_split
+from .samplers.hierarchical import group_differences, variance_split
 from .utils import atomic_write_text
 from .views import population_table, quantity_samples, specimen_variability
 

@@ -311,10 +311,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, opt
         pop_cfg = _with_groups(cfg.population_config(), cfg, {sid: datasets[sid] for sid in results})
         hkey = identity.content_key({
             "specimens": identity.settings_key({sid: _stored_hash(paths[sid]) for sid in sorted(results)}),
-            "population": identity.settings_key({k: v for k, v in dataclasses.asdict(pop_cfg).items()
-                                                 if k not in ("progress", "retries")
-                                                 # ungrouped runs keep their key (and their reuse)
-                                                 and not (k in ("groups", "group_by") and v is None)}),
+            "population": identity.settings_key(pop_cfg.key_settings()),
             "model": identity.model_key(model), "version": __version__})
         stored = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
         if stored is not None and stored.attrs.get("content_key") == hkey:

@@ -20,7 +20,7 @@ from scipy.stats import norm, truncnorm
 
 from hbm.errors import HbmError
 from hbm.population import run_population
-from hbm.samplers.grouped import grouped_hierarchical, truncnorm_ppf
+from hbm.samplers.hierarchical import grouped_hierarchical, truncnorm_ppf
 from hbm.samplers.tmcmc import tmcmc
 
 L = 5.0  # stage-1 box [-L, L]
@@ -365,11 +365,3 @@ def test_view_refines_a_specimen_like_its_updated_posterior():
     assert np.mean(b) < CENTRES[sid] - 0.02
     assert abs(np.mean(a) - np.mean(b)) < 0.03 and abs(np.std(a) / np.std(b) - 1) < 0.1, (a.mean(), b.mean(),
                                                                                           a.std(), b.std())
-
-
-@pytest.mark.parametrize("option", [{"reference": 1.0}, {"second_pass": True}])
-def test_two_level_tail_options_are_refused_with_groups(option):
-    """Reference rows need deterministic-mixture weights the grouped layer does not apply: refused
-    before any work instead of being counted as posterior draws."""
-    with pytest.raises(HbmError, match="two-level layer; not with groups"):
-        run_population({}, groups={"a": "x", "b": "y"}, **option)

@@ -95,10 +95,10 @@ def test_full_covariance_density_matches_scipy():
 
 def test_predictive_draws_match_truncated_normal():
     hm = HierarchicalModel(["x"], [[0.0, 1.0]])
-    from hbm.samplers.hierarchical import _draw_population
+    from hbm.samplers.hierarchical import draw_population
 
     raw = np.array([[0.9, np.log(0.3)]])
-    x = _draw_population(hm, raw, 200_000, np.random.default_rng(2))[:, 0]
+    x = draw_population(hm, raw, 200_000, np.random.default_rng(2))[:, 0]
     tn = truncnorm((0 - 0.9) / 0.3, (1 - 0.9) / 0.3, loc=0.9, scale=0.3)
     assert abs(x.mean() - tn.mean()) < 4 * tn.std() / np.sqrt(x.size)
     assert abs(x.std() - tn.std()) < 0.005

@@ -1,4 +1,4 @@
-"""The exact fallback of the hierarchical layer (hbm.samplers.joint_gibbs) against independent truths.
+"""The exact fallback of the hierarchical layer (hbm.samplers.hierarchical.joint_gibbs) against independent truths.
 
 Conjugate Gaussian toy: six specimens with Gaussian likelihoods N(y_i; θ_i, s_i²), a normal population
 N(mu, sd²) (identity transform, truncated to a wide box) and the layer's hyperprior (mu uniform, log sd
@@ -14,7 +14,7 @@ import hbm.cli as cli
 import hbm.cli.run as cli_run
 from hbm.errors import HbmError
 from hbm.samplers.hierarchical import HierarchicalModel
-from hbm.samplers.joint_gibbs import ExactSpecimen, ReuseSpecimen, joint_gibbs, rhat_ess
+from hbm.samplers.hierarchical import ExactSpecimen, ReuseSpecimen, joint_gibbs, rhat_ess
 
 Y = np.array([-1.5, -0.3, 0.2, 0.9, 2.1, 3.0])
 S = np.array([0.5, 1.0, 1.5, 0.7, 2.0, 1.0])
@@ -160,24 +160,27 @@ def test_bad_input():
 def test_population_exact_settings_and_combination_coordinates():
     from hbm.combinations import log_density, support_hull, to_features
     from hbm.model import spyrou_model
-    from hbm.population import PopulationConfig, _PhiCoordinates, _check_exact, _exact_applies
+    from hbm.population import PopulationConfig
+    from hbm.population.config import check_config
+    from hbm.population.fallbacks import exact_applies
+    from hbm.population.pooling import PhiCoordinates
 
     with pytest.raises(HbmError, match="gibbs"):
-        _check_exact(PopulationConfig(exact="nuts"))
+        check_config(PopulationConfig(exact="nuts"))
     with pytest.raises(HbmError, match="exact_chains"):
-        _check_exact(PopulationConfig(exact_chains=2))
+        check_config(PopulationConfig(exact_chains=2))
     assert PopulationConfig().exact == "gibbs"  # on by default (README, results/benchmarks/hierarchical_gold.md)
     data = {"a": None, "b": None}
-    assert not _exact_applies(PopulationConfig(groups={"a": "x"}), ["a"], data, "ab")  # grouped: refinements
-    assert not _exact_applies(PopulationConfig(), [], data, "ab")  # nothing flagged: plain reuse
-    assert not _exact_applies(PopulationConfig(), ["a"], None, "ab")  # no data: reuse (flag warned)
-    assert _exact_applies(PopulationConfig(), ["a"], data, "abc") == ["a", "b"]  # all with data
-    assert _exact_applies(PopulationConfig(exact_all=False), ["a"], data, "ab") == ["a"]
+    assert not exact_applies(PopulationConfig(groups={"a": "x"}), ["a"], data, "ab")  # grouped: refinements
+    assert not exact_applies(PopulationConfig(), [], data, "ab")  # nothing flagged: plain reuse
+    assert not exact_applies(PopulationConfig(), ["a"], None, "ab")  # no data: reuse (flag warned)
+    assert exact_applies(PopulationConfig(), ["a"], data, "abc") == ["a", "b"]  # all with data
+    assert exact_applies(PopulationConfig(exact_all=False), ["a"], data, "ab") == ["a"]
     # the fibre map: a θ with the given combinations exactly where p0(φ) > 0 (its support)
     m = spyrou_model()
     names, b = list(m.parameter_names), np.asarray(m.bounds)
     hull = np.log(support_hull(b, names))
-    co = _PhiCoordinates(names, b, hull, 0.0)
+    co = PhiCoordinates(names, b, hull, 0.0)
     rng = np.random.default_rng(0)
     phi = rng.uniform(hull[:, 0], hull[:, 1], (3000, 3))
     rest = b[co.other, 0] + rng.random((3000, len(co.other))) * np.ptp(b[co.other], axis=1)

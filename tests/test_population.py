@@ -57,3 +57,65 @@ def test_run_config_maps_to_population_config():
     pc = cfg.population_config()
     assert (pc.seed, pc.samples, pc.stage1_samples, pc.max_steps, pc.pooled, pc.noise, pc.retries, pc.progress) == \
         (5, 222, 600, 9, "informed", "ar1", 3, False)
+
+
+def test_sampler_options_reach_every_tmcmc_run_of_the_layer(monkeypatch):
+    """PopulationConfig.sampler_options is the one field that sets how the layer samples: the stored stages
+    of the two-level layer, of the grouped layer and of a fresh TMCMC refinement all ran with it."""
+    import hbm.population.driver as driver
+    import hbm.population.fallbacks as fallbacks
+    from scipy.stats import norm
+
+    model = spyrou_model()
+    names = list(model.parameter_names)
+    results = {f"s{k}": _specimen(model, c, k) for k, c in enumerate((40.0, 50.0, 60.0))}
+    opts = {"n_steps": 3}
+    hf, _ = run_population(results, None, model, pooled=["T2"], samples=300, progress=False, seed=3,
+                           sampler_options=opts)
+    plain, _ = run_population(results, None, model, pooled=["T2"], samples=300, progress=False, seed=3)
+    assert hf.stages and all(s.n_steps == 3 for s in hf.stages)
+    assert any(s.n_steps != 3 for s in plain.stages)  # the adaptive default: the check can fail
+
+    # grouped layer and its refinements: capture what the sampler produced
+    seen = {}
+    real_grouped, real_refine = driver.grouped_hierarchical, fallbacks.refine_individual
+
+    def grouped(*a, **kw):
+        seen["grouped"] = real_grouped(*a, **kw)
+        return seen["grouped"]
+
+    def refine(*a, **kw):
+        seen.setdefault("refine", []).append(real_refine(*a, **kw))
+        return seen["refine"][-1]
+
+    class Lik:  # the toy specimens' T2 likelihood, N(T2; centre, 3²), on the model's box
+        def __init__(self, centre):
+            self.centre, self.bounds = centre, model.bounds
+
+        def __call__(self, theta):
+            return norm.logpdf(theta[:, names.index("T2")], self.centre, 3.0)
+
+    # four specimens in two groups, pooled by combinations: their prior-like stage-1 samples collapse the reuse
+    centres = {"s0": 40.0, "s1": 50.0, "s2": 60.0, "s3": 70.0}
+    results = {sid: _specimen(model, c, k) for k, (sid, c) in enumerate(centres.items())}
+    monkeypatch.setattr(driver, "grouped_hierarchical", grouped)
+    monkeypatch.setattr(fallbacks, "refine_individual", refine)
+    monkeypatch.setattr(fallbacks, "specimen_likelihood", lambda cfg, res, sid, ds, m: Lik(centres[sid]))
+    run_population(results, {sid: None for sid in results}, model, pooled="combinations", samples=300,
+                   progress=False, seed=2, groups={"s0": "a", "s1": "a", "s2": "b", "s3": "b"}, sampler_options=opts)
+    stages = seen["grouped"].sampler_result.stages
+    assert stages and all(s.n_steps == 3 for s in stages)
+    assert seen.get("refine"), "no refinement ran: the toy no longer exercises that path"
+    assert all(s.n_steps == 3 for r in seen["refine"] for s in r.stages)
+
+
+def test_reuse_key_keeps_retired_settings_and_sees_sampler_options():
+    """A stored hierarchical.nc of a run from before issue 25 keeps its key (the retired reference rows and
+    second pass at their old defaults); the sampler settings change the key only when set."""
+    from hbm.identity import settings_key
+
+    key = PopulationConfig().key_settings()
+    assert key["reference"] == 0.0 and key["second_pass"] is False
+    assert "sampler_options" not in key and "progress" not in key and "groups" not in key
+    assert settings_key(PopulationConfig(sampler_options={"n_steps": 3}).key_settings()) != settings_key(key)
+    assert settings_key(PopulationConfig(progress=False, retries=5).key_settings()) == settings_key(key)

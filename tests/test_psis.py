@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hbm.errors import HbmError
-from hbm.samplers.psis import pareto_khat
+from hbm.samplers.hierarchical import pareto_khat
 
 az = pytest.importorskip("arviz")
 

@@ -272,10 +272,6 @@ def main(argv=None) -> int:
     ap.add_argument("--layer-seeds", default="1,2,3")
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--tune", type=int, default=1000)
-    ap.add_argument("--reference", type=float, default=None,
-                    help="PopulationConfig.reference (defensive draws per stage-1 sample); default: hbm's")
-    ap.add_argument("--no-second-pass", action="store_true",
-                    help="PopulationConfig.second_pass=False: plain reuse (the layer before issue 15)")
     ap.add_argument("--exact", default=None, choices=("gibbs", "none"),
                     help="PopulationConfig.exact: the joint Metropolis-within-Gibbs fallback for flagged specimens")
     ap.add_argument("--exact-all", type=int, choices=(0, 1), default=None,
@@ -293,9 +289,9 @@ def main(argv=None) -> int:
     if a.stage1_only:
         return 0
     seeds = [int(s) for s in a.layer_seeds.split(",")]
-    cfg = {} if a.reference is None else {"reference": a.reference}
-    if a.no_second_pass:
-        cfg["second_pass"] = False
+    # the reference-rows and second-pass variants left hbm with issue 25 (their code: commit 287c749,
+    # hbm/population.py _reference_rows / _mixture_pass; results/benchmarks/hierarchical_gold.md)
+    cfg = {}
     if a.exact:
         cfg["exact"] = None if a.exact == "none" else a.exact
         if a.exact_all is not None:

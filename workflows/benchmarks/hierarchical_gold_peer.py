@@ -4,7 +4,7 @@
 ``hierarchical_gold.py`` writes a JSON spec (data of every specimen, the stage-1 box, the pooled
 columns with their transforms, truncation boxes and hyperprior ranges) and calls this file with the
 bench environment's python (PyMC + nutpie, see README.md).  The model is the definition of
-``hbm/samplers/hierarchical.py`` with ``--pool combinations`` (``hbm/population.py``), written out
+``hbm/samplers/hierarchical/`` with ``--pool combinations`` (``hbm/population/pooling.py``), written out
 as one joint density over (ψ, θ_1..θ_S):
 
 * θ_i = (VOLF, EOPT, P1, T1, T2, THETA, GF, GM, sigma) uniform on the stage-1 box (p0(θ));

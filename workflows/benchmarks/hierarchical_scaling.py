@@ -6,7 +6,7 @@ hyperparameters ψ at once, Σ_i log mean_j r_ij(ψ) as one matrix product per s
 (coef(ψ) (n_ψ × K) @ F(θ_i)ᵀ (K × N_i)) with a chunked log-sum-exp, so one likelihood call should
 cost ∝ n_ψ · Σ_i N_i and the whole layer ∝ N at a fixed number of calls.
 
-Setup, as ``hbm run --pool all`` calls the layer (hbm/population.py ``_run_hierarchical``; the
+Setup, as ``hbm run --pool all`` calls the layer (hbm/population/driver.py ``run_population``; the
 heaviest case: 8 pooled columns, where the default ``--pool combinations`` pools 5): the six shipped
 specimens (``data/specimens``), stage-1 = default TMCMC of the base model with iid noise and the
 workflow's common sigma box, pooled = the 8 model parameters with the workflow's transforms

@@ -56,17 +56,17 @@ This module is sampler-layer code: it knows nothing about muscles.
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from scipy.special import ndtr, ndtri
 
-from ..errors import HbmError
-from .hierarchical import (ESTIMATORS, HierarchicalModel, HierarchicalResult, _draw_population, _parse_stage1,
-                           reuse_diagnostics, reuse_unreliable, systematic_resample)
-from .tmcmc import tmcmc as _tmcmc
+from ...errors import HbmError
+from .model import HierarchicalModel, draw_population
+from .posterior import fit_layer
+from .result import HierarchicalResult, thin_rows
+from .reuse import ReuseEstimator, check_box, pack_stage1
 
 __all__ = ["GroupedModel", "GroupedResult", "grouped_hierarchical", "truncnorm_ppf", "group_differences",
            "variance_split"]
@@ -198,10 +198,7 @@ class GroupedResult(HierarchicalResult):
     def population_log_density(self, theta: np.ndarray, n_hyper: int = 500, seed=0) -> np.ndarray:
         """log predictive density of a new specimen of a new group (pooled columns): the mixture of
         N(m_new, sd_within) over (a thinned subset of) the draws of :attr:`new_group_raw`."""
-        raw = self.new_group_raw
-        if raw.shape[0] > n_hyper:
-            raw = raw[np.sort(np.random.default_rng(seed).choice(raw.shape[0], n_hyper, replace=False))]
-        return self.model.base.log_density(theta, raw)
+        return self.model.base.log_density(theta, thin_rows(self.new_group_raw, n_hyper, seed))
 
     def group_differences(self, prob: float = 0.9) -> list[dict]:
         """Posterior of every pairwise group-mean difference m_b − m_a (transformed units), per parameter.
@@ -291,31 +288,23 @@ def _membership(specs: Sequence[str], specimen_group: Mapping[str, str]) -> tupl
     return groups, np.array([groups.index(g) for g in labels])
 
 
+def _explain(key: str, s: dict, hyper: bool, threshold: float) -> str:
+    """The warning of a collapsed ESS of one specimen under its group's population."""
+    which = "p(d|m_g, sd_within) and its updated posterior" if hyper else "its updated posterior"
+    return (f"grouped hierarchical: importance ESS of specimen {key!r} collapsed for {which} (10% quantile "
+            f"{min(s['q10'], s['raw_q10']):.1f} of {s['n']} stage-1 samples < {threshold:g}): refine it with "
+            f"hbm.samplers.hierarchical.refine_individual(result.view({key!r}), ...)")
+
+
 def grouped_hierarchical(
-    stage1: Mapping[str, tuple],
-    names: Sequence[str],
-    bounds,
-    specimen_group: Mapping[str, str],
-    *,
-    transforms: Mapping[str, str] | None = None,
-    pooled: Sequence[str] | None = None,
-    log_prior: Mapping[str, np.ndarray] | None = None,
-    estimator: str = "raw",
-    bandwidth: str | float = "silverman",
-    n_samples: int = 2000,
-    seed=None,
-    progress: bool = True,
-    sampler: Callable | None = None,
-    tmcmc_options: Mapping[str, Any] | None = None,
-    sd_prior: str = "loguniform",
-    sd_range: tuple[float, float] = (1e-3, 1.0),
-    mu_bounds: Mapping[str, tuple[float, float]] | None = None,
-    logit_range: float = 8.0,
-    ess_threshold: float = 50.0,
-    n_updated: int | None = None,
-    n_hyper_updated: int = 1000,
-    chunk_bytes: float = 4e6,
-    log_likelihood: Mapping[str, np.ndarray] | None = None,
+    stage1: Mapping[str, tuple], names: Sequence[str], bounds, specimen_group: Mapping[str, str], *,
+    transforms: Mapping[str, str] | None = None, pooled: Sequence[str] | None = None,
+    log_prior: Mapping[str, np.ndarray] | None = None, estimator: str = "raw", bandwidth: str | float = "silverman",
+    n_samples: int = 2000, seed=None, progress: bool = True, sampler: Callable | None = None,
+    tmcmc_options: Mapping[str, Any] | None = None, sd_prior: str = "loguniform",
+    sd_range: tuple[float, float] = (1e-3, 1.0), mu_bounds: Mapping[str, tuple[float, float]] | None = None,
+    logit_range: float = 8.0, ess_threshold: float = 50.0, n_updated: int | None = None, n_hyper_updated: int = 1000,
+    chunk_bytes: float = 4e6, log_likelihood: Mapping[str, np.ndarray] | None = None,
 ) -> GroupedResult:
     """Three-level hyper-posterior, hyper-evidence, group means, updated individuals and predictives.
 
@@ -325,7 +314,7 @@ def grouped_hierarchical(
     progress, sampler, tmcmc_options, sd_prior, sd_range, mu_bounds, logit_range, ess_threshold,
     n_updated, n_hyper_updated, chunk_bytes, log_likelihood
         As :func:`hbm.samplers.hierarchical.hierarchical` (no ``full_cov``, ``fix``, ``thin``,
-        reference rows).  ``log_likelihood`` (the stage-1 rows' log-likelihoods) lets the reuse
+        row weights).  ``log_likelihood`` (the stage-1 rows' log-likelihoods) lets the reuse
         diagnostics extrapolate the likelihood beyond the samples with its edge slope.
     specimen_group : mapping specimen -> group name
         The group of every specimen of ``stage1``; at least two groups.
@@ -341,145 +330,40 @@ def grouped_hierarchical(
     """
     t0 = time.perf_counter()
     names = [str(n) for n in names]
-    specs, samples, logz, logz_se = _parse_stage1(stage1, len(names))
-    groups, gidx = _membership(specs, specimen_group)
+    label = "grouped hierarchical"
+    data = pack_stage1(stage1, names, None, log_prior=log_prior, log_likelihood=log_likelihood, label=label)
+    groups, gidx = _membership(data.specimens, specimen_group)
     model = GroupedModel(names, bounds, groups, pooled=pooled, transforms=transforms, sd_prior=sd_prior,
                          sd_range=sd_range, mu_bounds=mu_bounds, logit_range=logit_range)
     base = model.base
-    if estimator not in ESTIMATORS:
-        raise HbmError(f"grouped hierarchical: estimator must be one of {ESTIMATORS}, got {estimator!r}")
-    lps = [None if log_prior is None else np.asarray(log_prior[k], float) for k in specs] if (
-        log_prior is None or all(k in log_prior for k in specs)) else None
-    if lps is None:
-        raise HbmError(f"grouped hierarchical: log_prior has no entry for specimens "
-                       f"{[k for k in specs if k not in log_prior]}")
-    lo_ok = base.all_bounds[:, 0] - 1e-12 * np.ptp(base.all_bounds, axis=1)
-    hi_ok = base.all_bounds[:, 1] + 1e-12 * np.ptp(base.all_bounds, axis=1)
-    for key, x in zip(specs, samples):
-        if np.any((x < lo_ok) | (x > hi_ok)):
-            raise HbmError(f"grouped hierarchical: stage1[{key!r}] has samples outside the prior box")
-    feats = [base.features(x, lp) for x, lp in zip(samples, lps)]
-    logN = np.log([x.shape[0] for x in samples])
-    kvar = [None] * len(specs)
-    if estimator == "kernel":
-        kvar = [base.kernel_variance(x, bandwidth)[1] for x in samples]
-    ss = np.random.SeedSequence(seed if not isinstance(seed, np.random.Generator) else seed.integers(2**63))
-    s_tmcmc, s_upd, s_pred = ss.spawn(3)
-    trace: list[np.ndarray] = []
-
-    def per_specimen(x: np.ndarray, kv=kvar) -> tuple[np.ndarray, np.ndarray]:
-        lm = np.empty((x.shape[0], len(specs)))
-        ess = np.empty_like(lm)
-        for g, raw in enumerate(model.specimen_raw(x)):  # groups and their specimens (few), vectorised over ψ
-            coef, cconst = base.coefficients(raw)
-            for i in np.flatnonzero(gidx == g):
-                ci, cci = (coef, cconst) if kv[i] is None else base.coefficients(raw, kv[i])
-                lse, e = base.log_ratio_stats(*feats[i], ci, cci, chunk_bytes)
-                lm[:, i], ess[:, i] = lse - logN[i], e
-        return lm, ess
-
-    def target(x: np.ndarray) -> np.ndarray:
-        x = np.atleast_2d(np.asarray(x, float))
-        lm, ess = per_specimen(x)
-        trace.append(ess.min(axis=0))
-        out = lm.sum(axis=1) + model.log_hyperprior_correction(x)
-        return np.where(np.isfinite(out), out, -np.inf)
-
-    sampler = _tmcmc if sampler is None else sampler
+    check_box(data, names, base.all_bounds, label)
+    est = ReuseEstimator(base, data, estimator=estimator, bandwidth=bandwidth, chunk_bytes=chunk_bytes, label=label)
+    s_tmcmc, s_upd, s_pred = np.random.SeedSequence(
+        seed if not isinstance(seed, np.random.Generator) else seed.integers(2**63)).spawn(3)
     t1 = time.perf_counter()
-    res = sampler(target, model.box, int(n_samples), seed=int(s_tmcmc.generate_state(1)[0]), progress=progress,
-                  **dict(tmcmc_options or {}))
+    fit = fit_layer(est, model.box, model.specimen_raw, model.log_hyperprior_correction, gidx, (s_tmcmc, s_upd),
+                    n_samples=n_samples, progress=progress, sampler=sampler, tmcmc_options=tmcmc_options,
+                    ess_threshold=ess_threshold, n_updated=n_updated, n_hyper_updated=n_hyper_updated,
+                    explain=lambda k, s, h: _explain(k, s, h, ess_threshold))
+    x = fit.x
     t2 = time.perf_counter()
-    x = np.asarray(res.samples, float)
-    lm, ess = per_specimen(x)
-    lm_raw, ess_raw = (lm, ess) if estimator == "raw" else per_specimen(x, [None] * len(specs))
-    _, _, _, means = model.split(x)
-
-    ess_summary, collapsed, hyper_collapsed, warn_list = _ess_checks(specs, samples, ess, ess_raw, estimator,
-                                                                    ess_threshold)
-    # evidence: the u coordinates make the TMCMC reference the exact prior (module docstring)
-    is_var = np.sum(np.maximum(1.0 / np.maximum(ess, 1e-300) - 1.0 / np.exp(logN), 0.0), axis=1)
-    se_tm = float(getattr(res, "log_evidence_se", 0.0) or 0.0)
-    se_is, se_st1 = float(np.sqrt(np.median(is_var))), float(np.sqrt(np.sum(logz_se**2)))
-    parts = {"tmcmc": float(res.log_evidence), "tmcmc_se": se_tm, "sum_log_Z": float(logz.sum()),
-             "stage1_se": se_st1, "importance_se": se_is}
-
-    t3 = time.perf_counter()
-    rng_u = np.random.default_rng(s_upd)
-    n_upd = int(n_updated or n_samples)
-    sub = np.arange(x.shape[0]) if x.shape[0] <= n_hyper_updated else np.sort(
-        rng_u.choice(x.shape[0], n_hyper_updated, replace=False))
-    updated, upd_w, upd_ess = {}, {}, {}
-    for g, raw in enumerate(model.specimen_raw(x[sub])):
-        coef, cconst = base.coefficients(raw)
-        for i in np.flatnonzero(gidx == g):
-            # per-draw normalised raw-ratio weights, summed over draws (rows and samples swapped)
-            lw, _ = base.log_ratio_stats(coef, cconst - (lm_raw[sub, i] + logN[i]), *feats[i], chunk_bytes)
-            w = np.exp(lw - lw.max())
-            w /= w.sum()
-            key = specs[i]
-            upd_w[key], upd_ess[key] = w, float(w.sum() ** 2 / np.sum(w * w))
-            updated[key] = samples[i][systematic_resample(w, n_upd, rng_u)]
-    t4 = time.perf_counter()
-
     rng_p = np.random.default_rng(s_pred)
     n = x.shape[0]
     mu, sdb = x[:, : model.d], model._sd(x[:, model.d : 2 * model.d])
     # a new group: m_new ~ N_trunc(mu, sd_between), then a specimen ~ N(m_new, sd_within)
     m_new = truncnorm_ppf(rng_p.random(mu.shape), mu, sdb, base.mu_lo, base.mu_hi)
-    sdw_raw = x[:, 2 * model.d : 3 * model.d]
-    new_raw = np.concatenate([m_new, sdw_raw], axis=1)
-    predictive = _draw_population(base, new_raw, n, rng_p)
-    group_pred = np.stack([_draw_population(base, raw, n, rng_p) for raw in model.specimen_raw(x)], axis=1)
-    t5 = time.perf_counter()
-
-    # what the reused samples cannot represent, each specimen against its own group's population
-    # (m_g(i), sd_within): the two-level diagnostics on the group's raw coordinates
-    group_raw = model.specimen_raw(x)
-    reuse = {}
-    for i, key in enumerate(specs):
-        ll = None if log_likelihood is None or key not in log_likelihood else np.asarray(log_likelihood[key], float)
-        reuse[key] = reuse_diagnostics(base, samples[i], group_raw[gidx[i]], log_prior=lps[i],
-                                       updated_weights=upd_w[key], log_likelihood=ll)
-        reuse[key].update(ess_q10=ess_summary[key]["q10"], ess_raw_q10=ess_summary[key]["raw_q10"])
-    for key, (bad, why) in reuse_unreliable(reuse, ess_threshold=ess_threshold).items():
-        reuse[key].update(unreliable=bad, reasons=why)
-    t6 = time.perf_counter()
+    new_raw = np.concatenate([m_new, x[:, 2 * model.d : 3 * model.d]], axis=1)
+    predictive = draw_population(base, new_raw, n, rng_p)
+    group_pred = np.stack([draw_population(base, raw, n, rng_p) for raw in fit.raws], axis=1)
+    t3 = time.perf_counter()
     return GroupedResult(
         hyper_samples=model.natural(x), hyper_names=list(model.hyper_names), names=list(model.names),
-        all_names=names, bounds=base.all_bounds.copy(), transforms=dict(base.transforms), specimens=specs,
-        groups=groups, specimen_group={s: groups[g] for s, g in zip(specs, gidx)}, group_means=means,
-        group_predictive=group_pred, new_group_raw=new_raw, log_evidence=float(res.log_evidence) + float(logz.sum()),
-        log_evidence_se=float(np.sqrt(se_tm**2 + se_is**2 + se_st1**2)), log_evidence_parts=parts,
-        log_marginal=lm + logz[None, :], ess=ess, ess_raw=ess_raw, ess_summary=ess_summary,
-        ess_collapsed=collapsed, hyper_ess_collapsed=hyper_collapsed, ess_trace=trace, updated=updated,
-        updated_weights=upd_w, updated_ess=upd_ess, predictive=predictive, warnings=warn_list,
-        timings={"setup": t1 - t0, "tmcmc": t2 - t1, "updated": t4 - t3, "predictive": t5 - t4,
-                 "diagnostics": t6 - t5, "total": t6 - t0, "likelihood_calls": len(trace)}, reuse=reuse,
-        sampler_result=res, model=model, raw_samples=x,
+        all_names=names, bounds=base.all_bounds.copy(), transforms=dict(base.transforms), specimens=data.specimens,
+        groups=groups, specimen_group={s: groups[g] for s, g in zip(data.specimens, gidx)},
+        group_means=model.split(x)[3], group_predictive=group_pred, new_group_raw=new_raw, predictive=predictive,
+        model=model, raw_samples=x, **fit.result_fields(t1 - t0, t3 - t2),
         options={"n_samples": int(n_samples), "sd_prior": sd_prior, "sd_range": list(sd_range),
                  "ess_threshold": ess_threshold, "logit_range": logit_range, "mu_lo": base.mu_lo.tolist(),
                  "mu_hi": base.mu_hi.tolist(), "estimator": estimator, "log_prior": log_prior is not None,
                  "groups": list(groups), "levels": "population -> group -> specimen"},
     )
-
-
-def _ess_checks(specs, samples, ess, ess_raw, estimator, threshold):
-    """Per-specimen ESS summary and collapse flags (the two-level layer's rule), with warnings."""
-    summary, collapsed, hyper_collapsed, msgs = {}, {}, {}, []
-    for i, key in enumerate(specs):
-        e, er = ess[:, i], ess_raw[:, i]
-        summary[key] = {"min": float(e.min()), "q10": float(np.quantile(e, 0.1)), "median": float(np.median(e)),
-                        "n": int(samples[i].shape[0]), "estimator": estimator, "raw_min": float(er.min()),
-                        "raw_q10": float(np.quantile(er, 0.1)), "raw_median": float(np.median(er))}
-        hyper_collapsed[key] = summary[key]["q10"] < threshold
-        collapsed[key] = bool(hyper_collapsed[key] or summary[key]["raw_q10"] < threshold)
-        if collapsed[key]:
-            which = "p(d|m_g, sd_within) and its updated posterior" if hyper_collapsed[key] else "its updated posterior"
-            msg = (f"grouped hierarchical: importance ESS of specimen {key!r} collapsed for {which} (10% quantile "
-                   f"{min(summary[key]['q10'], summary[key]['raw_q10']):.1f} of {samples[i].shape[0]} stage-1 "
-                   f"samples < {threshold:g}): refine it with hbm.samplers.hierarchical.refine_individual("
-                   f"result.view({key!r}), ...)")
-            msgs.append(msg)
-            warnings.warn(msg, RuntimeWarning, stacklevel=3)
-    return summary, collapsed, hyper_collapsed, msgs

@@ -50,9 +50,9 @@ import numpy as np
 from scipy.special import ndtri
 from scipy.stats import rankdata
 
-from ..errors import HbmError
-from .hierarchical import HierarchicalModel, _draw_population
-from .tmcmc import _safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
+from ...errors import HbmError
+from ..tmcmc import _safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
+from .model import HierarchicalModel, draw_population
 
 __all__ = ["ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
 
@@ -603,7 +603,7 @@ def joint_gibbs(
             for k in range(st.dy):
                 rhat[f"{sid}:{k}"], ess[f"{sid}:{k}"] = rhat_ess(kept[sid][:, :, k])
     flat = kept_raw.reshape(-1, raw.shape[1])
-    predictive = _draw_population(model, flat, flat.shape[0], rng)
+    predictive = draw_population(model, flat, flat.shape[0], rng)
     t2 = time.perf_counter()
     return JointGibbsResult(
         raw=kept_raw, states=kept, predictive=predictive, rhat=rhat, ess=ess,

@@ -1,0 +1,42 @@
+"""The population layer of a multi-specimen fit: the hierarchical model over fitted specimens.
+
+:func:`run_population` takes the specimens' stage-1 results (:class:`hbm.io.SpecimenResult`,
+from :func:`hbm.fit.fit_specimen` or ``<out>/specimens/*.nc``), their datasets and the model,
+and fits :func:`hbm.samplers.hierarchical.hierarchical` on the model parameters, reusing the
+stage-1 samples; the result goes to ``<out>/hierarchical.nc``.  It is phase 2 of ``hbm run``
+(:mod:`hbm.workflow`) and runs without dask; a dask client, when given, only runs the fresh
+TMCMC refinements of collapsed specimens in parallel.  By concept:
+
+* :mod:`.config` -- :class:`PopulationConfig` (``sampler_options`` reaches every TMCMC run of
+  the layer) and the defaults;
+* :mod:`.pooling` -- the stage-1 data packed once and the pooling strategies as objects;
+* :mod:`.fallbacks` -- the exact Gibbs fallback and the fresh TMCMC refinements;
+* :mod:`.driver` -- the one driver: pool → fit → flag → fallback → new-specimen draw → write.
+
+Pooling (``PopulationConfig.pooled``): "combinations" (a population over log G, log c·P1,
+log (1−c)·T1, T2, THETA — what a uniaxial curve identifies — with the exact stage-1 prior
+density of the combinations, :mod:`hbm.combinations`), "informed" (the model parameters that
+the posteriors inform, :func:`~hbm.samplers.hierarchical.auto_pool`), "all", a list of names,
+or "auto" (default: "combinations" when VOLF, P1, T1, GF, GM, T2, THETA are free, otherwise
+"informed").
+
+Groups (``PopulationConfig.groups``, from ``# group:`` lines or ``hbm run --group-by KEY``): a
+population → group → specimen layer (:func:`hbm.samplers.hierarchical.grouped_hierarchical`) in
+the same transformed coordinates and with every pooling mode; its group-level draws go to
+``hierarchical.nc`` too.  Without groups the two-level layer runs.
+
+Reuse diagnostics (issue 15): per specimen PSIS k̂ and the mass beyond the stage-1 samples
+(:func:`~hbm.samplers.hierarchical.reuse_diagnostics`, in ``hierarchical.nc`` and the report); a
+specimen flagged unreliable, or whose ESS collapsed, goes to a fallback (:mod:`.fallbacks`).
+
+Seeds: the streams ``hierarchical`` (``grouped`` with groups), ``new_specimen``, ``refine`` k and
+``joint`` of :mod:`hbm.seeds`.
+"""
+
+from .config import (COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED,
+                     PopulationConfig)
+from .driver import run_population
+from .pooling import COMBINATION_NEEDS
+
+__all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS",
+           "POOL_INFORMED", "COMBINATION_COLUMNS", "COMBINATION_NEEDS"]

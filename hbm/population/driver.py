@@ -1,0 +1,147 @@
+"""The population layer's one driver: pool → fit → flag → fallback → new-specimen draw → write."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .. import io, seeds
+from ..errors import HbmError
+from ..model import spyrou_model
+from ..samplers.hierarchical import GroupedResult, grouped_hierarchical, hierarchical
+from ..utils import log_progress as _log
+from .config import PopulationConfig, check_config
+from .fallbacks import exact_applies, exact_gibbs, refine_collapsed, to_refine
+from .pooling import Layout, pack_results, pooling_strategy
+
+__all__ = ["run_population"]
+
+
+def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping | None = None, model=None, *,
+                   config: PopulationConfig | None = None, out: str | Path | None = None, client=None,
+                   **kwargs) -> tuple[io.HierarchicalFile, Path | None]:
+    """Hierarchical layer over fitted specimens: hyper-posterior, updated individuals, a new specimen.
+
+    Parameters
+    ----------
+    results : mapping of specimen id -> SpecimenResult
+        Stage-1 results, all fitted with the same parameters and prior boxes.
+    datasets : mapping of specimen id -> xarray.Dataset, optional
+        The specimens' data; needed only when a specimen's reused samples are unreliable (its
+        updated posterior then comes from the exact fallback or a fresh TMCMC run).
+    model : Model, optional
+        The stage-1 model; default :func:`hbm.spyrou_model`.
+    config : PopulationConfig, optional
+        Settings; keyword arguments override/construct it.
+    out : path, optional
+        Folder of ``hierarchical.nc``; None: nothing is written.
+    client : distributed.Client, optional
+        Run the refinements of collapsed specimens as dask tasks; None: in this process.
+
+    Returns
+    -------
+    (HierarchicalFile, Path or None)
+        The result and the path of ``hierarchical.nc``.
+
+    Raises
+    ------
+    HbmError
+        Fewer than two specimens, specimens fitted with different parameters/boxes, a bad
+        ``pooled``, or refinements needed without ``datasets``.
+    """
+    cfg = dataclasses.replace(config, **kwargs) if config is not None else PopulationConfig(**kwargs)
+    check_config(cfg)
+    if len(results) < 2:
+        raise HbmError(f"the population layer needs at least two specimens, got {len(results)}")
+    model = spyrou_model() if model is None else model
+    data = pack_results(results, model, cfg)
+    strategy = pooling_strategy(cfg.pooled, data)
+    layout = strategy.layout(data, cfg)
+    h, warn_msgs = _fit(cfg, layout, data.log_likelihood)
+    updated = strategy.updated(h)
+    to_fix = to_refine(h, datasets)
+    exact = None
+    exact_ids = exact_applies(cfg, to_fix, datasets, h.specimens)
+    if exact_ids:
+        h, updated, exact = exact_gibbs(cfg, h, exact_ids, results, datasets, model,
+                                        {s: v[0] for s, v in layout.stage1.items()}, layout.log_prior,
+                                        strategy.coords)
+        to_fix = []
+    else:
+        updated.update(refine_collapsed(cfg, h, to_fix, datasets, model, results, client, augment=strategy.augment))
+    new, new_names, new_attrs = strategy.new_specimen(h, cfg)
+    attrs = {**layout.attrs, **new_attrs,
+             "bounds": {n: list(map(float, layout.bounds[layout.names.index(n)])) for n in layout.pooled},
+             **({"exact": exact} if exact else {})}
+    return _write(cfg, h, None if out is None else Path(out), data.names, updated, new, new_names, warn_msgs, to_fix,
+                  attrs)
+
+
+def _unique(msgs: Sequence[str]) -> list[str]:
+    """Messages in order without repeats (a warning is both raised and kept in the result)."""
+    return list(dict.fromkeys(msgs))
+
+
+def _fit(cfg: PopulationConfig, layout: Layout, log_likelihood: Mapping | None):
+    """The two-level layer (stream ``hierarchical``) or, with groups, the grouped one (stream ``grouped``),
+    with the run's settings; the stored stage-1 log-likelihoods feed the reuse diagnostics.
+
+    Returns the result and its warnings (raised and kept ones, without repeats).
+    """
+    options = dict(transforms=layout.transforms, pooled=layout.pooled, n_samples=int(cfg.samples),
+                   progress=cfg.progress, sd_range=tuple(cfg.sd_range), estimator=cfg.estimator,
+                   log_prior=layout.log_prior, tmcmc_options=cfg.tmcmc_options(), log_likelihood=log_likelihood)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        if cfg.groups:
+            groups = {sid: cfg.groups.get(sid) for sid in layout.stage1}
+            _log("groups" + (f" ({cfg.group_by})" if cfg.group_by else "") + ": " + ", ".join(
+                f"{g} ({sum(v == g for v in groups.values())})" for g in sorted(set(groups.values()), key=str)),
+                cfg.progress)
+            h = grouped_hierarchical(layout.stage1, layout.names, layout.bounds, groups,
+                                     seed=seeds.seed_int(seeds.stream(int(cfg.seed), "grouped")), **options)
+        else:
+            # an int seed for the hierarchical layer, independent of the specimen streams
+            h = hierarchical(layout.stage1, layout.names, layout.bounds,
+                             seed=seeds.seed_int(seeds.stream(int(cfg.seed), "hierarchical")), **options)
+    return h, _unique([str(w.message) for w in caught] + list(h.warnings))
+
+
+def _group_payload(cfg: PopulationConfig, h) -> dict | None:
+    """The group level of a grouped result for :class:`hbm.io.HierarchicalFile` (None if ungrouped)."""
+    if not isinstance(h, GroupedResult):
+        return None
+    return {"key": cfg.group_by or "group", "names": list(h.groups), "specimen_group": dict(h.specimen_group),
+            "pooled": list(h.names), "means": np.asarray(h.group_means), "predictive": np.asarray(h.group_predictive),
+            "hyperprior": {"group means": "normal(mu, sd_between) truncated to the range of mu",
+                           "sd_between, sd_within": f"each loguniform on {tuple(cfg.sd_range)} x mu range"}}
+
+
+def _reuse_attrs(h) -> dict:
+    """Per-specimen reuse diagnostics, JSON-able (hierarchical.nc stores them; the report shows them)."""
+    return {sid: {k: v for k, v in r.items() if k != "uncovered_by"} for sid, r in (getattr(h, "reuse", None) or {}).items()}
+
+
+def _write(cfg: PopulationConfig, h, out: Path | None, names: Sequence[str], updated: Mapping[str, np.ndarray],
+           new_specimen: np.ndarray, pooled_names: Sequence[str], warn_msgs: Sequence[str], refined: Sequence[str],
+           attrs: dict):
+    """The HierarchicalFile of a hierarchical result, written to ``<out>/hierarchical.nc`` unless ``out`` is
+    None; ``attrs``: the pooling strategy's own attributes."""
+    attrs.update({"estimator": cfg.estimator, "log_evidence_parts": h.log_evidence_parts,
+                  "warnings": list(warn_msgs), "refined": list(refined), "ess_summary": h.ess_summary,
+                  "hyperprior": {"mu": "uniform on transformed box",
+                                 "sd": f"loguniform on {tuple(cfg.sd_range)} x mu range"}})
+    hf = io.HierarchicalFile(param_names=list(names), hyper_names=list(h.hyper_names),
+                             hyper_samples=np.asarray(h.hyper_samples), specimen_ids=list(h.specimens),
+                             updated=np.stack([updated[s] for s in h.specimens], axis=1),
+                             new_specimen=np.asarray(new_specimen), log_evidence=float(h.log_evidence),
+                             log_evidence_se=float(h.log_evidence_se),
+                             stages=list(getattr(h.sampler_result, "stages", [])),
+                             ess=np.array([float(h.ess_summary[s]["min"]) for s in h.specimens]), attrs=attrs,
+                             pooled_names=list(pooled_names), reuse=_reuse_attrs(h))
+    hf.groups = _group_payload(cfg, h)
+    return hf, (io.write_hierarchical(hf, out / "hierarchical.nc") if out is not None else None)

@@ -1,0 +1,43 @@
+"""Hierarchical Bayesian layer over per-specimen TMCMC posteriors (two-stage, sample reuse).
+
+Each specimen's stage-1 posterior samples (drawn under a uniform prior) are reused to estimate
+p(d_i | ψ) for a population ψ of its parameters, and TMCMC samples the hyper-posterior on the
+sum of their logs.  By concept:
+
+* :mod:`.model` -- the population model (transforms, hyperprior, the vectorised importance
+  ratios as a matrix product), :func:`draw_population` of a new specimen;
+* :mod:`.reuse` -- the one estimator of p(d_i | ψ) (raw or kernel-smoothed ratios) and the
+  updated individuals, on the stage-1 data packed once (:func:`~.reuse.pack_stage1`);
+* :mod:`.diagnostics` -- ESS summary and flags, evidence parts, what the reused samples cannot
+  represent (PSIS k̂, mass beyond the samples) and the per-specimen verdict;
+* :mod:`.posterior` -- TMCMC over ψ and the post-sampling steps shared by both drivers;
+* :mod:`.two_level` (:func:`hierarchical`) and :mod:`.grouped` (:func:`grouped_hierarchical`,
+  population → group → specimen) -- the drivers;
+* :mod:`.pooling` -- which parameters to pool (:func:`auto_pool`);
+* :mod:`.refine` -- fresh TMCMC of one specimen's updated posterior (:func:`refine_individual`);
+* :mod:`.joint_gibbs` -- the exact fallback, Metropolis-within-Gibbs on the joint posterior;
+* :mod:`.psis` -- Pareto-smoothed importance sampling k̂;
+* :mod:`.result` -- :class:`HierarchicalResult`.
+
+This package is sampler-layer code: it knows nothing about muscles.
+"""
+
+from .diagnostics import reuse_diagnostics, reuse_unreliable
+from .grouped import GroupedModel, GroupedResult, group_differences, grouped_hierarchical, truncnorm_ppf, variance_split
+from .joint_gibbs import ExactSpecimen, JointGibbsResult, ReuseSpecimen, joint_gibbs, rhat_ess
+from .model import TRANSFORMS, HierarchicalModel, draw_population, kernel_bandwidth
+from .pooling import PoolChoice, auto_pool, prior_sd_transformed
+from .psis import K_HAT_THRESHOLD, pareto_khat
+from .refine import refine_individual
+from .result import HierarchicalResult
+from .reuse import ESTIMATORS, defensive_log_weights, mixture_log_weights, systematic_resample
+from .two_level import hierarchical
+
+__all__ = [
+    "HierarchicalResult", "HierarchicalModel", "hierarchical", "refine_individual", "systematic_resample",
+    "kernel_bandwidth", "auto_pool", "PoolChoice", "prior_sd_transformed", "TRANSFORMS", "ESTIMATORS",
+    "reuse_diagnostics", "reuse_unreliable", "defensive_log_weights", "mixture_log_weights", "draw_population",
+    "GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences", "variance_split", "truncnorm_ppf",
+    "ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess", "K_HAT_THRESHOLD",
+    "pareto_khat",
+]
