@@ -53,8 +53,11 @@ class RegistryChoices:
 NOISE_CHOICES = RegistryChoices(noise_model_names)
 
 
-def n_noise_parameters(noise: str) -> int:
-    """Number of parameters of the registered noise model ``noise`` (appended to the model's)."""
+def n_noise_parameters(noise: str | None) -> int:
+    """Number of parameters of the registered noise model ``noise`` (appended to the model's);
+    ``None`` (the command chooses the noise model): the largest registered one."""
+    if noise is None:
+        return max(len(get_noise(name).names) for name in noise_model_names())
     return len(get_noise(noise).names)
 
 SPECIMEN_FOLDER = Path("data") / "specimens"

@@ -11,7 +11,7 @@ from ..effects import resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..utils import prepare_output_file
-from ._common import (add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
+from ._common import (n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
                       check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
                       name_list, non_negative_int, plot_path, print_json, sample_size)
 
@@ -124,7 +124,8 @@ def _prepare(args, extra: list[str]):
     check_fix_bounds(model, dict(args.fix), {})
     ds = load_specimen_arg(args.specimen, args.sl0, model)
     samples = args.samples or DEFAULT_SAMPLES
-    check_population_memory(f"--samples {samples}", samples, n_points(ds), model.n_params + len(extra) + 2)
+    check_population_memory(f"--samples {samples}", samples, n_points(ds),
+                            model.n_params + len(extra) + n_noise_parameters(args.noise))  # None: the largest model
     if args.plot is not None:
         prepare_output_file(args.plot, "--plot")
     kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,

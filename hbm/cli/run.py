@@ -14,13 +14,12 @@ from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
 from ..workflow import RunConfig, run_workflow
 from ..model import BASE_EFFECTS
+from ..population import POOL_MODES
 from ._common import NOISE_CHOICES, n_noise_parameters
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
                       sample_size, sweep)
 
-#: --pool keywords (anything else is a list of model parameters)
-POOL_MODES = ("auto", "combinations", "informed", "all")
 #: what hbm run writes inside --out (checked before the first fit)
 OUT_FILES = ("report.md", "run.json", "hierarchical.nc", "manifolds.nc")
 OUT_DIRS = ("specimens", "checkpoints", "figures", "organ")
@@ -91,7 +90,7 @@ def register(subparsers) -> None:
     p.add_argument("--hier-samples", type=sample_size, default=1000, metavar="N",
                    help="TMCMC population over the hyperparameters (default 1000); when the exact fallback "
                         "runs, the layer keeps all its chains x kept draws (at least N)")
-    p.add_argument("--pool", type=name_list, metavar="auto|combinations|informed|all|P1,P2,...", default=["auto"],
+    p.add_argument("--pool", type=name_list, metavar="|".join(POOL_MODES) + "|P1,P2,...", default=["auto"],
                    help="what gets a population distribution: 'combinations' = the identifiable combinations "
                         "log G, log VOLF*P1, log (1-VOLF)*T1 with T2, THETA (and EOPT when informed); "
                         "'informed' = the model parameters whose posterior sd (transformed space) is below 2/3 "

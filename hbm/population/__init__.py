@@ -33,10 +33,10 @@ Seeds: the streams ``hierarchical`` (``grouped`` with groups), ``new_specimen``,
 ``joint`` of :mod:`hbm.seeds`.
 """
 
-from .config import (COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED,
+from .config import (COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES,
                      PopulationConfig)
 from .driver import run_population
 from .pooling import COMBINATION_NEEDS
 
 __all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS",
-           "POOL_INFORMED", "COMBINATION_COLUMNS", "COMBINATION_NEEDS"]
+           "POOL_INFORMED", "POOL_MODES", "COMBINATION_COLUMNS", "COMBINATION_NEEDS"]

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from ..errors import HbmError
 from ..model import COMBINATIONS
 
-__all__ = ["PopulationConfig", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS", "POOL_INFORMED",
+__all__ = ["PopulationConfig", "POOL_MODES", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS", "POOL_INFORMED",
            "COMBINATION_COLUMNS", "check_config"]
 
 #: transform of each base-model parameter in the population model (see hbm.samplers.hierarchical):
@@ -29,6 +29,9 @@ DEFAULT_SD_RANGE = (0.05, 1.0)
 POOL_COMBINATIONS = "combinations"
 #: ``--pool informed``: pool the model parameters that the posteriors inform (auto_pool)
 POOL_INFORMED = "informed"
+#: the pooling keywords of ``PopulationConfig.pooled`` (and ``hbm run --pool``); anything else is a
+#: list of model parameters
+POOL_MODES = ("auto", POOL_COMBINATIONS, POOL_INFORMED, "all")
 #: pooled coordinates of ``--pool combinations`` (identity transform: they are logs already)
 COMBINATION_COLUMNS = tuple(f"log_{c}" for c in COMBINATIONS)
 #: settings that left the layer (issue 25: reference rows and the second pass, superseded by the exact

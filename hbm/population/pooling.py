@@ -26,7 +26,8 @@ from ..errors import HbmError
 from ..model import COMBINATIONS
 from ..samplers.hierarchical import auto_pool
 from ..utils import log_progress as _log
-from .config import COMBINATION_COLUMNS, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, PopulationConfig
+from .config import (COMBINATION_COLUMNS, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES,
+                     PopulationConfig)
 
 __all__ = ["Stage1Data", "Layout", "ParameterPooling", "CombinationPooling", "pack_results", "pooling_strategy",
            "COMBINATION_NEEDS"]
@@ -120,7 +121,7 @@ def pooling_strategy(pooled, data: Stage1Data):
     """The strategy of ``PopulationConfig.pooled``: "auto" (default: "combinations" when VOLF, P1, T1,
     GF, GM, T2, THETA are free, otherwise "informed"), "combinations", "informed", "all" or names."""
     if (isinstance(pooled, (list, tuple)) and len(pooled) == 1
-            and pooled[0] in ("auto", POOL_COMBINATIONS, POOL_INFORMED, "all")):
+            and pooled[0] in POOL_MODES):
         pooled = pooled[0]  # the CLI splits --pool on commas
     if pooled in (None, "auto"):
         pooled = POOL_COMBINATIONS if all(n in data.model_names for n in COMBINATION_NEEDS) else POOL_INFORMED

@@ -47,9 +47,6 @@ from .types import (DEFAULT_COV_TARGET, DEFAULT_N_SAMPLES, GradientFIM, LogLikel
 __all__ = ["init", "step", "tmcmc", "PRESETS", "checkpoint_progress", "DEFAULT_N_SAMPLES", "DEFAULT_COV_TARGET",
            "TMCMCConfig", "TMCMCState", "StageInfo", "TMCMCResult", "Bijection", "LogitCoordinates"]
 
-#: private name kept for the hierarchical layer's imports until it moves to hbm.samplers.linalg
-_safe_cholesky = safe_cholesky
-
 #: Named settings for :func:`tmcmc` (``preset=``); explicit arguments override them.
 #: "lean": the default random walk at N = 1500 and CoV target 1.5 — on the muscle benchmark half
 #: the default's evaluations (1.25e6 vs 2.43e6) for the same share of runs reaching |log Ẑ error| ≤ 0.3

@@ -51,7 +51,7 @@ from scipy.special import ndtri
 from scipy.stats import rankdata
 
 from ...errors import HbmError
-from ..tmcmc import _safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
+from ..linalg import safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
 from .model import HierarchicalModel, draw_population
 
 __all__ = ["ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
@@ -203,7 +203,7 @@ def _fit_mixture(rows: np.ndarray, n_components: int, inflate: float, rng: np.ra
     Clusters with fewer than 2(d + 1) rows are dropped (the proposal need only be a density).
     """
     n, d = rows.shape
-    Lg = _safe_cholesky(np.cov(rows, rowvar=False).reshape(d, d))
+    Lg = safe_cholesky(np.cov(rows, rowvar=False).reshape(d, d))
     w = np.linalg.solve(Lg, (rows - rows.mean(axis=0)).T).T
     M = max(1, min(int(n_components), n // (4 * (d + 1))))
     cent = w[rng.choice(n, M, replace=False)]
@@ -215,7 +215,7 @@ def _fit_mixture(rows: np.ndarray, n_components: int, inflate: float, rng: np.ra
         keep, lab = [0], np.zeros(n, int)
     logw = np.log(np.array([np.sum(lab == m) for m in keep], float))
     mu = np.stack([rows[lab == m].mean(axis=0) for m in keep])
-    L = np.stack([_safe_cholesky(np.cov(rows[lab == m], rowvar=False).reshape(d, d)) * inflate for m in keep])
+    L = np.stack([safe_cholesky(np.cov(rows[lab == m], rowvar=False).reshape(d, d)) * inflate for m in keep])
     logdet = np.sum(np.log(np.diagonal(L, axis1=1, axis2=2)), axis=1)
     return logw - np.log(np.exp(logw).sum()), mu, L, logdet
 
@@ -253,7 +253,7 @@ class _Exact:
         if not np.all(np.isfinite(self.ll + self.c)):
             raise HbmError(f"joint_gibbs: a starting point of {name!r} has no finite target")
         rows = np.asarray(spec.scale_rows, float)
-        self.L = _safe_cholesky(np.cov(rows, rowvar=False).reshape(self.dy, self.dy))
+        self.L = safe_cholesky(np.cov(rows, rowvar=False).reshape(self.dy, self.dy))
         self.log_step = np.log(2.38 / np.sqrt(self.dy))
         self.coord_step = np.log(2.38 * np.sqrt(np.diag(self.L @ self.L.T)))
         self.mix = _fit_mixture(rows, int(n_components), float(inflate), rng)
@@ -275,7 +275,7 @@ class _Exact:
             K = L @ np.swapaxes(L, 1, 2)
             o = np.array([j for j in range(self.dy) if j != k])
             beta = K[:, o, k] / K[:, k, k][:, None]
-            Lc = np.stack([_safe_cholesky(K[m][np.ix_(o, o)] - np.outer(beta[m], K[m, k, o])) for m in range(K.shape[0])])
+            Lc = np.stack([safe_cholesky(K[m][np.ix_(o, o)] - np.outer(beta[m], K[m, k, o])) for m in range(K.shape[0])])
             self.cond[k] = (o, beta, Lc, K[:, k, k])
         return self.cond[k]
 
@@ -359,7 +359,7 @@ class _Exact:
     def adapt(self, rates: dict) -> None:
         """Burn-in only: covariance from the ensemble of chains, step scales toward the target acceptance."""
         if self.y.shape[0] > 2 * self.dy:
-            self.L = _safe_cholesky(np.cov(self.y, rowvar=False).reshape(self.dy, self.dy))
+            self.L = safe_cholesky(np.cov(self.y, rowvar=False).reshape(self.dy, self.dy))
         if "rw" in rates:
             self.log_step += float(np.clip(rates["rw"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
         for k in range(self.dy):
@@ -529,7 +529,7 @@ def joint_gibbs(
     lp, coef, cc = pop_logp(raw)
     if not np.all(np.isfinite(lp)):
         raise HbmError("joint_gibbs: the joint target is not finite at the starting points")
-    Lpsi = _safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
+    Lpsi = safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
     pop_step = 0.0
     # non-centred moves: pooled columns k with free mu_k and sd_k that some exact specimen maps
     d = model.d
@@ -577,7 +577,7 @@ def joint_gibbs(
         lp = _population_target(model, states, raw, coef, cc)  # the specimens moved, ψ did not
         if burning and (sweep + 1) % adapt_every == 0:
             if n_chains > 2 * len(free):
-                Lpsi = _safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
+                Lpsi = safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
             pop_step += float(np.clip(win_pop[0] / max(win_pop[1], 1) - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
             if win_nc[1]:
                 nc_step += float(np.clip(win_nc[0] / win_nc[1] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0

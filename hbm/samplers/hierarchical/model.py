@@ -67,6 +67,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy.special import log_ndtr, ndtri
 
+from ...blas import single_thread_blas
 from ...errors import HbmError
 
 __all__ = ["HierarchicalModel", "TRANSFORMS", "draw_population", "kernel_bandwidth", "log_norm_mass"]
@@ -76,64 +77,6 @@ _LOG2PI = np.log(2.0 * np.pi)
 _CPC_MAX = 0.99
 # Stage-1 samples sitting exactly on a box edge would map to ±inf under log/logit.
 _EDGE = 1e-12
-
-
-# --------------------------------------------------------------------------------------
-# BLAS threads
-# --------------------------------------------------------------------------------------
-_BLAS_API: list | None = None
-
-
-def _blas_api() -> list:
-    """(set, get) pairs of OpenBLAS thread controls of the loaded BLAS libraries (Linux)."""
-    global _BLAS_API
-    if _BLAS_API is None:
-        import ctypes
-
-        found = []
-        try:
-            with open("/proc/self/maps") as fh:
-                libs = sorted({ln.split()[-1] for ln in fh if "openblas" in ln.lower() and "/" in ln})
-        except OSError:
-            libs = []
-        for path in libs:
-            try:
-                lib = ctypes.CDLL(path)
-            except OSError:
-                continue
-            for prefix, suffix in (("openblas", ""), ("scipy_openblas", "64_"), ("openblas", "64_")):
-                setter = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
-                getter = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
-                if setter is not None and getter is not None:
-                    found.append((setter, getter))
-                    break
-        _BLAS_API = found
-    return _BLAS_API
-
-
-class _single_thread_blas:
-    """Run the hot loop with one BLAS thread.
-
-    The GEMMs here are thin (K = 2d+2 columns); OpenBLAS threads give no speed-up for them
-    and, on a loaded machine or inside several dask workers, spin-waiting threads made one
-    likelihood call 3× slower (measured).  Restores the previous setting; no-op if the BLAS
-    is not OpenBLAS.
-    """
-
-    def __enter__(self):
-        self._old = []
-        for setter, getter in _blas_api():
-            try:
-                self._old.append((setter, int(getter())))
-                setter(1)
-            except Exception:  # pragma: no cover - exotic BLAS builds
-                pass
-        return self
-
-    def __exit__(self, *exc):
-        for setter, n in self._old:
-            setter(n)
-        return False
 
 
 # --------------------------------------------------------------------------------------
@@ -513,7 +456,7 @@ class HierarchicalModel:
         Ca = np.empty((n, F.shape[1] + 2))
         Ca[:, :-2] = coef
         Ca[:, -1] = 1.0
-        with _single_thread_blas():
+        with single_thread_blas():
             M, S1, S2 = self._lse_loop(Fa, Ca, cconst, N, chunk)
         with np.errstate(divide="ignore", invalid="ignore"):
             lse = M + np.log(S1)

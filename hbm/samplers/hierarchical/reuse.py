@@ -67,6 +67,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ...errors import HbmError
+from ..resampling import resample
 from .model import HierarchicalModel
 
 __all__ = ["ESTIMATORS", "ReuseEstimator", "Stage1", "check_box", "pack_stage1", "systematic_resample",
@@ -76,12 +77,9 @@ ESTIMATORS = ("raw", "kernel")
 
 
 def systematic_resample(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of ``n`` systematic-resampling draws from normalised-or-not ``weights``."""
-    w = np.asarray(weights, float)
-    c = np.cumsum(w)
-    c /= c[-1]
-    u = (rng.random() + np.arange(n)) / n
-    return np.minimum(np.searchsorted(c, u, side="right"), len(w) - 1)
+    """Indices of ``n`` systematic-resampling draws from normalised-or-not ``weights``
+    (:func:`hbm.samplers.resampling.resample`, kept under this name for the layer's callers)."""
+    return resample(weights, n, rng, "systematic")
 
 
 def _ess(w: np.ndarray) -> float:
