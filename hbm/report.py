@@ -21,7 +21,7 @@ import numpy as np
 
 from ._version import __version__
 from .fit import at_bounds, fit_quality, format_at_bounds, summarize
-from .identify import compare_manifolds
+from .manifolds import compare_manifolds
 from .model import COMBINATIONS, SHAPE_PARAMETERS
 from .samplers.hierarchical import group_differences, variance_split
 from .utils import atomic_write_text
