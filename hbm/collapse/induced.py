@@ -159,6 +159,16 @@ class ColumnPrior:
             else:
                 self.knots = np.sort(np.column_stack([a1 + a2, a1 + b2, b1 + a2, b1 + b2]), axis=1) + off
 
+    def take(self, rows) -> "ColumnPrior":
+        """The same column for a subset of the population rows."""
+        new = object.__new__(ColumnPrior)
+        new.__dict__.update(self.__dict__)
+        for key in ("weights", "offset", "_a", "_b", "knots", "knot_values"):
+            v = getattr(self, key)
+            setattr(new, key, None if v is None else v[rows])
+        new.n = int(new.offset.shape[0])
+        return new
+
     # -- density ------------------------------------------------------------------------
     @property
     def lo(self) -> np.ndarray:

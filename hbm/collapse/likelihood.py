@@ -96,7 +96,7 @@ class CollapsedLikelihood:
         inside the φ box.
     """
 
-    def __init__(self, lik: Likelihood, structure, *, nodes: int = 16, width: float = 6.0) -> None:
+    def __init__(self, lik: Likelihood, structure, *, nodes: int = 6, width: float = 5.0) -> None:
         why = collapse_reason(lik, structure)
         if why is not None:
             raise CollapseError(f"collapsed likelihood not available: {why}")

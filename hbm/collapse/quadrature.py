@@ -37,7 +37,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from scipy.special import log_ndtr, logsumexp
+from scipy.special import log_ndtr, ndtr
 
 from .induced import ColumnPrior
 
@@ -113,6 +113,14 @@ def box_qp(P, q, lo, hi) -> np.ndarray:
     return np.clip(best, lo, hi)
 
 
+def _lse(x: np.ndarray, axis: int) -> np.ndarray:
+    """log Σ exp(x) along ``axis`` (−inf where every term is −inf)."""
+    m = np.max(x, axis=axis, keepdims=True)
+    m = np.where(np.isfinite(m), m, 0.0)
+    with np.errstate(divide="ignore"):
+        return np.log(np.sum(np.exp(x - m), axis=axis)) + np.squeeze(m, axis=axis)
+
+
 def _gl(n: int) -> tuple[np.ndarray, np.ndarray]:
     x, w = np.polynomial.legendre.leggauss(int(n))
     return (x + 1.0) / 2.0, w / 2.0  # on [0, 1]
@@ -132,12 +140,13 @@ class BoxGaussianIntegral:
     priors : sequence of ColumnPrior
         One per column (population size n each).
     nodes : int
-        Gauss–Legendre nodes per panel of an outer column.
+        Gauss–Legendre nodes per panel of an outer column (each outer column has at least three
+        panels: cut at the prior's kinks and at :meth:`_breaks`).
     width : float
         Window half-width in conditional sd.
     """
 
-    def __init__(self, H, b, yy, priors, *, nodes: int = 16, width: float = 6.0) -> None:
+    def __init__(self, H, b, yy, priors, *, nodes: int = 6, width: float = 5.0) -> None:
         H, b, yy = np.asarray(H, float), np.asarray(b, float), np.asarray(yy, float)
         n, k = b.shape
         self.n, self.k = n, k
@@ -188,7 +197,45 @@ class BoxGaussianIntegral:
         return self.g[:, pos][:, None] - np.einsum("nl,nml->nm", c, vals)
 
     def _closed_form(self, mu: np.ndarray, upper=None) -> np.ndarray:
-        """log ∫ p_0(a)·exp(−h_0(a − μ)²/2) da over the support (or up to ``upper``), (n, M)."""
+        """log ∫ p_0(a)·exp(−h_0(a − μ)²/2) da over the support (or up to ``upper``), (n, M).
+
+        Fast path: Φ and exp(−z²/2) once per knot (tail probabilities, so no cancellation
+        beyond the piece's own width); entries whose every piece lies > 37 sd out (the total
+        underflows) are recomputed from log Φ (:meth:`_closed_form_log`).
+        """
+        if upper is not None:
+            return self._closed_form_log(mu, upper)
+        pr = self.priors[0]
+        h = self.h[:, 0][:, None]
+        flat = (h == 0.0)[..., None]
+        s = (1.0 / np.sqrt(np.where(h == 0.0, 1.0, h)))[..., None]
+        kn = pr.knots[:, None, :]
+        pv = pr.knot_values[:, None, :]
+        z = (kn - mu[..., None]) / s  # (n, M, K)
+        u = ndtr(-np.abs(z))  # tail probability beyond |z|
+        e = np.exp(-0.5 * z * z)
+        z0, z1, u0, u1, e0, e1 = z[..., :-1], z[..., 1:], u[..., :-1], u[..., 1:], e[..., :-1], e[..., 1:]
+        dphi = np.where(z0 >= 0, u0 - u1, np.where(z1 <= 0, u1 - u0, 1.0 - u0 - u1))
+        width = kn[..., 1:] - kn[..., :-1]
+        slope = np.where(width > 0, (pv[..., 1:] - pv[..., :-1]) / np.where(width > 0, width, 1.0), 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mz = (e0 - e1) / (np.sqrt(2.0 * np.pi) * dphi)
+        mz = np.where(dphi > 0, np.clip(mz, z0, z1), 0.5 * (z0 + z1))
+        pm = pv[..., :-1] + slope * s * (mz - z0)  # density at the truncated mean (linear piece)
+        total = (np.sqrt(2.0 * np.pi) * s[..., 0] * np.sum(np.maximum(dphi, 0.0) * np.maximum(pm, 0.0), axis=-1))
+        flat_total = np.sum(width * 0.5 * (pv[..., 1:] + pv[..., :-1]), axis=-1) + 0.0 * mu
+        total = np.where(flat[..., 0], flat_total, total)
+        with np.errstate(divide="ignore"):
+            out = np.log(total)
+        bad = ~(total > 1e-250)
+        if bad.any():
+            rows, cols = np.nonzero(bad)
+            sub = self._take(rows)
+            out[rows, cols] = sub._closed_form_log(mu[rows, cols][:, None])[:, 0]
+        return out
+
+    def _closed_form_log(self, mu: np.ndarray, upper=None) -> np.ndarray:
+        """:meth:`_closed_form` in log space, piece by piece (any distance; ``upper`` cuts the support)."""
         pr = self.priors[0]
         h = self.h[:, 0][:, None]
         flat = h == 0.0
@@ -210,15 +257,17 @@ class BoxGaussianIntegral:
                 # flat: ∫ of the linear density over the piece
                 flat_val = np.log(np.maximum((a1 - a0) * (p0 + 0.5 * slope * (a1 - a0)), 0.0))
             terms.append(np.where(flat, flat_val, val))
-        return logsumexp(np.stack(terms), axis=0)
+        return _lse(np.stack(terms), axis=0)
 
-    def _window(self, pos: int, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """[lo, hi] (n, M) of column ``pos`` around the box-constrained mode of columns ≤ pos."""
+    def _window(self, pos: int, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """[lo, hi] (n, M) of column ``pos`` around the box-constrained mode of columns ≤ pos,
+        and that mode's value of column ``pos``."""
         n, M = vals.shape[:2]
         lo, hi = self.lo[:, pos][:, None], self.hi[:, pos][:, None]
         hp = self.h[:, pos][:, None]
         if np.all(hp == 0.0):
-            return np.broadcast_to(lo, (n, M)), np.broadcast_to(hi, (n, M))
+            wl, wr = np.broadcast_to(lo, (n, M)), np.broadcast_to(hi, (n, M))
+            return wl, wr, 0.5 * (wl + wr)
         m = pos + 1
         d = self.d
         P = np.broadcast_to(self.Hs0[:, None, :m, :m], (n, M, m, m))
@@ -235,10 +284,45 @@ class BoxGaussianIntegral:
         half = self.width / np.sqrt(np.where(hp > 0, hp, 1.0))
         wl = np.where(hp > 0, np.maximum(lo, centre - half), lo)
         wr = np.where(hp > 0, np.minimum(hi, centre + half), hi)
-        return wl, np.maximum(wr, wl)
+        return wl, np.maximum(wr, wl), centre
 
-    def _nodes(self, pos: int, wl, wr, per_panel: int, kind: str = "gl") -> tuple[np.ndarray, np.ndarray]:
-        """Nodes (n, M, Q) in A and log weights (incl. the log-coordinate Jacobian) of column pos."""
+    def _breaks(self, pos: int, vals: np.ndarray, wl, wr, centre) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Two interior panel edges of column ``pos`` (n, M, 2) and its window, narrowed.
+
+        Along a ridge of two nearly collinear columns the integral over the next inner column
+        (pos−1) is a smoothed copy of its box seen through its centre μ_{pos−1}(A_pos): it rises
+        and falls steeply where μ crosses that box's ends.  Those two crossings become panel
+        edges when they fall inside the window (else the window is cut in thirds), and the
+        window is narrowed to where μ lies within ``width`` sd of the box, plus its distance from
+        the box at the constrained mode (``centre``) when the data pull it outside.
+        """
+        n, M = wl.shape
+        thirds = wl[..., None] + (wr - wl)[..., None] * np.array([1.0 / 3.0, 2.0 / 3.0])
+        j = pos - 1
+        if j < 0:
+            return thirds, wl, wr
+        inner = self.priors[j]
+        slope = self.C[:, j, pos][:, None]  # μ_j = rest − slope·A_pos
+        rest = self.g[:, j][:, None] - np.einsum("nl,nml->nm", self.C[:, j, pos + 1:], vals)
+        hj = self.h[:, j][:, None]
+        ok = (slope != 0.0) & (hj > 0.0)
+        ss = np.where(ok, slope, 1.0)
+        mu_c = rest - slope * centre
+        far = np.maximum(0.0, np.maximum(inner.lo[:, None] - mu_c, mu_c - inner.hi[:, None]))
+        sj = self.width / np.sqrt(np.where(hj > 0, hj, 1.0)) + far
+        e1 = (rest - (inner.lo[:, None] - sj)) / ss
+        e2 = (rest - (inner.hi[:, None] + sj)) / ss
+        nwl = np.where(ok, np.clip(np.minimum(e1, e2), wl, wr), wl)
+        nwr = np.where(ok, np.clip(np.maximum(e1, e2), nwl, wr), wr)
+        ends = np.column_stack([inner.lo, inner.hi])[:, None, :]
+        cross = (rest[..., None] - ends) / ss[..., None]
+        thirds = nwl[..., None] + (nwr - nwl)[..., None] * np.array([1.0 / 3.0, 2.0 / 3.0])
+        inside = ok[..., None] & (cross > nwl[..., None]) & (cross < nwr[..., None])
+        return np.sort(np.where(inside, cross, thirds), axis=-1), nwl, nwr
+
+    def _nodes(self, pos: int, wl, wr, per_panel: int, kind: str = "gl", breaks=None) -> tuple[np.ndarray, np.ndarray]:
+        """Nodes (n, M, Q) in A and log weights (incl. the log-coordinate Jacobian) of column pos,
+        panels split at the prior's knots and at ``breaks`` (n, M, B)."""
         pr = self.priors[pos]
         if kind == "gl":
             x, w = _gl(per_panel)
@@ -246,7 +330,9 @@ class BoxGaussianIntegral:
             x = np.linspace(0.0, 1.0, per_panel)
             w = np.full(per_panel, 1.0 / (per_panel - 1))
             w[[0, -1]] *= 0.5
-        kn = pr.knots[:, None, :]
+        kn = np.broadcast_to(pr.knots[:, None, :], wl.shape + (pr.knots.shape[1],))
+        if breaks is not None and breaks.shape[-1]:
+            kn = np.sort(np.concatenate([np.clip(kn, wl[..., None], wr[..., None]), breaks], axis=-1), axis=-1)
         if pr.log_coords:
             tiny = pr.lo[:, None] * (1 - 1e-15)
             el = np.log(np.clip(kn, np.maximum(wl, tiny)[..., None], np.maximum(wr, tiny)[..., None]))
@@ -277,13 +363,28 @@ class BoxGaussianIntegral:
         mu = self._mu(pos, vals)
         if pos == 0 and self.closed:
             return self._closed_form(mu)
-        wl, wr = self._window(pos, vals)
-        a, lw = self._nodes(pos, wl, wr, per_panel)
+        wl, wr, centre = self._window(pos, vals)
+        br, wl, wr = self._breaks(pos, vals, wl, wr, centre)
+        a, lw = self._nodes(pos, wl, wr, per_panel, breaks=br)
         Q = a.shape[2]
         f = lw + self._log_density(pos, a, mu)
         sub = np.concatenate([a[..., None], np.broadcast_to(vals[:, :, None, :], (n, M, Q, vals.shape[2]))], axis=3)
         inner = self._inner(pos, sub.reshape(n, M * Q, -1), per_panel).reshape(n, M, Q)
-        return logsumexp(f + inner, axis=2)
+        return _lse(f + inner, axis=2)
+
+    def _take(self, rows) -> "BoxGaussianIntegral":
+        """The same integral for a subset of the rows."""
+        new = object.__new__(BoxGaussianIntegral)
+        new.__dict__.update(self.__dict__)
+        for key in ("h", "g", "C", "const", "lo", "hi", "d", "Hs0", "bs0"):
+            setattr(new, key, getattr(self, key)[rows])
+        new.priors = [p.take(rows) for p in self.priors]
+        new.column_priors = [p.take(rows) for p in self.column_priors]
+        new.n = int(new.const.shape[0])
+        return new
+
+    def _value(self, nodes: int) -> np.ndarray:
+        return -0.5 * self.const + self._inner(self.k, np.zeros((self.n, 1, 0)), nodes)[:, 0]
 
     # -- public ------------------------------------------------------------------------------
     def log_integral(self, refine: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
@@ -294,12 +395,9 @@ class BoxGaussianIntegral:
         value : ndarray (n,)
         error : ndarray (n,) or None
         """
-        empty = np.zeros((self.n, 1, 0))
-        v = -0.5 * self.const + self._inner(self.k, empty, self.nodes)[:, 0]
-        if not refine:
-            return v, None
-        v2 = -0.5 * self.const + self._inner(self.k, empty, self.nodes + self.nodes // 2)[:, 0]
-        return v, np.abs(v2 - v)
+        v = self._value(self.nodes)
+        v2 = self._value(self.nodes + self.nodes // 2) if refine else None
+        return v, (None if v2 is None else np.abs(v2 - v))
 
     def draw(self, rng: np.random.Generator, grid: int = 33) -> np.ndarray:
         """One draw of A per row from ∝ Π p_j(A_j)·exp(−Q(A)/2) on the box, (n, k) in column order.
@@ -315,8 +413,9 @@ class BoxGaussianIntegral:
             if pos == 0 and self.closed:
                 a = self._draw_closed(mu[:, 0], rng)
             else:
-                wl, wr = self._window(pos, vals)
-                pts, lw = self._nodes(pos, wl, wr, grid, kind="grid")
+                wl, wr, centre = self._window(pos, vals)
+                br, wl, wr = self._breaks(pos, vals, wl, wr, centre)
+                pts, lw = self._nodes(pos, wl, wr, grid, kind="grid", breaks=br)
                 Q = pts.shape[2]
                 f = self._log_density(pos, pts, mu)
                 sub = np.concatenate([pts[..., None], np.broadcast_to(vals[:, :, None, :], (n, 1, Q, vals.shape[2]))],
