@@ -95,6 +95,32 @@ def test_protocol_features_and_experiments_look_at_the_file():
     assert "ramps at strain rates" in experiments_for(["viscoelastic"], protocol_features(held))
 
 
+def test_experiment_advice_is_the_effects_own():
+    """An effect hbm knows no protocol for is not told that the file already contains one; a user's
+    effect that describes its experiment is quoted."""
+    import hbm
+
+    f = protocol_features(as_data(protocol(ramp(0.3, 1e-2, 20)).assign(
+        stress=lambda x: ("point", np.zeros(x.sizes["point"])))))
+    unknown = experiments_for(["my_effect"], f)
+    assert "already" not in unknown and "hbm knows no protocol" in unknown and "my_effect" in unknown
+
+    class Swelling(hbm.Effect):
+        name = "swelling"
+        stage = "output"
+        parameters = (hbm.Parameter("SW", 0.0, 1.0, "-", "swelling", null=0.0),)
+
+        def modify(self, state, p, stress):
+            return stress * (1 + p["SW"])
+
+        def experiment(self, protocol):
+            return ["a test in a hypertonic bath"], ([f"{protocol['n_points']} points"])
+
+    text = experiments_for([Swelling()], f)
+    assert text == "a test in a hypertonic bath (the file already has 20 points)"
+    assert experiments_for(["prestress"], f) == experiments_for(["offset"], f)
+
+
 # ------------------------------------------------------------------------------------------
 # the decision rule
 # ------------------------------------------------------------------------------------------

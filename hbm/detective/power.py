@@ -254,7 +254,7 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
                      "limit": None if limit_frac is None else val(limit_frac),
                      "levels": [[val(f), s] for f, s in levels],
                      "shape": {p.name: p.null for p in e.parameters if p.name != q.name},
-                     "protocol": None if limit_frac is not None else experiments_for([e.name], feats)})
+                     "protocol": None if limit_frac is not None else experiments_for([e], feats)})
     out = {"effects": rows, "replicates": int(n_rep), "level": level,
            "method": "Laplace screen: linearised refits of every candidate and control at their noiseless optima",
            "protocol": describe_protocol(feats)}

@@ -12,6 +12,9 @@ from typing import Iterable
 
 import numpy as np
 
+from ..effects import REGISTRY
+from ..model.core import Effect
+
 __all__ = ["protocol_features", "experiments_for", "describe_protocol"]
 
 
@@ -76,35 +79,25 @@ def describe_protocol(f: dict) -> str:
     return ", ".join(parts)
 
 
-def _needs(effect: str, f: dict) -> tuple[list[str], list[str]]:
-    """(what to add, what the file already has) to reveal ``effect``."""
-    add, have = [], []
-    if effect == "viscoelastic":
-        if not f["time"]:
-            add.append("a time column (the strain rate of each test)")
-        if len(f["rates"]) >= 2 and max(f["rates"]) / min(f["rates"]) >= 9:
-            have.append(f"{len(f['rates'])} strain rates")
-        else:
-            add.append("ramps at strain rates at least a decade apart (e.g. 0.01, 0.1, 1 %/s)")
-        (have if f["hold"] else add).append("a relaxation hold" + ("" if f["hold"] else " of a few minutes"))
-    elif effect == "damage":
-        if f["reload_beyond"]:
-            have.append("a load-unload-reload cycle beyond the previous maximum")
-        else:
-            add.append("a load-unload-reload cycle reloading beyond the previous maximum strain")
-    elif effect == "offset":
-        (have if f["near_zero"] else add).append("points at (near) zero strain, or an unloaded load-cell reading")
-    elif effect in ("slack", "fiber_exponential"):
-        add.append("the reference length pinned independently (stress-free length at minimal preload, or "
-                   "sarcomere length to fix EOPT) and a densely sampled toe region")
-    elif effect == "series_compliance":
-        add.append("the tissue strain measured optically on the mid-belly (markers/DIC)")
-    elif effect in ("recruitment", "dispersion"):
-        add.append("imaging of collagen crimp and orientation (SHG microscopy) or off-axis/biaxial tests")
-    return add, have
+def _needs(effect: Effect | str, f: dict) -> tuple[list[str], list[str]]:
+    """(what to add, what the file already has) to reveal ``effect``: the effect's own
+    :meth:`hbm.Effect.experiment`; a library id is looked up in the registry."""
+    if isinstance(effect, str):
+        cls = REGISTRY.get(effect)
+        if cls is None:
+            return Effect.experiment(_Named(effect), f)
+        effect = cls()
+    return effect.experiment(f)
 
 
-def experiments_for(effects: Iterable[str], f: dict) -> str:
+class _Named:
+    """Stands in for an effect known only by its id (a user's effect named in a result)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+
+def experiments_for(effects: Iterable[Effect | str], f: dict) -> str:
     """The experiment that would reveal or separate ``effects``, given the file's protocol ``f``."""
     add: list[str] = []
     have: list[str] = []

@@ -21,6 +21,19 @@ def collagen_kernel(x: np.ndarray, t2) -> np.ndarray:
     return np.expm1(np.minimum(t2 * x, EXP_CLIP))
 
 
+def needs(text: str):
+    """An :meth:`hbm.Effect.experiment` that always asks for the same experiment ``text``."""
+    def experiment(self, f):
+        return [text], []
+    return experiment
+
+
+#: the experiments shared by look-alike effects (DESIGN.md §2)
+REFERENCE_LENGTH = ("the reference length pinned independently (stress-free length at minimal preload, or "
+                    "sarcomere length to fix EOPT) and a densely sampled toe region")
+COLLAGEN_IMAGING = "imaging of collagen crimp and orientation (SHG microscopy) or off-axis/biaxial tests"
+
+
 def history_slices(loading: Loading) -> list[slice]:
     """Slices of the point axis, one per loading history (points in order)."""
     starts = np.flatnonzero(loading.history_starts).tolist() + [loading.n_points]

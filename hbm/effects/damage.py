@@ -39,6 +39,11 @@ class Damage(Effect):
     description = "Mullins-type softening below the previous maximum (load-unload-reload)"
     reference = "Ogden RW, Roxburgh DG (1999) Proc R Soc Lond A 455:2861-2877"
 
+    def experiment(self, f):
+        if f["reload_beyond"]:
+            return [], ["a load-unload-reload cycle beyond the previous maximum"]
+        return ["a load-unload-reload cycle reloading beyond the previous maximum strain"], []
+
     def modify(self, state, p, stress):
         d = p["DMG"]
         stress = np.broadcast_to(stress, np.broadcast_shapes(stress.shape, d.shape))

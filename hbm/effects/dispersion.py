@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Effect, Parameter
-from ._common import collagen_excess, collagen_kernel
+from ..model.spyrou import unit_contribution
+from ._common import collagen_excess, collagen_kernel, COLLAGEN_IMAGING, needs
 
 # Gauss–Legendre rule on [-1, 1].  The quadrature runs only over the engaged part of the
 # angle interval (its end, the angle at which λH = 1, is known in closed form), so the
@@ -45,6 +46,14 @@ class Dispersion(Effect):
     strength = "DISP"
     description = "collagen helix-angle dispersion (uniform over THETA ± DISP)"
     reference = "Gasser TC, Ogden RW, Holzapfel GA (2006) J R Soc Interface 3:15-35"
+    experiment = needs(COLLAGEN_IMAGING)
+    linear_parameters = ("T1",)  # a correction to the collagen column, (1 − c)·T1 times a shape
+
+    def amplitude_coefficients(self, p):
+        return {"T1": ("(1-VOLF)*T1", 1.0 - p["VOLF"])}
+
+    def unit_stress(self, state, p):
+        return {"(1-VOLF)*T1": unit_contribution(self, state, p, VOLF=0.0, T1=1.0)}
 
     @staticmethod
     def averaged_kernel(lam: np.ndarray, theta, t2, d) -> np.ndarray:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Effect, Parameter
-from ._common import EXP_CLIP
+from ..model.spyrou import unit_contribution
+from ._common import EXP_CLIP, REFERENCE_LENGTH, needs
 
 
 class FiberExponential(Effect):
@@ -37,6 +38,14 @@ class FiberExponential(Effect):
     strength = "FEXP_A"
     description = "titin-like exponential stiffening of the passive fibers beyond EOPT"
     reference = "Blemker SS, Pinsky PM, Delp SL (2005) J Biomech 38:657-665"
+    experiment = needs(REFERENCE_LENGTH)
+    linear_parameters = ("FEXP_A",)
+
+    def amplitude_coefficients(self, p):
+        return {"FEXP_A": ("VOLF*FEXP_A", p["VOLF"])}
+
+    def unit_stress(self, state, p):
+        return {"VOLF*FEXP_A": unit_contribution(self, state, p, VOLF=1.0, FEXP_A=1.0)}
 
     @staticmethod
     def _parts(state, p):

@@ -5,6 +5,12 @@ from __future__ import annotations
 from ..model.core import Effect, Parameter
 
 
+def offset_experiment(self, f):
+    """Both placements of the offset show at zero strain."""
+    item = "points at (near) zero strain, or an unloaded load-cell reading"
+    return ([], [item]) if f["near_zero"] else ([item], [])
+
+
 class Offset(Effect):
     """Constant stress offset added to the output, σ → σ + S0.
 
@@ -26,6 +32,8 @@ class Offset(Effect):
     strength = "S0"
     description = "constant stress offset (load-cell zero error)"
     reference = "Van Loocke M, Lyons CG, Simms CK (2006) J Biomech 39:2999-3009"
+    experiment = offset_experiment
+    linear_parameters = ("S0",)  # a constant column added after the history stage
 
     def modify(self, state, p, stress):
         return stress + p["S0"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Effect, Parameter
+from .offset import offset_experiment
 
 
 class Prestress(Effect):
@@ -35,6 +36,8 @@ class Prestress(Effect):
     strength = "S0"
     description = "constant stress carried by the tissue (pre-stress; relaxes/softens with it)"
     reference = "Van Loocke M, Lyons CG, Simms CK (2006) J Biomech 39:2999-3009"
+    experiment = offset_experiment
+    linear_parameters = ("S0",)  # a constant column, filtered by a history effect after it
 
     def stress(self, state, p):
         s0 = p["S0"]

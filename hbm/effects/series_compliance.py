@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Effect, Parameter
+from ._common import needs
 
 
 def solve_series(eps_applied: np.ndarray, compliance: np.ndarray, elastic, *, tol: float = 1e-11,
@@ -73,6 +74,7 @@ class SeriesCompliance(Effect):
     strength = "C_S"
     description = "compliant tendon/grips in series (strain shared, stress equal)"
     reference = "Zajac FE (1989) Crit Rev Biomed Eng 17:359-411"
+    experiment = needs("the tissue strain measured optically on the mid-belly (markers/DIC)")
 
     def strain(self, state, p, elastic):
         c = p["C_S"]

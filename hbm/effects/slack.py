@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Effect, Parameter
+from ._common import REFERENCE_LENGTH, needs
 
 
 class Slack(Effect):
@@ -39,6 +40,8 @@ class Slack(Effect):
     strength = "SLACK"
     description = "reference-length error: stress-free until the slack is taken up"
     reference = "Hawkins D, Bey M (1994) J Biomech 27:1223-1235"
+    experiment = needs(REFERENCE_LENGTH)
+    preserves_linearity = True  # the strain map does not depend on the stress
 
     def strain(self, state, p, elastic):
         eps = state.eps

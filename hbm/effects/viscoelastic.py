@@ -49,6 +49,7 @@ class Viscoelastic(Effect):
     strength = "G1"
     description = "quasi-linear viscoelasticity (Fung), Prony series, along each loading history"
     reference = "Fung YC (1981) Biomechanics: Mechanical Properties of Living Tissues, Springer"
+    preserves_linearity = True  # a linear operator on the elastic stress: it filters each column
     parameters = (Parameter("G1", 0.0, 0.9, "-", "relaxing fraction of the Prony term 1", null=0.0),
                   Parameter("LOGTAU1", -1.0, 3.5, "log10 s", "log10 relaxation time of Prony term 1", null=1.0))
 
@@ -67,6 +68,17 @@ class Viscoelastic(Effect):
                 params.append(Parameter(f"LOGTAU{i}", -1.0, 3.5, "log10 s",
                                         f"log10 relaxation time of Prony term {i}", null=float(i)))
         self.parameters = tuple(params)
+
+    def experiment(self, f):
+        add, have = [], []
+        if not f["time"]:
+            add.append("a time column (the strain rate of each test)")
+        if len(f["rates"]) >= 2 and max(f["rates"]) / min(f["rates"]) >= 9:
+            have.append(f"{len(f['rates'])} strain rates")
+        else:
+            add.append("ramps at strain rates at least a decade apart (e.g. 0.01, 0.1, 1 %/s)")
+        (have if f["hold"] else add).append("a relaxation hold" + ("" if f["hold"] else " of a few minutes"))
+        return add, have
 
     def _taus(self, p):
         if self.tau is not None:

@@ -169,6 +169,20 @@ class Effect:
         unless an effect between their stages is present; the detective screens them as one
         candidate and refits both placements only where they differ.
 
+    linear_parameters : tuple of str
+        Declares the effect's contribution *linear and homogeneous* in these parameters
+        (elastic and output stages): ``Σᵢ aᵢ·wᵢ(φ)·uᵢ(state, φ)`` with unit curves uᵢ and
+        coefficients wᵢ that depend only on the other parameters φ.  Fitting then integrates
+        these amplitudes out exactly (:mod:`hbm.model.linear`); hbm verifies the declaration
+        numerically before using it.  Override :meth:`amplitude_coefficients` and
+        :meth:`unit_stress` to group parameters into one amplitude column (e.g. GF and GM
+        into G); by default each parameter is its own column with coefficient 1 and unit
+        curve the contribution at that parameter = 1.
+    preserves_linearity : bool
+        Kinematics stage: the strain map does not depend on the stress (slack does, a
+        compliant series element does not).  History/output stages: ``modify`` is a linear
+        operator on the stress (quasi-linear viscoelasticity is, Mullins damage is not).
+
     The detective also needs a ``null`` on every parameter of a candidate effect: the
     candidate is screened and refitted starting from the base model with the effect at its
     nulls (``Model.null_theta``).
@@ -194,6 +208,8 @@ class Effect:
     description: str = ""
     strength: str | tuple[str, ...] | None = None
     placement_of: str | None = None
+    linear_parameters: tuple[str, ...] = ()
+    preserves_linearity: bool = False
 
     # -- hooks (override the one of your stage) ---------------------------------------
     def strain(self, state: State, p: Mapping[str, np.ndarray],
@@ -217,6 +233,39 @@ class Effect:
         when not available (the model then falls back to central finite differences).
         """
         return None
+
+    def amplitude_coefficients(self, p: Mapping[str, np.ndarray]) -> dict[str, tuple[str, np.ndarray | float]]:
+        """Linear structure: ``parameter -> (amplitude column, coefficient wᵢ(φ))`` for every
+        parameter of :attr:`linear_parameters`.  Default: each parameter its own column, w = 1."""
+        return {a: (a, 1.0) for a in self.linear_parameters}
+
+    def unit_stress(self, state: State, p: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Linear structure: ``amplitude column -> unit curve`` (..., n_points) at the φ of ``p``.
+
+        The contribution of column j is ``(Σᵢ wᵢ·aᵢ)·u_j``.  Default: the contribution with
+        that column's parameter set to 1 and the other linear parameters to 0 (elastic stage:
+        :meth:`stress`; output stage: what :meth:`modify` adds to a zero stress)."""
+        out: dict[str, np.ndarray] = {}
+        for a in self.linear_parameters:
+            q = dict(p)
+            for b in self.linear_parameters:
+                q[b] = np.full_like(np.asarray(p[b], dtype=float), 1.0 if b == a else 0.0)
+            if self.stage == "elastic":
+                out[a] = self.stress(state, q)
+            else:
+                out[a] = self.modify(state, q, np.zeros_like(state.eps, dtype=float))
+        return out
+
+    def experiment(self, protocol: Mapping[str, object]) -> tuple[list[str], list[str]]:
+        """The experiment that would reveal this effect: ``(what to add, what the file already has)``.
+
+        ``protocol`` is :func:`hbm.detective.protocols.protocol_features` of the specimen (keys
+        ``time``, ``rates``, ``hold``, ``unloading``, ``reload_beyond``, ``near_zero``,
+        ``n_points``).  The detective quotes it when it names or groups the effect.  Override it
+        in your effect; the default says that hbm knows no protocol for it rather than
+        claiming the file already contains one."""
+        return ([f"an experiment that isolates {self.name!r} (hbm knows no protocol for this effect; "
+                 "describe one in its experiment() method)"], [])
 
     # -- conveniences -------------------------------------------------------------------
     @property

@@ -118,6 +118,16 @@ def helical_stretch(lam, theta_deg):
     return np.sqrt(c2 * lam * lam + (1.0 - c2) / lam)
 
 
+def unit_contribution(effect: Effect, state: State, p: Mapping[str, np.ndarray], **values: float) -> np.ndarray:
+    """``effect.stress`` with some parameters replaced by constants: the unit-amplitude curve
+    of a linear structure through the effect's own (hot-path) stress, e.g. the collagen at
+    VOLF = 0, T1 = 1 is λ·(exp(T2·(λH − 1)) − 1)."""
+    q = dict(p)
+    for name, v in values.items():
+        q[name] = np.full_like(np.asarray(p[name], dtype=float), v)
+    return effect.stress(state, q)
+
+
 class NeoHookeanMatrix(Effect):
     """Isotropic neo-Hookean part of both phases: k_iso·(c·GF + (1−c)·GM)·(λ² − 1/λ)."""
 
@@ -126,8 +136,16 @@ class NeoHookeanMatrix(Effect):
     parameters = (VOLF, GF, GM)
     description = "neo-Hookean matrix of fibers and ECM (Voigt average of the shear moduli)"
 
+    linear_parameters = ("GF", "GM")
+
     def __init__(self, iso_factor: float = 1.0) -> None:
         self.iso_factor = float(iso_factor)
+
+    def amplitude_coefficients(self, p):
+        return {"GF": ("G", p["VOLF"]), "GM": ("G", 1.0 - p["VOLF"])}
+
+    def unit_stress(self, state, p):
+        return {"G": unit_contribution(self, state, p, GF=1.0, GM=1.0)}
 
     def stress(self, state: State, p: Mapping[str, np.ndarray]) -> np.ndarray:
         c = p["VOLF"]
@@ -145,6 +163,13 @@ class PassiveFibers(Effect):
     stage = "elastic"
     parameters = (VOLF, EOPT, P1)
     description = "linear passive myofibers beyond the optimal strain EOPT"
+    linear_parameters = ("P1",)
+
+    def amplitude_coefficients(self, p):
+        return {"P1": ("VOLF*P1", p["VOLF"])}
+
+    def unit_stress(self, state, p):
+        return {"VOLF*P1": unit_contribution(self, state, p, VOLF=1.0, P1=1.0)}
 
     def stress(self, state, p):
         f = state.eps - p["EOPT"]
@@ -167,6 +192,14 @@ class HelicalCollagen(Effect):
     stage = "elastic"
     parameters = (VOLF, T1, T2, THETA)
     description = "exponential helical collagen of the ECM, engaged beyond the onset stretch"
+    linear_parameters = ("T1",)
+
+    def amplitude_coefficients(self, p):
+        return {"T1": ("(1-VOLF)*T1", 1.0 - p["VOLF"])}
+
+    def unit_stress(self, state, p):
+        # also right for the energy form and the collagen corrections, which scale as (1−c)·T1
+        return {"(1-VOLF)*T1": unit_contribution(self, state, p, VOLF=0.0, T1=1.0)}
 
     @staticmethod
     def _parts(state, p):
