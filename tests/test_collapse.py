@@ -370,3 +370,52 @@ def test_sampling_phi_only_reaches_the_brute_force_evidence():
     np.testing.assert_allclose(fit.log_likelihood, lik(fit.samples))
     assert fit.n_evaluations > fit.tmcmc.n_evaluations + 2000
     assert fit.quadrature_error < 1e-2
+
+
+def test_model_structure_agrees_with_the_readme_basis_and_is_used_by_default():
+    from hbm.model.core import Loading
+    from hbm.model.linear import structure_of
+    s = structure_of(MODEL)
+    ref = BaseStructure(MODEL)
+    rng = np.random.default_rng(12)
+    b = MODEL.bounds
+    theta = b[:, 0] + rng.random((5, MODEL.n_params)) * (b[:, 1] - b[:, 0])
+    load = Loading(STRAIN)
+    order = [s.columns.index(c) for c in s.columns]  # model's columns: G, fibres, collagen
+    np.testing.assert_allclose(s.basis(load, theta)[..., order], ref.basis(load, theta), rtol=1e-12, atol=1e-15)
+    lik = _small_box_lik()
+    phi = np.array([[0.7, 0.02], [0.95, 0.022]])
+    np.testing.assert_allclose(CollapsedLikelihood(lik)(phi), CollapsedLikelihood(lik, ref)(phi), rtol=0, atol=1e-9)
+
+
+def test_tier_choice_auto_full_and_refusals():
+    from hbm.collapse import choose_tier
+    from hbm.effects import make_effect
+    from hbm.errors import SettingError
+    ds = _data()
+    cl, note = choose_tier(make_likelihood(MODEL, ds), "auto")
+    assert cl is not None and note.startswith("collapsed likelihood")
+    cl, note = choose_tier(make_likelihood(MODEL, ds), "full")
+    assert cl is None and "requested" in note
+    damage = MODEL + make_effect("damage")
+    cl, note = choose_tier(make_likelihood(damage, ds), "auto")
+    assert cl is None and "damage" in note
+    with pytest.raises(SettingError, match="not available.*damage"):
+        choose_tier(make_likelihood(damage, ds), "collapsed")
+    import hbm
+
+    class BlackBox(hbm.Effect):  # a user's effect that declares nothing
+        name, stage = "black_box", "elastic"
+        parameters = (hbm.Parameter("BB", 0.0, 1.0, "MPa", "a black box", null=0.0),)
+
+        def stress(self, state, p):
+            return p["BB"] * state.eps ** 2
+
+    cl, note = choose_tier(make_likelihood(MODEL + BlackBox(), ds), "auto")
+    assert cl is None and "black_box" in note and "does not declare" in note
+    cl, note = choose_tier(make_likelihood(MODEL, ds, noise="proportional"), "auto")
+    assert cl is None and "not Gaussian" in note
+    cl, note = choose_tier(make_likelihood(MODEL, ds), "auto", kernel="manifold")
+    assert cl is None and "gradient" in note
+    with pytest.raises(SettingError, match="likelihood must be one of"):
+        choose_tier(make_likelihood(MODEL, ds), "fast")

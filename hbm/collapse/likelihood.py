@@ -27,13 +27,17 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import HbmError
+from ..errors import HbmError, SettingError
 from ..likelihood import Likelihood
+from ..model.linear import structure_of, why_not_linear
 from ..noise import AR1Noise, IidNoise, WeightedNoise
 from .induced import CollapseError, ColumnPrior, Term
 from .quadrature import BoxGaussianIntegral
 
-__all__ = ["CollapsedLikelihood", "collapse_reason", "GAUSSIAN_NOISE"]
+__all__ = ["CollapsedLikelihood", "collapse_reason", "choose_tier", "GAUSSIAN_NOISE", "TIERS"]
+
+#: values of ``likelihood=`` / ``--likelihood``
+TIERS = ("auto", "collapsed", "full")
 
 #: noise models under which the amplitude integral stays Gaussian (their covariance does not
 #: depend on the model stress); exact classes, since a subclass may change the covariance
@@ -47,10 +51,11 @@ def collapse_reason(lik: Likelihood, structure) -> str | None:
     ----------
     lik : Likelihood
     structure : LinearStructure or None
-        The model's linear structure (None: the model has none).
+        The model's linear structure (None: the model has none; :func:`why_not_linear` says why).
     """
     if structure is None:
-        return f"model {lik.model.name!r} declares no linear structure in its amplitudes"
+        why = why_not_linear(lik.model) or "it declares no linear structure"
+        return f"model {lik.model.name!r} has no linear amplitudes: {why}"
     if type(lik.noise_model) not in GAUSSIAN_NOISE:
         return (f"noise model {lik.noise!r}: its covariance is not fixed given the noise parameters "
                 "(it depends on the amplitudes), so the integral over them is not Gaussian")
@@ -72,8 +77,8 @@ class CollapsedLikelihood:
     ----------
     lik : Likelihood
         The full likelihood (model, data, noise, fixed parameters and prior are taken from it).
-    structure : LinearStructure
-        The model's linear structure (``hbm.model.linear.structure_of(model)``).
+    structure : LinearStructure, optional
+        The model's linear structure; default :func:`hbm.model.linear.structure_of` of the model.
     nodes : int
         Gauss–Legendre nodes per panel of each outer amplitude column.
     width : float
@@ -96,7 +101,9 @@ class CollapsedLikelihood:
         inside the φ box.
     """
 
-    def __init__(self, lik: Likelihood, structure, *, nodes: int = 6, width: float = 5.0) -> None:
+    def __init__(self, lik: Likelihood, structure=None, *, nodes: int = 6, width: float = 5.0) -> None:
+        if structure is None:
+            structure = structure_of(lik.model)
         why = collapse_reason(lik, structure)
         if why is not None:
             raise CollapseError(f"collapsed likelihood not available: {why}")
@@ -278,3 +285,56 @@ class CollapsedLikelihood:
         return {"likelihood_tier": "collapsed", "sampled": list(self.names),
                 "integrated_columns": {c: [t.name for t in self.terms[c]] for c in self.free_columns},
                 "quadrature": {"nodes_per_panel": self.nodes, "window_sd": self.width}}
+
+
+def choose_tier(lik: Likelihood, likelihood: str = "auto", *, kernel: str = "rw") -> tuple[CollapsedLikelihood | None, str]:
+    """The likelihood tier of a fit: the collapsed likelihood when it applies, else the full one.
+
+    Parameters
+    ----------
+    lik : Likelihood
+    likelihood : {"auto", "collapsed", "full"}
+        "auto": collapsed when the model has a linear structure (verified numerically at 8
+        points of the prior box), the noise model keeps the amplitude integral Gaussian and the
+        kernel is the random walk; "collapsed": the same, but an error when it does not apply;
+        "full": today's full-space likelihood.
+    kernel : str
+        TMCMC kernel ("manifold" needs the full likelihood's gradient).
+
+    Returns
+    -------
+    collapsed : CollapsedLikelihood or None
+        None for the full tier.
+    note : str
+        One line for the outputs: which tier and why.
+
+    Raises
+    ------
+    SettingError
+        Unknown ``likelihood``, or "collapsed" where it does not apply (the reason is named).
+    """
+    if likelihood not in TIERS:
+        raise SettingError(f"likelihood must be one of {', '.join(TIERS)}, got {likelihood!r}")
+    if likelihood == "full":
+        return None, "full likelihood (requested)"
+    why = None
+    cl = None
+    if kernel != "rw":
+        why = f"the {kernel!r} kernel needs the gradient of the full likelihood"
+    else:
+        structure = structure_of(lik.model)
+        why = collapse_reason(lik, structure)
+        if why is None:
+            try:
+                # a declaration is checked before it is used (a user's effect may be wrong);
+                # fixed probe points, not a random result
+                structure.verify(lik.loading, np.random.default_rng(0))
+                cl = CollapsedLikelihood(lik, structure)
+            except HbmError as exc:
+                why = str(exc)
+    if cl is None:
+        if likelihood == "collapsed":
+            raise SettingError(f"likelihood 'collapsed' is not available: {why}")
+        return None, f"full likelihood ({why})"
+    return cl, ("collapsed likelihood: amplitudes " + ", ".join(cl.free_columns)
+                + " integrated exactly; sampled " + ", ".join(cl.names))
