@@ -29,6 +29,7 @@ import numpy as np
 
 from ..errors import HbmError, SettingError
 from ..likelihood import Likelihood
+from ..model.core import Model
 from ..model.linear import structure_of, why_not_linear
 from ..noise import AR1Noise, IidNoise, WeightedNoise
 from .induced import CollapseError, ColumnPrior, Term
@@ -321,6 +322,8 @@ def choose_tier(lik: Likelihood, likelihood: str = "auto", *, kernel: str = "rw"
     cl = None
     if kernel != "rw":
         why = f"the {kernel!r} kernel needs the gradient of the full likelihood"
+    elif not isinstance(lik.model, Model):
+        why = f"{type(lik.model).__name__} is not an hbm Model built from effects (a black box declares no amplitudes)"
     else:
         structure = structure_of(lik.model)
         why = collapse_reason(lik, structure)
