@@ -85,7 +85,7 @@ def _hist_check(prior, draws, row=0, bins=60):
                                    ("uniform", "loguniform"), ("loguniform", "uniform")])
 def test_two_term_induced_prior_matches_histogram(forms):
     rng = np.random.default_rng(1)
-    t1, t2 = Term("GF", 1e-3, 0.1, forms[0]), Term("GM", 2e-3, 0.05, forms[1])
+    t1, t2 = Term.of("GF", 1e-3, 0.1, forms[0]), Term.of("GM", 2e-3, 0.05, forms[1])
     c = np.array([0.7, 0.95])
     prior = ColumnPrior("G", [t1, t2], np.column_stack([c, 1 - c]))
     draw = lambda t, m: (np.exp(rng.uniform(np.log(t.lo), np.log(t.hi), m)) if t.is_log  # noqa: E731
@@ -99,7 +99,7 @@ def test_two_term_induced_prior_matches_histogram(forms):
 @pytest.mark.parametrize("form", ["uniform", "loguniform"])
 def test_one_term_induced_prior_matches_histogram(form):
     rng = np.random.default_rng(2)
-    t = Term("P1", 1e-4, 0.5, form)
+    t = Term.of("P1", 1e-4, 0.5, form)
     prior = ColumnPrior("AF", [t], np.array([[0.8]]))
     a = np.exp(rng.uniform(np.log(t.lo), np.log(t.hi), 400_000)) if t.is_log else rng.uniform(t.lo, t.hi, 400_000)
     _hist_check(prior, 0.8 * a, bins=50 if form == "uniform" else 200)
@@ -109,7 +109,7 @@ def test_one_term_induced_prior_matches_histogram(form):
 def test_split_returns_the_prior_of_the_original_parameters(forms):
     """A ~ induced prior, then (a1, a2) | A: the pair must be the independent prior draws again."""
     rng = np.random.default_rng(3)
-    t1, t2 = Term("GF", 1e-3, 0.1, forms[0]), Term("GM", 2e-3, 0.05, forms[1])
+    t1, t2 = Term.of("GF", 1e-3, 0.1, forms[0]), Term.of("GM", 2e-3, 0.05, forms[1])
     m, c = 200_000, 0.6
     draw = lambda t: (np.exp(rng.uniform(np.log(t.lo), np.log(t.hi), m)) if t.is_log  # noqa: E731
                       else rng.uniform(t.lo, t.hi, m))
@@ -126,7 +126,7 @@ def test_split_returns_the_prior_of_the_original_parameters(forms):
 
 def test_three_terms_are_refused():
     with pytest.raises(CollapseError, match="3 free parameters"):
-        ColumnPrior("S", [Term("a", 0, 1), Term("b", 0, 1), Term("c", 0, 1)], np.ones((1, 3)))
+        ColumnPrior("S", [Term.of("a", 0, 1), Term.of("b", 0, 1), Term.of("c", 0, 1)], np.ones((1, 3)))
 
 
 # ------------------------------------------------------------------------------ the integral
@@ -144,8 +144,8 @@ def _hby(X, y):
 def test_box_integral_matches_adaptive_quadrature_and_draws_match_moments():
     X, y = _problem(0)
     c = np.array([0.6, 0.8, 0.95])
-    pG = ColumnPrior("G", [Term("GF", 1e-4, 0.1), Term("GM", 1e-4, 0.1)], np.column_stack([c, 1 - c]))
-    pP = ColumnPrior("AF", [Term("P1", 1e-4, 0.5)], c[:, None])
+    pG = ColumnPrior("G", [Term.of("GF", 1e-4, 0.1), Term.of("GM", 1e-4, 0.1)], np.column_stack([c, 1 - c]))
+    pP = ColumnPrior("AF", [Term.of("P1", 1e-4, 0.5)], c[:, None])
     v, err = BoxGaussianIntegral(*_hby(X, y), [pG, pP]).log_integral(refine=True)
     H, b, yy = _hby(X, y)
     for r in range(3):  # independent: Simpson on a 2001² grid (≥ 100 points per posterior sd)
@@ -182,7 +182,7 @@ def test_wide_flat_box_gives_the_gaussian_closed_form():
     y = X @ np.array([1.0, -0.3, 2.0]) + rng.normal(size=(n, P))
     H, b, yy = _hby(X, y)
     width = 400.0
-    pri = [ColumnPrior(f"c{j}", [Term(f"a{j}", -200.0, 200.0)], np.ones((n, 1))) for j in range(k)]
+    pri = [ColumnPrior(f"c{j}", [Term.of(f"a{j}", -200.0, 200.0)], np.ones((n, 1))) for j in range(k)]
     v, _ = BoxGaussianIntegral(H, b, yy, pri).log_integral()
     mhat = np.linalg.solve(H, b[..., None])[..., 0]
     rss = yy - np.einsum("ni,ni->n", b, mhat)
@@ -195,8 +195,8 @@ def test_wide_flat_box_gives_the_gaussian_closed_form():
 def test_zero_column_integrates_its_prior_to_one():
     X, y = _problem(6)
     X[:, :, 1] = 0.0  # e.g. the fibre column when EOPT exceeds the largest strain
-    pri = [ColumnPrior("G", [Term("GF", 1e-4, 0.1), Term("GM", 1e-4, 0.1)], np.tile([0.7, 0.3], (3, 1))),
-           ColumnPrior("AF", [Term("P1", 1e-4, 0.5)], np.full((3, 1), 0.7))]
+    pri = [ColumnPrior("G", [Term.of("GF", 1e-4, 0.1), Term.of("GM", 1e-4, 0.1)], np.tile([0.7, 0.3], (3, 1))),
+           ColumnPrior("AF", [Term.of("P1", 1e-4, 0.5)], np.full((3, 1), 0.7))]
     both, _ = BoxGaussianIntegral(*_hby(X, y), pri).log_integral()
     one, _ = BoxGaussianIntegral(*_hby(X[:, :, :1], y), pri[:1]).log_integral()
     np.testing.assert_allclose(both, one, atol=1e-10)
@@ -279,7 +279,7 @@ def test_collapsed_evidence_equals_brute_force_and_flat_G_prior_is_caught():
             w = np.asarray(weights)
             lo = w[:, 0] * terms[0].lo + w[:, 1] * terms[1].lo
             hi = w[:, 0] * terms[0].hi + w[:, 1] * terms[1].hi
-            orig(self, name, [Term("G", 0.0, 1.0)], (hi - lo)[:, None], lo)
+            orig(self, name, [Term.of("G", 0.0, 1.0)], (hi - lo)[:, None], lo)
         else:
             orig(self, name, terms, weights, offset)
 

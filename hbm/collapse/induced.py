@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import HbmError
+from ..prior import ParameterPrior
 
 __all__ = ["CollapseError", "Term", "ColumnPrior"]
 
@@ -46,17 +47,14 @@ class CollapseError(HbmError):
 
 
 @dataclass(frozen=True)
-class Term:
-    """One original parameter feeding a column: its name, box and prior form."""
+class Term(ParameterPrior):
+    """One original parameter feeding a column: its box and prior form, and its name."""
 
-    name: str
-    lo: float
-    hi: float
-    form: str = "uniform"
+    name: str = ""
 
-    @property
-    def is_log(self) -> bool:
-        return self.form == "loguniform"
+    @classmethod
+    def of(cls, name: str, lo: float, hi: float, form: str = "uniform") -> "Term":
+        return cls(float(lo), float(hi), form, str(name))
 
     @property
     def log_width(self) -> float:

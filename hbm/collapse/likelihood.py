@@ -132,7 +132,7 @@ class CollapsedLikelihood:
                 self.fixed_terms[c].append((i, float(lik.fixed[p])))
             else:
                 e = lik.prior[p]
-                self.terms[c].append(Term(p, float(e.lo), float(e.hi), e.form))
+                self.terms[c].append(Term.of(p, e.lo, e.hi, e.form))
         self._term_index = {c: [amp.index(t.name) for t in self.terms[c]] for c in self.columns}
         # columns whose parameters are all fixed are known curves: moved into the data
         self.free_columns = tuple(c for c in self.columns if self.terms[c])

@@ -9,7 +9,8 @@ prior on φ stays uniform in the likelihood's working coordinates and the amplit
 integrated exactly.
 
 Random streams (all from the caller's TMCMC seed ``s``): TMCMC ``s``; the amplitude draws
-``SeedSequence([s, 1])``; the importance draws ``SeedSequence([s, 2])``.
+``SeedSequence([s, 1])``; the importance draws ``SeedSequence([s, 2])``; the resampling of the
+accepted importance draws into the posterior population ``SeedSequence([s, 3])``.
 """
 
 from __future__ import annotations
@@ -67,6 +68,14 @@ class CollapsedFit:
     info: dict = field(default_factory=dict)
 
 
+def _systematic(x: np.ndarray, log_w: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n rows of ``x`` by systematic resampling with normalised log weights ``log_w``."""
+    w = np.exp(log_w - np.max(log_w))
+    c = np.cumsum(w / w.sum())
+    idx = np.searchsorted(c, (rng.random() + np.arange(n)) / n)
+    return x[np.minimum(idx, x.shape[0] - 1)]
+
+
 def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, seed: int,
                      importance_draws: int = 0, min_ess_fraction: float = 0.1, progress: bool = False,
                      checkpoint=None, **tmcmc_options) -> CollapsedFit:
@@ -80,7 +89,8 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     seed : int
         TMCMC seed; the completion and importance streams derive from it (module docstring).
     importance_draws : int
-        Proposal draws of the importance finish; 0 skips it.
+        Proposal draws of the importance finish; 0 skips it.  When it is accepted its evidence
+        is reported and the posterior population is resampled from its weighted draws.
     min_ess_fraction : float
         Smallest accepted importance ESS per draw.
     progress : bool
@@ -103,6 +113,10 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
         if imp.accepted:
             log_z, log_z_se, source = imp.log_evidence, imp.log_evidence_se, "importance"
     phi = np.asarray(tr.samples, float)
+    if imp is not None and imp.accepted:
+        # the accepted importance draws are the better posterior sample (ESS ≫ N): resample N of them
+        phi = _systematic(imp.samples, imp.log_weights, phi.shape[0],
+                          np.random.default_rng(np.random.SeedSequence([int(seed), 3])))
     full = cl.complete(phi, np.random.default_rng(np.random.SeedSequence([int(seed), 1])))
     ll = cl.lik(full)
     step = max(1, phi.shape[0] // ERROR_ROWS)
