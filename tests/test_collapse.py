@@ -419,3 +419,37 @@ def test_tier_choice_auto_full_and_refusals():
     assert cl is None and "gradient" in note
     with pytest.raises(SettingError, match="likelihood must be one of"):
         choose_tier(make_likelihood(MODEL, ds), "fast")
+
+
+@pytest.mark.parametrize("case", ["loguniform", "fixed_P1"])
+def test_loguniform_amplitudes_and_a_fixed_column_match_monte_carlo(case):
+    """Log-uniform amplitude priors (outer columns integrated in log A, G a sum of two log-uniform
+    terms) and a column whose only parameter is held fixed (moved into the data)."""
+    ds = _data(sd=0.01)
+    if case == "loguniform":
+        prior = {"P1": (0.01, 1.0, "loguniform"), "T1": (0.5, 3.0), "GF": (1e-3, 0.05, "loguniform"),
+                 "GM": (1e-3, 0.05, "loguniform")}
+        fix = {"EOPT": 0.15, "T2": 9.3, "THETA": 59.0}
+    else:
+        prior = {"T1": (0.5, 3.0), "GF": (0.005, 0.02), "GM": (0.004, 0.015)}
+        fix = {"EOPT": 0.15, "T2": 9.3, "THETA": 59.0, "P1": 0.13}
+    lik = make_likelihood(MODEL, ds, fix=fix, prior=prior)
+    cl = CollapsedLikelihood(lik)
+    phi = np.array([[0.8, 0.01], [0.93, 0.012]])
+    v, err = cl.log_likelihood(phi, refine=True)
+    assert np.all(err < 2e-2)
+    rng = np.random.default_rng(13)
+    m = 400_000
+    for r in range(2):
+        rows = np.empty((m, lik.d))
+        rows[:, lik.index("VOLF")], rows[:, lik.index("sigma")] = phi[r]
+        for p in cl.amplitude_parameters:
+            if p in lik.names:  # working coordinates: uniform in log for loguniform parameters
+                lo, hi = lik.bounds[lik.index(p)]
+                rows[:, lik.index(p)] = rng.uniform(lo, hi, m)
+        ll = lik(rows)
+        w = np.exp(ll - ll.max())
+        mc, se = np.log(w.mean()) + ll.max(), w.std() / w.mean() / np.sqrt(m)
+        assert abs(v[r] - mc) < 4 * se + 3 * err[r] + 1e-3, (r, v[r], mc, se, err[r])
+    full = cl.complete(np.tile(phi[0], (200, 1)), np.random.default_rng(14))
+    assert np.all(lik.in_box(full))
