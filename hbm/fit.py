@@ -31,7 +31,7 @@ from .data import input_line, input_summary
 from .errors import HbmError, HbmWarning
 from . import seeds
 from .io import SpecimenResult, json_default, write_specimen_result
-from .collapse import choose_tier, sample_collapsed
+from .collapse import choose_tier, fit_collapsed
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, identifiable_combinations, spyrou_model
 from .noise import get_noise
@@ -449,6 +449,8 @@ def tier_line(r: SpecimenResult) -> str:
     col = c.get("collapsed") or {}
     if "quadrature_error" in col:
         line += f"; quadrature error of log L ≤ {col['quadrature_error']:.1e} nats"
+    if col.get("route"):
+        line += f"; route: {col['route']}"
     imp = col.get("importance")
     if imp:
         line += (f"; evidence by importance sampling (ESS {100 * imp['ess_fraction']:.0f}%, k̂ {imp['khat']:.2f})"
@@ -683,9 +685,10 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         Likelihood tier (:func:`hbm.collapse.choose_tier`).  "auto" (default): where the model's
         stress is linear in its amplitudes and the noise keeps their integral Gaussian, TMCMC
         samples only the nonlinear and noise parameters on the likelihood with the amplitudes
-        integrated out exactly (at most 10 MH steps per stage unless ``tmcmc_options`` says
-        otherwise; ``tmcmc_options["importance_draws"]`` adds the importance-sampling finish),
-        and the amplitudes and original parameters are drawn given each posterior sample; the
+        integrated out exactly (:func:`hbm.collapse.fit_collapsed`: a 500-particle TMCMC run
+        and an importance-sampling finish, or N = ``samples`` with at most 10 MH steps per
+        stage when the finish is refused or ``tmcmc_options`` are given), and the amplitudes
+        and original parameters are drawn given each posterior sample; the
         stored posterior holds every free parameter as with the full likelihood.  "full":
         today's sampler over all parameters.  The tier and why are stored in
         ``config["likelihood_tier"]`` and ``config["likelihood_note"]``; evaluation counts
@@ -738,8 +741,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         opts.setdefault("gradient_fim", lik.gradient_fim)
     collapsed_info = None
     if collapsed is not None:  # sample φ only; the amplitudes are integrated, then drawn given φ
-        cf = sample_collapsed(collapsed, int(samples), seed=s_tm, checkpoint=ckpt, progress=progress,
-                              **{"max_steps": 10, **opts})
+        cf = fit_collapsed(collapsed, int(samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
         y, log_lik, n_evaluations = cf.samples, cf.log_likelihood, cf.n_evaluations
         # FitResult.tmcmc: the φ run's stages and evidence, with the completed full rows as samples
         tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik)

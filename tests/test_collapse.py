@@ -453,3 +453,31 @@ def test_loguniform_amplitudes_and_a_fixed_column_match_monte_carlo(case):
         assert abs(v[r] - mc) < 4 * se + 3 * err[r] + 1e-3, (r, v[r], mc, se, err[r])
     full = cl.complete(np.tile(phi[0], (200, 1)), np.random.default_rng(14))
     assert np.all(lik.in_box(full))
+
+
+def _fit(**kw):
+    from hbm.fit import fit_specimen
+    return fit_specimen(_data(sd=0.004), restarts=0, seed=1, progress=False, fix={"EOPT": 0.15, "THETA": 59.0}, **kw)
+
+
+def test_fit_specimen_collapsed_default_route(tmp_path):
+    """fit_specimen: the default tier is collapsed (pilot + importance), stores every original
+    parameter and the tier (config, text, JSON, netCDF attribute)."""
+    from hbm.io import read_attrs
+    res = _fit(samples=300, out=tmp_path / "c.nc")
+    cfg = res.result.config
+    assert cfg["likelihood_tier"] == "collapsed" and "integrated exactly" in cfg["likelihood_note"]
+    assert cfg["collapsed"]["route"] == "pilot TMCMC + importance finish"
+    assert res.result.samples.shape == (300, 7) and res.result.names == list(res.likelihood.names)
+    assert np.all(res.likelihood.in_box(res.likelihood.from_natural(res.result.samples)))
+    assert read_attrs(tmp_path / "c.nc")["likelihood_tier"] == "collapsed"
+    assert "likelihood: collapsed" in res.report() and res.to_json()["likelihood_tier"] == "collapsed"
+
+
+@pytest.mark.slow
+def test_fit_specimen_collapsed_evidence_agrees_with_the_full_tier():
+    res, full = _fit(samples=600), _fit(samples=1500, likelihood="full")
+    assert full.result.config["likelihood_tier"] == "full"
+    se = np.hypot(res.log_evidence_se, full.log_evidence_se)
+    assert abs(res.log_evidence - full.log_evidence) < 4 * se + 0.15
+    assert res.result.config["n_evaluations"] < full.result.config["n_evaluations"] / 5

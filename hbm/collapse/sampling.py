@@ -24,7 +24,7 @@ from ..samplers.importance import ImportanceResult, importance_evidence
 from ..samplers.tmcmc import tmcmc
 from .likelihood import CollapsedLikelihood
 
-__all__ = ["CollapsedFit", "sample_collapsed", "ERROR_ROWS"]
+__all__ = ["CollapsedFit", "sample_collapsed", "fit_collapsed", "ERROR_ROWS", "PILOT"]
 
 #: posterior rows on which the quadrature's error estimate is evaluated (a refined second integral)
 ERROR_ROWS = 256
@@ -78,7 +78,7 @@ def _systematic(x: np.ndarray, log_w: np.ndarray, n: int, rng: np.random.Generat
 
 def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, seed: int,
                      importance_draws: int = 0, min_ess_fraction: float = 0.1, progress: bool = False,
-                     checkpoint=None, **tmcmc_options) -> CollapsedFit:
+                     checkpoint=None, n_out: int | None = None, **tmcmc_options) -> CollapsedFit:
     """TMCMC over φ on the collapsed likelihood, optional importance finish, completed posterior.
 
     Parameters
@@ -96,6 +96,9 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     progress : bool
     checkpoint : path, optional
         TMCMC checkpoint file.
+    n_out : int, optional
+        Posterior draws returned when the importance finish is accepted (resampled from its
+        weighted draws); default the TMCMC population size.
     **tmcmc_options
         Passed to :func:`hbm.samplers.tmcmc` (preset, max_steps, cov_target, max_evaluations ...).
 
@@ -115,7 +118,7 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     phi = np.asarray(tr.samples, float)
     if imp is not None and imp.accepted:
         # the accepted importance draws are the better posterior sample (ESS ≫ N): resample N of them
-        phi = _systematic(imp.samples, imp.log_weights, phi.shape[0],
+        phi = _systematic(imp.samples, imp.log_weights, int(n_out or phi.shape[0]),
                           np.random.default_rng(np.random.SeedSequence([int(seed), 3])))
     full = cl.complete(phi, np.random.default_rng(np.random.SeedSequence([int(seed), 1])))
     ll = cl.lik(full)
@@ -131,3 +134,56 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     return CollapsedFit(samples=full, log_likelihood=np.asarray(ll, float), log_evidence=log_z,
                         log_evidence_se=log_z_se, evidence_source=source, tmcmc=tr, importance=imp,
                         n_evaluations=int(n_eval), quadrature_error=qerr, info=info)
+
+
+#: the default collapsed fit's first attempt: a small TMCMC run and an importance finish
+PILOT = {"n_samples": 500, "max_steps": 5, "importance_draws": 10_000}
+
+
+def fit_collapsed(cl: CollapsedLikelihood, n_samples: int, *, seed: int, progress: bool = False, checkpoint=None,
+                  **tmcmc_options) -> CollapsedFit:
+    """The collapsed fit of :func:`hbm.fit.fit_specimen`: cheap first, the full run when needed.
+
+    With no TMCMC options given: TMCMC with N = min(``n_samples``, 500) and at most 5 MH steps per
+    stage, then the importance finish with max(10 000, 5·``n_samples``) draws, whose resampled
+    draws give the ``n_samples`` posterior draws (~29 k evaluations on the muscle benchmark).  When
+    the finish is refused (k̂ > 0.7 or ESS < 10 %), TMCMC runs again with N = ``n_samples`` and at
+    most 10 steps per stage (its evidence and population are used; the evaluations of both runs
+    are counted).  With TMCMC options (e.g. ``n_steps``, ``max_evaluations``): one TMCMC run with
+    N = ``n_samples`` and those options (``max_steps`` 10 unless given), and an importance finish
+    only if ``importance_draws`` is among them.
+
+    Parameters
+    ----------
+    cl : CollapsedLikelihood
+    n_samples : int
+        Posterior draws wanted.
+    seed : int
+        TMCMC seed (streams: :func:`sample_collapsed`; the second run uses ``seed`` as well).
+    progress : bool
+    checkpoint : path, optional
+        Checkpoint of the N = ``n_samples`` run.
+    **tmcmc_options
+
+    Returns
+    -------
+    CollapsedFit
+        ``info["route"]`` says which route produced it.
+    """
+    n = int(n_samples)
+    if not tmcmc_options:
+        pilot = sample_collapsed(cl, min(n, PILOT["n_samples"]), seed=seed, progress=progress,
+                                 max_steps=PILOT["max_steps"], n_out=n,
+                                 importance_draws=max(PILOT["importance_draws"], 5 * n))
+        if pilot.importance.accepted:
+            pilot.info["route"] = "pilot TMCMC + importance finish"
+            return pilot
+        full = sample_collapsed(cl, n, seed=seed, progress=progress, checkpoint=checkpoint, max_steps=10)
+        full.n_evaluations += pilot.n_evaluations
+        full.info["route"] = f"importance finish refused ({pilot.importance.reason}); TMCMC N={n} kept"
+        full.info["pilot"] = pilot.info
+        return full
+    opts = {"max_steps": 10, **tmcmc_options}
+    out = sample_collapsed(cl, n, seed=seed, progress=progress, checkpoint=checkpoint, **opts)
+    out.info["route"] = "TMCMC" + (" + importance finish" if out.evidence_source == "importance" else "")
+    return out

@@ -106,6 +106,7 @@ def run_fits(seeds) -> list[dict]:
                         "tier": res.result.config["likelihood_tier"],
                         "evaluations": res.result.config["n_evaluations"],
                         "log_evidence": res.log_evidence, "log_evidence_se": res.log_evidence_se,
+                        "route": (res.result.config.get("collapsed") or {}).get("route", "full TMCMC"),
                         "timings": res.timings})
             _say(out[-1])
     return out
@@ -188,7 +189,7 @@ def main(argv=None) -> int:
                      f"{min(r['importance']['khat'] for r in imp):.2f}–{max(r['importance']['khat'] for r in imp):.2f}; "
                      f"refused (TMCMC evidence kept) in {len(refused)}/{len(imp)}"
                      + ("".join(f"; seed {r['seed']}: {r['importance']['reason']}" for r in refused)))
-    qe = max(r.get("quadrature_error", 0.0) for r in rows)
+    qe = max([r.get("quadrature_error", 0.0) for r in rows] or [0.0])
     notes.append(f"- largest quadrature error estimate of log L_c over the posterior rows checked: {qe:.1e} nats.")
     fa = [r["cpu"] for r in fits if r["tier"] == "collapsed"]
     ff = [r["cpu"] for r in fits if r["tier"] == "full"]
