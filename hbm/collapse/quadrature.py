@@ -399,7 +399,7 @@ class BoxGaussianIntegral:
         v2 = self._value(self.nodes + self.nodes // 2) if refine else None
         return v, (None if v2 is None else np.abs(v2 - v))
 
-    def draw(self, rng: np.random.Generator, grid: int = 33) -> np.ndarray:
+    def draw(self, rng: np.random.Generator, grid: int = 17) -> np.ndarray:
         """One draw of A per row from ∝ Π p_j(A_j)·exp(−Q(A)/2) on the box, (n, k) in column order.
 
         Outer columns from their tabulated conditional marginal (``grid`` points per panel,
