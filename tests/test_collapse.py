@@ -481,3 +481,21 @@ def test_fit_specimen_collapsed_evidence_agrees_with_the_full_tier():
     se = np.hypot(res.log_evidence_se, full.log_evidence_se)
     assert abs(res.log_evidence - full.log_evidence) < 4 * se + 0.15
     assert res.result.config["n_evaluations"] < full.result.config["n_evaluations"] / 5
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--likelihood", "collapsed", "--noise", "proportional"], "not Gaussian"),
+    (["--likelihood", "collapsed", "--kernel", "manifold"], "gradient"),
+    (["--likelihood", "fast"], "--likelihood"),
+])
+def test_cli_refuses_the_collapsed_tier_where_it_does_not_apply(argv, needle, tmp_path, capsys):
+    from hbm.cli import main
+    out = tmp_path / "x.nc"
+    try:
+        rc = main(["fit", "data/specimens/calvo2010_rat1.csv", "--no-plot", "--out", str(out), *argv])
+    except SystemExit as exc:  # argparse refuses a bad choice itself
+        rc = exc.code
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hbm: error:") and needle in err[0]
+    assert not out.exists()
