@@ -16,6 +16,7 @@ accepted importance draws into the posterior population ``SeedSequence([s, 3])``
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -162,7 +163,9 @@ def fit_collapsed(cl: CollapsedLikelihood, n_samples: int, *, seed: int, progres
         TMCMC seed (streams: :func:`sample_collapsed`; the second run uses ``seed`` as well).
     progress : bool
     checkpoint : path, optional
-        Checkpoint of the N = ``n_samples`` run.
+        TMCMC checkpoint of the first run (the pilot, or the single run with options); a second
+        run after a refused finish checkpoints to ``<checkpoint>.second.npz`` and removes it
+        when it completes.
     **tmcmc_options
 
     Returns
@@ -173,12 +176,16 @@ def fit_collapsed(cl: CollapsedLikelihood, n_samples: int, *, seed: int, progres
     n = int(n_samples)
     if not tmcmc_options:
         pilot = sample_collapsed(cl, min(n, PILOT["n_samples"]), seed=seed, progress=progress,
-                                 max_steps=PILOT["max_steps"], n_out=n,
+                                 checkpoint=checkpoint, max_steps=PILOT["max_steps"], n_out=n,
                                  importance_draws=max(PILOT["importance_draws"], 5 * n))
         if pilot.importance.accepted:
             pilot.info["route"] = "pilot TMCMC + importance finish"
             return pilot
-        full = sample_collapsed(cl, n, seed=seed, progress=progress, checkpoint=checkpoint, max_steps=10)
+        # the second run has other settings: its own checkpoint, removed once it is complete
+        second = None if checkpoint is None else Path(checkpoint).with_suffix(".second.npz")
+        full = sample_collapsed(cl, n, seed=seed, progress=progress, checkpoint=second, max_steps=10)
+        if second is not None and second.exists():
+            second.unlink()
         full.n_evaluations += pilot.n_evaluations
         full.info["route"] = f"importance finish refused ({pilot.importance.reason}); TMCMC N={n} kept"
         full.info["pilot"] = pilot.info
