@@ -21,12 +21,14 @@ def _truth():
     return float(np.sum(np.log(mass)) - np.sum(np.log(BOUNDS[:, 1] - BOUNDS[:, 0])))
 
 
-def test_evidence_within_its_standard_error_and_accepted():
+@pytest.mark.parametrize("adapt", [0.0, 0.3])
+def test_evidence_within_its_standard_error_and_accepted(adapt):
     rng = np.random.default_rng(0)
     post = MEAN + SD * rng.standard_normal((500, 3))
     errs = []
     for seed in range(5):
-        r = importance_evidence(loglik, BOUNDS, post, 4000, seed=seed)
+        r = importance_evidence(loglik, BOUNDS, post, 4000, seed=seed, adapt=adapt)
+        assert r.n_evaluations == 4000 and r.n_draws == 4000 - int(round(adapt * 4000))
         assert r.accepted and r.reason is None
         assert r.khat < 0.7 and r.ess > 0.3 * r.n_draws
         errs.append((r.log_evidence - _truth()) / r.log_evidence_se)
@@ -40,6 +42,16 @@ def test_bad_proposal_is_refused_with_the_reason():
     r = importance_evidence(loglik, BOUNDS, post, 4000, seed=0)
     assert not r.accepted
     assert "k̂" in r.reason or "ESS" in r.reason
+
+
+def test_adaptive_round_repairs_a_poor_first_proposal():
+    """A proposal fitted to too-narrow, shifted draws is refused in one round; the refit recovers."""
+    rng = np.random.default_rng(2)
+    post = MEAN + np.array([0.05, 0.0, 0.0]) + 0.3 * SD * rng.standard_normal((500, 3))
+    one = importance_evidence(loglik, BOUNDS, post, 6000, seed=1)
+    two = importance_evidence(loglik, BOUNDS, post, 6000, seed=1, adapt=0.3)
+    assert not one.accepted
+    assert two.accepted and abs(two.log_evidence - _truth()) < 4 * two.log_evidence_se
 
 
 def test_needs_enough_samples():

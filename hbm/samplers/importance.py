@@ -41,13 +41,15 @@ class ImportanceResult:
     khat : float
         PSIS Pareto k̂ of the weights.
     n_draws : int
-        Proposal draws evaluated (log-likelihood evaluations).
+        Draws the estimate rests on (the last round's).
     accepted : bool
         k̂ ≤ 0.7 and ESS ≥ ``min_ess_fraction``·draws.
     reason : str or None
         Why the estimate was refused.
     samples, log_weights : ndarray
         The proposal draws (box coordinates) and their normalised log weights.
+    n_evaluations : int
+        Log-likelihood evaluations of all rounds.
     """
 
     log_evidence: float
@@ -59,11 +61,13 @@ class ImportanceResult:
     reason: str | None
     samples: np.ndarray
     log_weights: np.ndarray
+    n_evaluations: int = 0
 
     def to_dict(self) -> dict:
         return {"log_evidence": self.log_evidence, "log_evidence_se": self.log_evidence_se, "ess": self.ess,
                 "ess_fraction": self.ess / max(self.n_draws, 1), "khat": self.khat, "n_draws": self.n_draws,
-                "accepted": self.accepted, "reason": self.reason}
+                "accepted": self.accepted, "reason": self.reason,
+                "n_evaluations": self.n_evaluations}
 
 
 def _logit(x, lo, hi):
@@ -71,8 +75,31 @@ def _logit(x, lo, hi):
     return np.log(t) - np.log1p(-t)
 
 
+def _draw_round(log_likelihood, lo, hi, mean, cov, m, df, rng, batch) -> tuple[np.ndarray, np.ndarray]:
+    """m draws of the t proposal (mean, cov) in logit coordinates: box points and log weights L·π/q."""
+    d = lo.size
+    L = np.linalg.cholesky(cov + 1e-10 * np.eye(d))
+    z = rng.standard_normal((m, d))
+    g = rng.chisquare(df, m) / df
+    un = mean + (z @ L.T) / np.sqrt(g)[:, None]
+    # log q_u (multivariate t), then the Jacobian of x = lo + (hi − lo)·sigmoid(u)
+    sol = np.linalg.solve(L, (un - mean).T).T
+    maha = np.einsum("ij,ij->i", sol, sol)
+    logq_u = (gammaln((df + d) / 2) - gammaln(df / 2) - 0.5 * d * np.log(df * np.pi)
+              - np.log(np.diag(L)).sum() - 0.5 * (df + d) * np.log1p(maha / df))
+    s = 1.0 / (1.0 + np.exp(-un))
+    xn = lo + (hi - lo) * s
+    log_dxdu = np.log(hi - lo) - np.logaddexp(0.0, -un) - np.logaddexp(0.0, un)  # log s(1 − s), no underflow
+    logq_x = logq_u - log_dxdu.sum(axis=1)
+    log_prior = -np.log(hi - lo).sum()
+    ll = np.concatenate([np.asarray(log_likelihood(xn[i:i + batch]), float) for i in range(0, m, batch)])
+    ll = np.where(np.isfinite(ll), ll, -np.inf)
+    return xn, ll + log_prior - logq_x
+
+
 def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, df: float = 5.0,
-                        inflate: float = 1.5, min_ess_fraction: float = 0.1, batch: int = 5000) -> ImportanceResult:
+                        inflate: float = 1.5, min_ess_fraction: float = 0.1, batch: int = 5000,
+                        adapt: float = 0.0) -> ImportanceResult:
     """log Z by importance sampling from a t proposal fitted to posterior ``samples``.
 
     Parameters
@@ -95,6 +122,9 @@ def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, 
         Smallest ESS / n_draws accepted.
     batch : int
         Rows per call of ``log_likelihood``.
+    adapt : float
+        Fraction of the draws spent on a first round whose weighted draws refit the proposal; the
+        estimate and diagnostics come from the second round only (0: one round).
 
     Returns
     -------
@@ -110,29 +140,24 @@ def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, 
         raise HbmError(f"importance_evidence: n_draws must be >= 10, got {n_draws}")
     u = _logit(x, lo, hi)
     mean = u.mean(axis=0)
-    cov = np.cov(u, rowvar=False) * inflate + 1e-10 * np.eye(d)
-    L = np.linalg.cholesky(cov)
+    cov = np.cov(u, rowvar=False) * inflate
     rng = np.random.default_rng(seed)
     m = int(n_draws)
-    z = rng.standard_normal((m, d))
-    g = rng.chisquare(df, m) / df
-    un = mean + (z @ L.T) / np.sqrt(g)[:, None]
-    # log q_u (multivariate t), then the Jacobian of x = lo + (hi − lo)·sigmoid(u)
-    sol = np.linalg.solve(L, (un - mean).T).T
-    maha = np.einsum("ij,ij->i", sol, sol)
-    logq_u = (gammaln((df + d) / 2) - gammaln(df / 2) - 0.5 * d * np.log(df * np.pi)
-              - np.log(np.diag(L)).sum() - 0.5 * (df + d) * np.log1p(maha / df))
-    s = 1.0 / (1.0 + np.exp(-un))
-    xn = lo + (hi - lo) * s
-    log_dxdu = np.log(hi - lo) + np.log(s) + np.log1p(-s)
-    logq_x = logq_u - log_dxdu.sum(axis=1)
-    log_prior = -np.log(hi - lo).sum()
-    ll = np.concatenate([np.asarray(log_likelihood(xn[i:i + batch]), float) for i in range(0, m, batch)])
-    ll = np.where(np.isfinite(ll), ll, -np.inf)
-    logw = ll + log_prior - logq_x
+    m1 = int(round(adapt * m)) if adapt > 0 else 0
+    if m1:
+        # first round: refit the proposal to its own weighted draws (in the logit coordinates)
+        x1, lw1 = _draw_round(log_likelihood, lo, hi, mean, cov, m1, df, rng, batch)
+        w1 = np.exp(lw1 - np.max(lw1)) if np.isfinite(lw1).any() else np.zeros(m1)
+        if w1.sum() > 0 and w1.sum() ** 2 / (w1 * w1).sum() > 2 * (d + 2):
+            w1 /= w1.sum()
+            u1 = _logit(x1, lo, hi)
+            mean = w1 @ u1
+            cov = ((u1 - mean).T * w1) @ (u1 - mean) * inflate
+    xn, logw = _draw_round(log_likelihood, lo, hi, mean, cov, m - m1, df, rng, batch)
+    m = m - m1
     if not np.isfinite(logw).any():
         return ImportanceResult(float("nan"), float("nan"), 0.0, float("inf"), m, False,
-                                "no proposal draw had a finite likelihood", xn, logw)
+                                "no proposal draw had a finite likelihood", xn, logw, m + m1)
     lz = float(logsumexp(logw) - np.log(m))
     w = np.exp(logw - logw.max())
     ess = float(w.sum() ** 2 / (w * w).sum())
@@ -143,4 +168,4 @@ def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, 
         reason = f"Pareto k̂ {khat:.2f} > {K_HAT_THRESHOLD}: the proposal misses part of the posterior"
     elif ess < min_ess_fraction * m:
         reason = f"ESS {ess:.0f} of {m} draws ({100 * ess / m:.1f}%) is below {100 * min_ess_fraction:.0f}%"
-    return ImportanceResult(lz, se, ess, khat, m, reason is None, reason, xn, logw - logsumexp(logw))
+    return ImportanceResult(lz, se, ess, khat, m, reason is None, reason, xn, logw - logsumexp(logw), m + m1)
