@@ -499,3 +499,37 @@ def test_cli_refuses_the_collapsed_tier_where_it_does_not_apply(argv, needle, tm
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hbm: error:") and needle in err[0]
     assert not out.exists()
+
+
+def test_qlv_model_collapsed_matches_monte_carlo():
+    """Quasi-linear viscoelasticity filters every amplitude column (G1, LOGTAU1 join φ): the
+    collapsed likelihood of the shipped QLV benchmark curve against Monte Carlo at fixed φ."""
+    from pathlib import Path
+
+    from hbm.data import load_specimen
+    from hbm.effects import make_effect
+    curve = Path(__file__).resolve().parents[1] / "results" / "benchmarks" / "qlv_benchmark.csv"
+    if not curve.exists():
+        pytest.skip("qlv benchmark curve not in this tree")
+    model = MODEL + make_effect("viscoelastic")
+    ds = load_specimen(curve)
+    prior = {"P1": (0.08, 0.2), "T1": (0.5, 3.0), "GF": (0.005, 0.02), "GM": (0.004, 0.015)}
+    lik = make_likelihood(model, ds, prior=prior, fix={"EOPT": 0.184, "T2": 9.3, "THETA": 60.0},
+                          sigma_bounds=(0.01, 0.05))
+    cl = CollapsedLikelihood(lik)
+    assert set(cl.names) == {"VOLF", "G1", "LOGTAU1", "sigma"}
+    row = {"VOLF": 0.85, "G1": 0.35, "LOGTAU1": 1.3, "sigma": 0.02}
+    phi = np.array([[row[n] for n in cl.names]])
+    v, err = cl.log_likelihood(phi, refine=True)
+    rng = np.random.default_rng(15)
+    m = 200_000
+    rows = np.empty((m, lik.d))
+    for n, x in row.items():
+        rows[:, lik.index(n)] = x
+    for p in ("P1", "T1", "GF", "GM"):
+        lo, hi = lik.bounds[lik.index(p)]
+        rows[:, lik.index(p)] = rng.uniform(lo, hi, m)
+    ll = lik(rows)
+    w = np.exp(ll - ll.max())
+    mc, se = np.log(w.mean()) + ll.max(), w.std() / w.mean() / np.sqrt(m)
+    assert abs(v[0] - mc) < 4 * se + 3 * err[0] + 1e-3, (v[0], mc, se, err[0])
