@@ -14,6 +14,7 @@ child 3    Sobol sampling (hbm.sensitivity)
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -30,6 +31,7 @@ from .data import input_line, input_summary
 from .errors import HbmError, HbmWarning
 from . import seeds
 from .io import SpecimenResult, json_default, write_specimen_result
+from .collapse import choose_tier, fit_collapsed
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, identifiable_combinations, spyrou_model
 from .noise import get_noise
@@ -39,7 +41,8 @@ from .samplers.tmcmc import tmcmc as _tmcmc
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
-           "format_at_bounds", "map_prediction", "quality_lines", "EDGE_TOL", "EDGE_MASS", "RIDGE_NOTE"]
+           "format_at_bounds", "map_prediction", "quality_lines", "tier_line", "EDGE_TOL", "EDGE_MASS",
+           "RIDGE_NOTE"]
 
 #: a value lies "at" a box edge within this fraction of the box width (log width for loguniform)
 EDGE_TOL = 0.02
@@ -444,6 +447,22 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
             "at_bounds": r.at_bounds if r.at_bounds is not None else at_bounds(r), "prior": _prior_of(r)}
 
 
+def tier_line(r: SpecimenResult) -> str:
+    """One line naming the likelihood tier that produced a result (and the quadrature's error)."""
+    c = r.config
+    line = "likelihood: " + str(c.get("likelihood_note") or c.get("likelihood_tier", "full"))
+    col = c.get("collapsed") or {}
+    if "quadrature_error" in col:
+        line += f"; quadrature error of log L ≤ {col['quadrature_error']:.1e} nats"
+    if col.get("route"):
+        line += f"; route: {col['route']}"
+    imp = col.get("importance")
+    if imp:
+        line += (f"; evidence by importance sampling (ESS {100 * imp['ess_fraction']:.0f}%, k̂ {imp['khat']:.2f})"
+                 if imp["accepted"] else f"; importance finish refused ({imp['reason']}), TMCMC evidence kept")
+    return line
+
+
 def _prior_line(r: SpecimenResult) -> str:
     items = [f"{n} {'log' if p['form'] == 'loguniform' else ''}U[{p['lo']:g}, {p['hi']:g}]"
              for n, p in _prior_of(r).items()]
@@ -484,6 +503,8 @@ class FitResult:
     likelihood : Likelihood
         The specimen's likelihood (free parameter names, bounds, predict ...).
     tmcmc : TMCMCResult or None
+        With the collapsed likelihood: the run over the nonlinear parameters (stages, evidence),
+        its ``samples``/``log_likelihood`` replaced by the completed rows of every free parameter.
     timings : dict
         Seconds per phase: ``cmaes``, ``tmcmc``, ``predictive``, ``sobol``, ``write``, ``total``.
     """
@@ -539,7 +560,7 @@ class FitResult:
         if r.fixed:
             rows.append("fixed: " + ", ".join(f"{k}={v:g}" for k, v in r.fixed.items()))
         rows.append(_prior_line(r))
-        return "\n".join(head + quality_lines(self.quality(prob=prob)) + rows)
+        return "\n".join(head + quality_lines(self.quality(prob=prob)) + [tier_line(r)] + rows)
 
     def to_json(self, prob: float = 0.9) -> dict[str, Any]:
         """One JSON-able dict: :func:`fit_quality` plus identification of the run.
@@ -554,6 +575,8 @@ class FitResult:
         q.update({"names": list(r.names), "n_samples": r.n_samples, "fixed": dict(r.fixed),
                   "summary": {k: v for k, v in summarize(r, prob=prob).items() if k not in COMBINATIONS},
                   "input": r.config.get("input", ""),
+                  "likelihood_tier": r.config.get("likelihood_tier", "full"),
+                  "likelihood_note": r.config.get("likelihood_note", ""),
                   "path": None if self.path is None else str(self.path)})
         return json.loads(json.dumps(q, default=json_default))
 
@@ -611,7 +634,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
                  config_extra: Mapping[str, Any] | None = None,
                  on_phase: Callable[[str], None] | None = None,
                  prior: Prior | str | os.PathLike | Mapping | None = None,
-                 max_evaluations: int | None = None) -> FitResult:
+                 max_evaluations: int | None = None, likelihood: str = "auto") -> FitResult:
     """CMA-ES optima, TMCMC posterior, posterior predictive and (optionally) Sobol for one specimen.
 
     Parameters
@@ -663,6 +686,18 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         stored posterior, optima, predictive and Sobol box are in natural units.
     max_evaluations : int, optional
         Cap on TMCMC log-likelihood evaluations (:func:`hbm.samplers.tmcmc`); None = no cap.
+    likelihood : {"auto", "collapsed", "full"}
+        Likelihood tier (:func:`hbm.collapse.choose_tier`).  "auto" (default): where the model's
+        stress is linear in its amplitudes and the noise keeps their integral Gaussian, TMCMC
+        samples only the nonlinear and noise parameters on the likelihood with the amplitudes
+        integrated out exactly (:func:`hbm.collapse.fit_collapsed`: a 500-particle TMCMC run
+        and an importance-sampling finish, or N = ``samples`` with at most 10 MH steps per
+        stage when the finish is refused or ``tmcmc_options`` are given), and the amplitudes
+        and original parameters are drawn given each posterior sample; the
+        stored posterior holds every free parameter as with the full likelihood.  "full":
+        today's sampler over all parameters.  The tier and why are stored in
+        ``config["likelihood_tier"]`` and ``config["likelihood_note"]``; evaluation counts
+        count basis evaluations as model evaluations.
 
     Returns
     -------
@@ -680,6 +715,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     prior = load_prior(prior)
     lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)
     check_data_size(sid, lik, samples, max_evaluations)
+    collapsed, tier_note = choose_tier(lik, likelihood, kernel=kernel)  # before any long computation
     s_opt, s_tm, s_pred, s_sob = seeds.child_ints(seed, len(seeds.PHASES))  # the phase streams of hbm.seeds
     sweep_t = parse_sweep(sweep)
     if sweep_t is not None and sweep_t[0] in lik.names and lik.forms[lik.index(sweep_t[0])] == "loguniform":
@@ -708,13 +744,23 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         opts["max_evaluations"] = int(max_evaluations)
     if kernel == "manifold":
         opts.setdefault("gradient_fim", lik.gradient_fim)
-    tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,
-                progress=progress, **opts)
+    collapsed_info = None
+    if collapsed is not None:  # sample φ only; the amplitudes are integrated, then drawn given φ
+        cf = fit_collapsed(collapsed, int(samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
+        y, log_lik, n_evaluations = cf.samples, cf.log_likelihood, cf.n_evaluations
+        # FitResult.tmcmc: the φ run's stages and evidence, with the completed full rows as samples
+        tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik)
+        log_z, log_z_se, collapsed_info = cf.log_evidence, cf.log_evidence_se, cf.info
+    else:
+        tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,
+                    progress=progress, **opts)
+        y, log_lik, n_evaluations = tr.samples, tr.log_likelihood, tr.n_evaluations
+        log_z, log_z_se = tr.log_evidence, tr.log_evidence_se
     timings["tmcmc"] = time.perf_counter() - t
 
     phase("predictive")
     t = time.perf_counter()
-    y = np.asarray(tr.samples, float)  # sampler (working) coordinates
+    y = np.asarray(y, float)  # sampler (working) coordinates
     theta = lik.to_natural(y)  # what the user sees: natural units
     m = lik.predict(y)
     pll = pointwise_log_likelihood(lik, y, m)
@@ -739,13 +785,16 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
               "sigma_bounds": list(map(float, sigma_bounds)) if sigma_bounds is not None else None,
               "tmcmc_options": {k: v for k, v in opts.items() if k != "gradient_fim"} or None,
               "seeds": {"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
-              "n_evaluations": int(tr.n_evaluations), "n_stages": len(tr.stages),
+              "n_evaluations": int(n_evaluations), "n_stages": len(tr.stages),
+              "likelihood_tier": "full" if collapsed is None else "collapsed", "likelihood_note": tier_note,
               "source_file": str(data.attrs.get("source_file", ""))}
     converted = input_summary(data)
     if converted:  # the numbers rest on these conversions: keep them with the result
         config["input"] = converted
     if prior is not None:
         config["prior"] = prior.to_dict()
+    if collapsed_info is not None:
+        config["collapsed"] = collapsed_info
     config.update(dict(config_extra or {}))
     if isinstance(seed, np.random.SeedSequence):
         root_seed = int(seed.entropy)
@@ -753,8 +802,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     else:
         root_seed = int(seed)
     res = SpecimenResult(
-        specimen_id=sid, names=list(lik.names), samples=theta, log_likelihood=np.asarray(tr.log_likelihood, float),
-        log_evidence=float(tr.log_evidence), log_evidence_se=float(tr.log_evidence_se),
+        specimen_id=sid, names=list(lik.names), samples=theta, log_likelihood=np.asarray(log_lik, float),
+        log_evidence=float(log_z), log_evidence_se=float(log_z_se),
         bounds=np.asarray(lik.natural_bounds, float), stages=list(tr.stages), strain=strain,
         stress=np.asarray(data["stress"].values, float),
         time=np.asarray(data["time"].values, float) if "time" in data else None,

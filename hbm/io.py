@@ -329,6 +329,7 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
         "prior": _dumps(r.prior_dict()),
         "at_bounds": _dumps(r.at_bounds if r.at_bounds is not None else []),
         "inference_library": "hbm",
+        "likelihood_tier": str(r.config.get("likelihood_tier", "full")),
         "complete": 0,
     })
     return xr.DataTree.from_dict({"/": root, **groups})

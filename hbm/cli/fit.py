@@ -44,6 +44,10 @@ def register(subparsers) -> None:
                    help="noise model (default iid Gaussian with unknown sigma)")
     p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
     add_model_arguments(p)
+    p.add_argument("--likelihood", default="auto", choices=["auto", "collapsed", "full"],
+                   help="auto (default): integrate the linear amplitudes exactly and sample only the nonlinear and "
+                        "noise parameters where the model and noise allow it, else the full likelihood; "
+                        "collapsed: require that; full: sample every parameter")
     p.add_argument("--restarts", type=non_negative_int, default=4, metavar="K",
                    help="CMA-ES restarts (0 = skip; default 4)")
     p.add_argument("--sweep", type=sweep, metavar="NAME:WIDTH",
@@ -95,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
                        sobol_n=args.sobol or None, checkpoint_dir=args.checkpoint_dir,
                        out=out, progress=not args.no_progress,
                        optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds,
-                       max_evaluations=check_max_evaluations(args.max_evaluations, args.samples))
+                       max_evaluations=check_max_evaluations(args.max_evaluations, args.samples),
+                       likelihood=args.likelihood)
     for item in res.quality(data)["at_bounds"]:
         line = format_at_bounds([item])[0].removeprefix("warning: ")
         warnings.warn(f"{res.result.specimen_id}: {line}", HbmWarning, stacklevel=1)
