@@ -39,7 +39,6 @@ import itertools
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
-from .induced import ColumnPrior
 
 __all__ = ["BoxGaussianIntegral", "box_qp", "truncated_normal_log_mass"]
 

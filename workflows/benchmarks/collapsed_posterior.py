@@ -50,7 +50,7 @@ import muscle_posterior as mp  # noqa: E402
 import xarray as xr  # noqa: E402
 from hbm.collapse import CollapsedLikelihood, sample_collapsed  # noqa: E402
 from hbm.fit import fit_specimen  # noqa: E402
-from hbm.samplers import tmcmc  # noqa: E402
+from hbm.samplers.tmcmc import tmcmc  # noqa: E402
 from hbm.utils import atomic_write_text  # noqa: E402
 
 TARGET_LOGZ, TARGET_MEAN = 0.3, 0.3

@@ -27,7 +27,7 @@ from .grouped import GroupedModel, GroupedResult, group_differences, grouped_hie
 from .joint_gibbs import ExactSpecimen, JointGibbsResult, ReuseSpecimen, joint_gibbs, rhat_ess
 from .model import TRANSFORMS, HierarchicalModel, draw_population, kernel_bandwidth
 from .pooling import PoolChoice, auto_pool, prior_sd_transformed
-from .psis import K_HAT_THRESHOLD, pareto_khat
+from ..psis import K_HAT_THRESHOLD, pareto_khat
 from .refine import refine_individual
 from .result import HierarchicalResult
 from .reuse import ESTIMATORS, defensive_log_weights, mixture_log_weights, systematic_resample

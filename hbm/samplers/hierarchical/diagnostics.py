@@ -27,7 +27,7 @@ import numpy as np
 
 from ...errors import HbmError
 from .model import HierarchicalModel, log_norm_mass
-from .psis import K_HAT_THRESHOLD, pareto_khat
+from ..psis import K_HAT_THRESHOLD, pareto_khat
 
 __all__ = ["ess_checks", "evidence_parts", "reuse_diagnostics", "reuse_unreliable"]
 
