@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...errors import HbmError
+from ..errors import HbmError
 
 __all__ = ["gpd_fit", "pareto_khat", "tail_length", "K_HAT_THRESHOLD"]
 
