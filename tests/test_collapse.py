@@ -533,3 +533,54 @@ def test_qlv_model_collapsed_matches_monte_carlo():
     w = np.exp(ll - ll.max())
     mc, se = np.log(w.mean()) + ll.max(), w.std() / w.mean() / np.sqrt(m)
     assert abs(v[0] - mc) < 4 * se + 3 * err[0] + 1e-3, (v[0], mc, se, err[0])
+
+
+def _interior_problem(n=5, seed=11):
+    """Two trapezoid columns with their Gaussians on the rising ramps (both sloped) and one uniform."""
+    rng = np.random.default_rng(seed)
+    c = rng.uniform(0.6, 0.8, n)
+    pri = [ColumnPrior("G", [Term.of("GF", 1e-4, 0.1), Term.of("GM", 1e-4, 0.1)], np.column_stack([c, 1 - c])),
+           ColumnPrior("G2", [Term.of("GF2", 1e-4, 0.1), Term.of("GM2", 1e-4, 0.1)], np.column_stack([1 - c, c])),
+           ColumnPrior("AF", [Term.of("P1", 1e-4, 0.5)], c[:, None])]
+    mode = np.column_stack([np.full(n, 0.012), np.full(n, 0.013), np.full(n, 0.2)])
+    sd = np.array([0.001, 0.0012, 0.01])
+    corr = np.array([[1.0, 0.6, -0.3], [0.6, 1.0, 0.2], [-0.3, 0.2, 1.0]])
+    cov = corr * np.outer(sd, sd)
+    H = np.broadcast_to(np.linalg.inv(cov), (n, 3, 3)).copy()
+    b = np.einsum("nij,nj->ni", H, mode)
+    yy = np.einsum("ni,ni->n", b, mode) + rng.uniform(10.0, 50.0, n)
+    return H, b, yy, pri
+
+
+def test_interior_rows_are_exact_and_agree_with_the_quadrature():
+    """Deep inside one linear piece of every column the integral is E[Π p_j] of a Gaussian (Isserlis'
+    pair term for two sloped columns); the quadrature is the independent check."""
+    H, b, yy, pri = _interior_problem()
+    box = BoxGaussianIntegral(H, b, yy, pri)
+    inside, exact = box.interior()
+    assert inside.all()
+    quad = box._value(12)  # the quadrature alone, finer than the default
+    np.testing.assert_allclose(exact, quad, atol=2e-6)
+    # without the pair term the two sloped columns would be off by the covariance term
+    dens = np.column_stack([p.pdf(np.full((len(yy), 1), m))[:, 0] for p, m in zip(box.priors, (0.012, 0.013, 0.2))])
+    assert np.all(np.abs(np.log(np.prod(dens, axis=1)) - (exact + 0.5 * box.const - 1.5 * np.log(2 * np.pi)
+                                                          + 0.5 * np.log(box.h).sum(axis=1))) > 1e-4)
+    # a row pushed against its box edge is left to the quadrature
+    b2 = b.copy()
+    b2[0] = np.einsum("ij,j->i", H[0], [0.012, 0.013, 0.0005])
+    inside2, _ = BoxGaussianIntegral(H, b2, yy, pri).interior()
+    assert not inside2[0] and inside2[1:].all()
+
+
+def test_compiled_closed_form_equals_the_numpy_form():
+    """The numba kernel of the innermost column against its numpy form, including far tails (log path)."""
+    X, y = _problem(0)
+    c = np.array([0.6, 0.8, 0.95])
+    pG = ColumnPrior("G", [Term.of("GF", 1e-4, 0.1), Term.of("GM", 1e-4, 0.1)], np.column_stack([c, 1 - c]))
+    pP = ColumnPrior("AF", [Term.of("P1", 1e-4, 0.5)], c[:, None])
+    box = BoxGaussianIntegral(*_hby(X, y), [pG, pP])
+    mu = np.random.default_rng(3).normal(0.05, 0.2, (3, 400))
+    mu[:, :5] = [-50.0, 50.0, 0.0, 1e-4, 0.1]
+    fast, ref = box._closed_form(mu), box._closed_form_numpy(mu)
+    assert np.all(np.isfinite(fast))
+    np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)

@@ -39,12 +39,17 @@ import itertools
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
+from .kernels import closed_form_linear
+
 
 __all__ = ["BoxGaussianIntegral", "box_qp", "truncated_normal_log_mass"]
 
 _LOG_SQRT_2PI = 0.5 * float(np.log(2.0 * np.pi))
 #: a column is flat when its whole box moves Q by less than this (h·width² in whitened units)
 FLAT = 1e-9
+#: rows whose Gaussian lies this many marginal sd inside one linear piece of every column's
+#: density are integrated in closed form (:meth:`BoxGaussianIntegral.interior`)
+INTERIOR_MARGIN = 6.0
 
 
 def truncated_normal_log_mass(z0, z1) -> tuple[np.ndarray, np.ndarray]:
@@ -204,6 +209,17 @@ class BoxGaussianIntegral:
         """
         if upper is not None:
             return self._closed_form_log(mu, upper)
+        pr = self.priors[0]
+        out = closed_form_linear(np.ascontiguousarray(pr.knots, float), np.ascontiguousarray(pr.knot_values, float),
+                                 np.ascontiguousarray(self.h[:, 0], float), np.ascontiguousarray(mu, float))
+        bad = np.isnan(out)
+        if bad.any():
+            rows, cols = np.nonzero(bad)
+            out[rows, cols] = self._take(rows)._closed_form_log(mu[rows, cols][:, None])[:, 0]
+        return out
+
+    def _closed_form_numpy(self, mu: np.ndarray) -> np.ndarray:
+        """The numpy form of :meth:`_closed_form` (the compiled kernel's independent check)."""
         pr = self.priors[0]
         h = self.h[:, 0][:, None]
         flat = (h == 0.0)[..., None]
@@ -385,6 +401,71 @@ class BoxGaussianIntegral:
     def _value(self, nodes: int) -> np.ndarray:
         return -0.5 * self.const + self._inner(self.k, np.zeros((self.n, 1, 0)), nodes)[:, 0]
 
+    def interior(self, margin: float = INTERIOR_MARGIN) -> tuple[np.ndarray, np.ndarray]:
+        """Rows whose Gaussian lies deep inside the prior's linear pieces, and their exact log I.
+
+        Where the unconstrained Gaussian N(Â, H⁻¹) of a row lies ``margin`` marginal sd inside
+        its column's support *and* inside one linear piece of that column's density, for every
+        column, the box truncation removes less than 2k·Φ(−margin) of the mass (2e-8 relative
+        at 6 sd for k = 3) and the density is a product of linear functions over the mass:
+
+            log I = −c/2 + Σ_j log √(2π/h_j) + log E[Π_j p_j(A_j)],
+            E[Π_j p_j(A_j)] = Π_j p_j(Â_j) + s_a·s_b·Σ_ab·Π_{j≠a,b} p_j(Â_j)
+
+        (s_j the density slopes; Isserlis' theorem; exact for at most two sloped columns, which
+        covers every uniform-term prior of the base model: one trapezoid).  Rows that do not
+        qualify — a flat column, a mode near a box edge or a kink, a log-uniform column, three
+        sloped columns — go through the quadrature.
+
+        Returns
+        -------
+        mask : ndarray (n,) of bool
+        value : ndarray (mask.sum(),)
+        """
+        n, k = self.n, self.k
+        ok = np.all(self.h > 0.0, axis=1) & all(p.linear for p in self.priors)
+        if not ok.any():
+            return ok, np.zeros(0)
+        # the unconstrained mode by back-substitution of the elimination, μ_j = g_j − Σ_{l>j} C_jl A_l
+        mode = np.zeros((n, k))
+        for j in range(k - 1, -1, -1):
+            mode[:, j] = self.g[:, j] - np.einsum("nl,nl->n", self.C[:, j, j + 1:], mode[:, j + 1:])
+        with np.errstate(all="ignore"):
+            cov_s = np.linalg.inv(np.where(ok[:, None, None], self.Hs0, np.eye(k)))
+        cov = cov_s / (self.d[:, :, None] * self.d[:, None, :])
+        sd = np.sqrt(np.maximum(np.einsum("nii->ni", cov), 0.0))
+        ok &= np.all(np.isfinite(cov), axis=(1, 2))
+        lo, hi = mode - margin * sd, mode + margin * sd
+        dens = np.ones((n, k))
+        slope = np.zeros((n, k))
+        for j, pr in enumerate(self.priors):
+            kn, kv = pr.knots, pr.knot_values
+            piece = np.clip(np.sum(kn <= mode[:, j][:, None], axis=1) - 1, 0, kn.shape[1] - 2)
+            rows = np.arange(n)
+            a0, a1 = kn[rows, piece], kn[rows, piece + 1]
+            v0, v1 = kv[rows, piece], kv[rows, piece + 1]
+            ok &= (lo[:, j] >= a0) & (hi[:, j] <= a1) & (a1 > a0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                slope[:, j] = np.where(a1 > a0, (v1 - v0) / (a1 - a0), 0.0)
+            dens[:, j] = v0 + slope[:, j] * (mode[:, j] - a0)
+        sloped = np.abs(slope) * sd > 1e-12 * np.maximum(dens, 1e-300)
+        ok &= (np.sum(sloped, axis=1) <= 2) & np.all(dens > 0.0, axis=1)
+        if not ok.any():
+            return ok, np.zeros(0)
+        r = np.flatnonzero(ok)
+        expect = np.prod(dens[r], axis=1)
+        for a, b in itertools.combinations(range(k), 2):  # the pair term of Isserlis' theorem
+            both = sloped[r, a] & sloped[r, b]
+            if both.any():
+                others = np.prod(np.delete(dens[r], [a, b], axis=1), axis=1)
+                expect = expect + np.where(both, slope[r, a] * slope[r, b] * cov[r, a, b] * others, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            value = (-0.5 * self.const[r] + k * _LOG_SQRT_2PI - 0.5 * np.sum(np.log(self.h[r]), axis=1)
+                     + np.log(expect))
+        good = np.isfinite(value)
+        ok[r[~good]] = False
+        return ok, value[good]
+
     # -- public ------------------------------------------------------------------------------
     def log_integral(self, refine: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
         """log I per row, and (``refine``) |log I − log I'| with 1.5× the nodes per panel.
@@ -394,9 +475,19 @@ class BoxGaussianIntegral:
         value : ndarray (n,)
         error : ndarray (n,) or None
         """
-        v = self._value(self.nodes)
-        v2 = self._value(self.nodes + self.nodes // 2) if refine else None
-        return v, (None if v2 is None else np.abs(v2 - v))
+        inside, exact = self.interior()
+        v = np.empty(self.n)
+        v[inside] = exact
+        err = np.zeros(self.n) if refine else None
+        rest = np.flatnonzero(~inside)
+        if rest.size:  # rows near a box edge or a kink: the quadrature
+            sub = self._take(rest) if rest.size < self.n else self
+            v[rest] = sub._value(self.nodes)
+            if refine:
+                err[rest] = np.abs(sub._value(self.nodes + self.nodes // 2) - v[rest])
+        if refine:  # the interior rows' only error is the truncated mass
+            err[inside] = 2.0 * self.k * ndtr(-INTERIOR_MARGIN)
+        return v, err
 
     def draw(self, rng: np.random.Generator, grid: int = 17) -> np.ndarray:
         """One draw of A per row from ∝ Π p_j(A_j)·exp(−Q(A)/2) on the box, (n, k) in column order.
