@@ -417,3 +417,34 @@ def test_refined_evidence_credits_a_second_effect_the_25_step_runs_under_credit(
                    - sample(a.likelihood, 800, 10 + s, **kw).log_evidence)
     assert min(ref) > DELTA_LOGZ_MIN, (std, ref)
     assert np.mean(ref) > np.mean(std) + 1.0, (std, ref)
+
+
+def test_refined_reruns_stop_at_the_deadline_and_keep_standard_comparisons():
+    """--max-time passing between two reruns: the refit already rerun is compared with the base's
+    rerun, the next keeps its standard comparison, and the skipped reruns are recorded."""
+    from hbm.detective.refits import refine_decisive
+    from hbm.detective.results import FitSummary
+
+    def fs(name, z, z_ref):
+        f = FitSummary(effects=[name], noise="iid", names=["a"], theta_max=np.zeros(1), max_log_likelihood=0.0,
+                       bic=0.0, rmse=0.0, log_evidence=z, log_evidence_se=0.5)
+        f.likelihood = (z_ref, 0.3)
+        return f
+
+    calls, skipped = [], []
+
+    def refine(f, seed):
+        calls.append(f.effects[0])
+        f.refined_log_evidence, f.refined_log_evidence_se = f.likelihood
+
+    fitter = SimpleNamespace(refine=refine, log=lambda msg: None, out_of_time=lambda: len(calls) >= 2,
+                             skip=lambda what, why: skipped.append(what))
+    base = fs("base", 375.0, 377.0)
+    off = _refit("offset", -1.5, 12.3, se=2.6)
+    off.fit = fs("offset", 373.5, 383.0)
+    bump = _refit("local_misfit", -7.6, 8.6, physical=False)
+    bump.fit = fs("local_misfit", 367.4, 377.5)
+    assert refine_decisive([off, bump], base, fitter, 0) == ["offset"]
+    assert calls == ["base", "offset"] and skipped == ["refined evidence of local_misfit"]
+    assert off.evidence_method == "tmcmc-refined" and off.delta_log_evidence == pytest.approx(6.0)
+    assert bump.evidence_method != "tmcmc-refined" and bump.delta_log_evidence == pytest.approx(-7.6)

@@ -82,7 +82,11 @@ def cost_estimate(base_model: Model, candidates: Sequence[Effect], fitter: Fitte
     refits = max(0, int(top)) + N_CONTROL_REFITS
     seconds = base_s * 2 + (max(0, int(top)) * med + N_CONTROL_REFITS * base_s) * rounds
     dear = sorted(cand_s.items(), key=lambda kv: -kv[1])[:3]
-    text = (f"cost estimate: ~{seconds:.0f} s (rough; a fit of the base model ~{base_s:.1f} s, of a "
+    # decisive comparisons are rerun with twice the MH steps (refits.refine_decisive): up to
+    # about twice the sampling of the base and every refit again
+    refined = 2.0 * seconds
+    text = (f"cost estimate: ~{seconds:.0f} s, up to ~{seconds + refined:.0f} s where naming hinges on the evidence "
+            f"and the decisive comparisons are rerun (rough; a fit of the base model ~{base_s:.1f} s, of a "
             f"candidate ~{med:.1f} s median" + (", dearest " + ", ".join(f"{n} {v:.1f} s" for n, v in dear) if dear else "")
             + f"; base fit + {refits} refits per round × {rounds} rounds + removal test; {fit_evaluations(fitter.n_samples, k)} "
             "likelihood evaluations per fit; refits run one after the other)")
@@ -90,7 +94,7 @@ def cost_estimate(base_model: Model, candidates: Sequence[Effect], fitter: Fitte
         budget = fitter.deadline - _time.perf_counter()
         if seconds > budget:
             text += f"; above the --max-time of {budget:.0f} s: the verdict so far will be written when it is reached"
-    return {"seconds": float(seconds), "base_fit_seconds": float(base_s), "candidate_fit_seconds": cand_s,
+    return {"seconds": float(seconds), "seconds_with_reruns": float(seconds + refined), "base_fit_seconds": float(base_s), "candidate_fit_seconds": cand_s,
             "evaluations_per_fit": fit_evaluations(fitter.n_samples, k), "text": text}
 
 

@@ -123,13 +123,21 @@ def refine_decisive(refitted: Sequence[CandidateResult], base: FitSummary, fitte
                     "the standard 25-step evidence stands for this comparison")
         return []
     fitter.refine(base, seed)
+    done = []
     for k, c in enumerate(todo):
+        if fitter.out_of_time():
+            # the rest keep their standard comparison (base and refit of one comparison always
+            # come from runs of the same settings)
+            fitter.skip("refined evidence of " + ", ".join(x.effect for x in todo[k:]),
+                        "their standard 25-step evidence stands")
+            break
+        done.append(c)
         fitter.refine(c.fit, seed + 1 + k)
         std = c.delta_log_evidence_tmcmc
         _evidence_gain(c, c.fit, base)
         fitter.log(f"  {c.effect}: refined Δlog Z {c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f} "
                    f"(standard {std:.1f})")
-    return [c.effect for c in todo]
+    return [c.effect for c in done]
 
 
 def reoptimise_base(base: FitSummary, refitted: Sequence[CandidateResult], fitter: Fitter, seed: int) -> bool:
