@@ -285,21 +285,28 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         with _stopwatch(timings, "removal"):
             extra["removal"] = removal_test(first.base, fitter, _seed(seed, 90))
     if problem is None:
-        view = white_noise_view(first.base, first.controls, d, _seed(seed, 92)) if first.base.noise == "ar1" else None
+        # the noise caveat belongs to the final model: a misfit an AR(1) base absorbed and a named
+        # effect explains is no caveat of the verdict
+        last = rounds[-1]
+        view = white_noise_view(last.base, last.controls, d, _seed(seed, 92)) if last.base.noise == "ar1" else None
         extra["caveats"] = verdict_caveats(
-            n_points=d.stress.size, base=first.base, check_noise=first.check.noise, z=first.check.z,
-            resid=first.check.resid, d=d, white=view, digitised=digitised, correlated=correlated,
+            n_points=d.stress.size, base=last.base, check_noise=last.check.noise, z=last.check.z,
+            resid=last.check.resid, d=d, white=view, digitised=digitised, correlated=correlated,
             ar1_rejected=rejected if problem is None and noise is None else None,
             removal=extra.get("removal", []), at_bounds=edges_found, verdict=verdict.verdict)
         verdict = replace(verdict, message=verdict.message + caveat_line(extra["caveats"]))
     if fitter.undecided:
         extra["stopped"] = stop_record(fitter, max_time, t_start)
-        if verdict.verdict == "adequate" and any(w.startswith("refit") for w, _ in fitter.undecided):
+        if any(w.startswith("refit") for w, _ in fitter.undecided):
             # "adequate" claims that no candidate gains: not shown when some were never refitted
-            verdict = replace(verdict, verdict="undecided",
-                              message="no sign of misfit so far, but not every candidate was refitted"
-                              + verdict.message.removeprefix("the model is adequate").replace(
-                                  "no candidate or generic shape gains", "no refitted candidate or shape gains"))
+            msg = verdict.message.replace("adequate — the model is adequate", "undecided — no sign of misfit so "
+                                          "far, but not every candidate was refitted").replace(
+                "no candidate or generic shape gains", "no refitted candidate or shape gains")
+            if verdict.verdict == "adequate":
+                msg = "no sign of misfit so far, but not every candidate was refitted" + msg.removeprefix(
+                    "the model is adequate")
+            verdict = replace(verdict, verdict="undecided" if verdict.verdict == "adequate" else verdict.verdict,
+                              message=msg)
         verdict = replace(verdict, message=verdict.message + " | " + extra["stopped"]["text"])
     if power and fitter.out_of_time():
         fitter.skip("the detection-power estimate (--power)", "no detection limits")
