@@ -14,23 +14,13 @@ from ..model import spyrou_model
 from ..utils import prepare_output_file
 from ._common import (add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
                       check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
-                      name_list, non_negative_int, plot_path, print_json, sample_size)
+                      name_list, non_negative_int, plot_path, positive_float, print_json, sample_size)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
 #: --max-time default (s): a 150-point three-rate record takes 4-9 minutes in full on a busy 2-core machine
 DEFAULT_MAX_TIME = 300.0
 
-
-def positive_seconds(text: str) -> float:
-    """--max-time: a positive number of seconds."""
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not v > 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
-    return v
 
 DIAGNOSE_DESCRIPTION = """\
 Compare the model with a specimen, show where it fails and name the missing effect.
@@ -83,7 +73,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--progress", action="store_true", default=True,
                    help="progress lines on stderr as the diagnosis goes (the default)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
-    p.add_argument("--max-time", type=positive_seconds, default=DEFAULT_MAX_TIME, metavar="SECONDS",
+    p.add_argument("--max-time", type=positive_float, default=DEFAULT_MAX_TIME, metavar="SECONDS",
                    help=f"wall seconds after which no new fit is started (default {DEFAULT_MAX_TIME:.0f}); the "
                         "verdict so far, with the candidates not yet decided and why, is written (text, JSON, "
                         "figure) and the command exits 0")
