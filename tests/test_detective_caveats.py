@@ -165,3 +165,26 @@ def test_ar1_that_absorbed_a_misfit_is_reported_with_the_white_noise_verdict():
     assert "rho 0.70, preferred to white noise by 13.0 nats" in c["text"]
     assert "+1.2 → -1.2 sd" in c["text"] and "local_kink +12.3 nats" in c["text"]
     assert "-> verdict unexplained" in c["text"]
+
+
+@pytest.mark.slow
+def test_three_rate_curve_with_proportional_noise_is_not_a_false_alarm():
+    """False alarm (b) of issue 28: three rates, noise proportional to the stress (3 %), no
+    hidden effect.  The proportional noise model describes it; the model-free estimate is formed
+    under its variance shape, so no 'unexplained' from a noise disagreement alone."""
+    from hbm.detective import diagnose
+    from hbm.data import synthetic_specimen
+    from hbm.model.spyrou import spyrou_model
+
+    th = dict(VOLF=0.8, EOPT=0.1, P1=0.15, T1=0.8, T2=14.0, THETA=58.5, GF=0.015, GM=0.01)
+    prot = protocol(ramp(0.33, 2e-3, 40), ramp(0.33, 2e-2, 40), ramp(0.33, 2e-1, 40))
+    clean = synthetic_specimen(spyrou_model(), th, prot, 0.0, seed=0)
+    mu = clean["stress"].values
+    rng = np.random.default_rng(11)
+    sd = np.sqrt((0.03 * mu) ** 2 + 1e-4 ** 2)        # the proportional noise model of hbm.noise
+    ds = clean.assign(stress=("point", mu + sd * rng.standard_normal(mu.size)))
+    dg = diagnose(ds, seed=3, n_samples=300, candidates=["offset", "viscoelastic", "slack"], removal=False)
+    assert dg.noise["model"] == "proportional"
+    assert dg.noise["consistent"], dg.noise.get("comparison")
+    assert "model_free_scaled" in dg.noise
+    assert dg.verdict == "adequate", dg.message
