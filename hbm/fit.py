@@ -444,7 +444,17 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
             "noise": noise, "map": mp, "map_source": source, "map_log_likelihood": float(ll_map),
             "combinations": combos, "log_evidence": float(r.log_evidence),
             "log_evidence_se": float(r.log_evidence_se),
-            "at_bounds": r.at_bounds if r.at_bounds is not None else at_bounds(r), "prior": _prior_of(r)}
+            "at_bounds": r.at_bounds if r.at_bounds is not None else at_bounds(r), "prior": _prior_of(r),
+            "prior_dominated": _uninformed_combinations(data["strain"].values if data is not None else r.strain)}
+
+
+def _uninformed_combinations(strain) -> dict[str, str]:
+    """Combinations the data cannot inform, with why: the fibre term c·P1·⟨ε − EOPT⟩₊ is
+    identically zero for ε ≤ 0, so on compression data VOLF·P1 is the prior."""
+    eps = np.asarray(strain if strain is not None else [], float)
+    if eps.size and float(np.max(eps)) <= 0.0:
+        return {"VOLF*P1": "the fibre term is identically zero for ε ≤ 0 (compression data)"}
+    return {}
 
 
 def tier_line(r: SpecimenResult) -> str:
@@ -481,10 +491,17 @@ def quality_lines(q: Mapping[str, Any]) -> list[str]:
     src = "CMA-ES optima" if q["map_source"] == "optimum" else "posterior samples"
     lines.append(f"best fit (MAP, best of the {src}, log-likelihood {q['map_log_likelihood']:.3f}): "
                  + ", ".join(f"{k}={v:.5g}" for k, v in q["map"].items()))
-    if q["combinations"]:
+    prior_dom = q.get("prior_dominated", {})
+    ident = {k: v for k, v in q["combinations"].items() if k not in prior_dom}
+    if ident:
         lines.append("identified combinations (median [90% interval]): "
                      + ", ".join(f"{k} {v['median']:.4g} [{v['lower']:.4g}, {v['upper']:.4g}]"
-                                 for k, v in q["combinations"].items()))
+                                 for k, v in ident.items()))
+    for k, why in prior_dom.items():
+        if k in q["combinations"]:
+            v = q["combinations"][k]
+            lines.append(f"prior-dominated, not identified: {k} {v['median']:.4g} [{v['lower']:.4g}, "
+                         f"{v['upper']:.4g}] ({why})")
     lines += format_at_bounds(q["at_bounds"])
     return lines
 

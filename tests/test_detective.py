@@ -163,7 +163,7 @@ def test_cli_diagnose_json_and_user_candidate(tmp_path, capsys, monkeypatch):
     d = json.loads(out)  # exactly one object (json.loads fails on trailing data)
     assert d["verdict"] == "effect" and d["selected"] == ["my_zero"]
     assert {c["effect"] for c in d["candidates"]} == {"viscoelastic", "my_zero", "local_misfit", "local_step",
-                                                      "local_kink", "time_trend"}
+                                                      "local_kink", "time_trend", "time_step", "periodic"}
     assert {c["effect"] for c in d["candidates"] if c["physical"]} == {"viscoelastic", "my_zero"}
     assert (tmp_path / "d.png").stat().st_size > 10_000
     rc = cli.main(["extend", str(path), "--add", "offset", "--samples", "250", "--json"])

@@ -7,16 +7,20 @@ import argparse
 
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
+from ..detective.caveats import CORRELATED_CHOICES
 from ..effects import resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..utils import prepare_output_file
 from ._common import (n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
                       check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
-                      name_list, non_negative_int, plot_path, print_json, sample_size)
+                      name_list, non_negative_int, plot_path, positive_float, print_json, sample_size)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
+#: --max-time default (s): a 150-point three-rate record takes 4-9 minutes in full on a busy 2-core machine
+DEFAULT_MAX_TIME = 300.0
+
 
 DIAGNOSE_DESCRIPTION = """\
 Compare the model with a specimen, show where it fails and name the missing effect.
@@ -66,11 +70,20 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
                    help="write the figure (PNG/PDF/SVG/...; into an existing folder)")
-    p.add_argument("--progress", action="store_true", help="progress lines on stderr")
-    p.add_argument("--no-progress", dest="progress", action="store_false",
-                   help="no progress lines (the default; accepted like on the other commands)")
+    p.add_argument("--progress", action="store_true", default=True,
+                   help="progress lines on stderr as the diagnosis goes (the default)")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
+    p.add_argument("--max-time", type=positive_float, default=DEFAULT_MAX_TIME, metavar="SECONDS",
+                   help=f"wall seconds after which no new fit is started (default {DEFAULT_MAX_TIME:.0f}); the "
+                        "verdict so far, with the candidates not yet decided and why, is written (text, JSON, "
+                        "figure) and the command exits 0")
     p.add_argument("--noise", default=None, metavar="iid|ar1|proportional|...",
                    help="force one noise model for every fit (default: chosen by evidence)")
+    p.add_argument("--correlated", choices=CORRELATED_CHOICES, default="auto",
+                   help="correlated residuals are noise (AR(1) offered) or model error (not offered); auto "
+                        "(default): model error on curves marked digitised or group mean ('# digitised: yes', "
+                        "'# kind: group mean', or those words in the provenance) or without noise at the "
+                        "model-free scale, noise otherwise")
 
 
 def register(subparsers) -> None:
@@ -129,7 +142,7 @@ def _prepare(args, extra: list[str]):
     if args.plot is not None:
         prepare_output_file(args.plot, "--plot")
     kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,
-          "noise": args.noise}
+          "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:

@@ -45,6 +45,8 @@ from ..noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
 from .decision import Verdict, decide, gain
 from .fitting import Fitter
+from .budget import cost_estimate, revised_estimate, stop_record
+from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_caveats, white_noise_view
 from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
 from .noise_check import NoiseCheck, check_noise, misfit_windows, model_free_noise, noise_prior_box
 from .power import detection_power
@@ -84,6 +86,18 @@ def _noise_models(noise: str | None, noise_models: Sequence[str]) -> list[str]:
     return [noise]
 
 
+def correlated_noises(noises: list[str], noise: str | None, correlated: str, digitised: str | None) -> list[str]:
+    """The noise models offered once it is decided what correlated residuals are: without AR(1)
+    when they are model error (``correlated="misfit"``, or ``"auto"`` on a digitised or
+    group-mean curve), unless the user forced a noise model."""
+    if correlated not in CORRELATED_CHOICES:
+        raise HbmError(f"correlated: expected one of {', '.join(CORRELATED_CHOICES)}, got {correlated!r}")
+    as_misfit = correlated == "misfit" or (correlated == "auto" and digitised is not None)
+    if noise is None and as_misfit and len(noises) > 1:
+        return [n for n in noises if n != "ar1"] or noises
+    return noises
+
+
 @dataclass(slots=True)
 class _Step:
     """One round of steps 2–4 at the current model."""
@@ -110,7 +124,9 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
         for c in done:
             c.windows_after = len(check.remaining_windows(c.fit, d))
             if not c.physical:
-                c.region = c.effect_instance.region(dict(zip(c.fit.names, c.fit.theta_max)), d)
+                x = dict(zip(c.fit.names, c.fit.theta_max))
+                c.region = c.effect_instance.region(x, d)
+                c.shape_detail = c.effect_instance.describe(x)
     check.noise["preference"] = _noise_preference(base, ctrls)
     verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d)
     return _Step(base, check, results, ctrls, skipped, verdict)
@@ -152,7 +168,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              seed: int = 0, n_samples: int = 800, top: int = 3, progress: bool = False,
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
-             power: bool = False, removal: bool = True, max_evaluations: int | None = None) -> Diagnosis:
+             power: bool = False, removal: bool = True, max_evaluations: int | None = None,
+             correlated: str = "auto", max_time: float | None = None) -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
@@ -195,6 +212,14 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     max_evaluations : int, optional
         Likelihood-evaluation budget of each TMCMC evidence run (the population shrinks to what
         it affords, then a hard cap); for models far slower than the base model.
+    correlated : {"auto", "noise", "misfit"}
+        What correlated residuals are: ``"noise"`` offers AR(1) noise, ``"misfit"`` does not
+        (model error), ``"auto"`` treats them as model error on curves marked or detected as
+        digitised or group means (:func:`.caveats.digitised_reason`) and offers AR(1) otherwise.
+    max_time : float, optional
+        Wall seconds after which no new fit is started (a fit under way finishes): the verdict
+        so far is returned with ``stopped`` saying what was left undecided and why.  ``None``:
+        no limit (the command line's default is 300 s).
 
     Returns
     -------
@@ -208,25 +233,37 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     fix = _checked_fix(fix, base_model.parameter_names)
     noises = _noise_models(noise, noise_models)
     mf = model_free_noise(d.stress, d.segment)
+    digitised = digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress)
+    noises = correlated_noises(noises, noise, correlated, digitised)
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations)
+    if max_time is not None:
+        fitter.deadline = t_start + float(max_time)
+    timings["estimate"] = cost_estimate(base_model, cands, fitter, noises, top, max_effects)
+    fitter.log(timings["estimate"]["text"])
 
     with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
         base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
+    fitter.log(revised_estimate(timings["estimate"], timings["base_fit"]))
     problem = unit_anomaly(d)
     rounds: list[_Step] = []
     selected: list[str] = []
     current = base
+    rejected = None
     if problem is not None:
         check = check_noise(base, mf, d, _seed(seed, 1))
         rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
     else:
         def run_round(cur, rem, k):
             return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
-        rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log)
-        white = (_ar1_absorbs_misfit(rounds[0])
+        rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
+        white = rejected = (_ar1_absorbs_misfit(rounds[0])
                  if noise is None and base.noise == "ar1" and any(n != "ar1" for n in noises) else None)
+        if white is not None and fitter.out_of_time():
+            fitter.skip("the diagnosis under white noise", f"AR(1) noise may absorb a misfit ({white}); the "
+                        "verdict so far is under AR(1) noise")
+            white = rejected = None
         if white is not None:
             # the AR(1) correlation is a smooth misfit, not noise: an AR(1) fit would absorb the
             # very signal the candidates are screened on, so diagnose again under white noise
@@ -234,7 +271,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
             fitter.log(f"AR(1) noise absorbs a smooth misfit ({white}): diagnosing again with {', '.join(noises)}")
             with _stopwatch(timings, "base_fit"):
                 base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
-            rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log)
+            rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
             pref = rounds[0].check.noise.get("preference")
             rounds[0].check.noise["preference"] = "; ".join(
                 [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
@@ -242,10 +279,38 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     first = rounds[0]
     edges_found = _base_at_bounds(first.base, d.name)
     extra = {}
-    if removal and problem is None:
+    if removal and problem is None and fitter.out_of_time():
+        fitter.skip("the removal test of the base parts", "which base parts the data need is not known")
+    elif removal and problem is None:
         with _stopwatch(timings, "removal"):
             extra["removal"] = removal_test(first.base, fitter, _seed(seed, 90))
-    if power:
+    if problem is None:
+        # the noise caveat belongs to the final model: a misfit an AR(1) base absorbed and a named
+        # effect explains is no caveat of the verdict
+        last = rounds[-1]
+        view = white_noise_view(last.base, last.controls, d, _seed(seed, 92)) if last.base.noise == "ar1" else None
+        extra["caveats"] = verdict_caveats(
+            n_points=d.stress.size, base=last.base, check_noise=last.check.noise, z=last.check.z,
+            resid=last.check.resid, d=d, white=view, digitised=digitised, correlated=correlated,
+            ar1_rejected=rejected if problem is None and noise is None else None,
+            removal=extra.get("removal", []), at_bounds=edges_found, verdict=verdict.verdict)
+        verdict = replace(verdict, message=verdict.message + caveat_line(extra["caveats"]))
+    if fitter.undecided:
+        extra["stopped"] = stop_record(fitter, max_time, t_start)
+        if any(w.startswith("refit") for w, _ in fitter.undecided):
+            # "adequate" claims that no candidate gains: not shown when some were never refitted
+            msg = verdict.message.replace("adequate — the model is adequate", "undecided — no sign of misfit so "
+                                          "far, but not every candidate was refitted").replace(
+                "no candidate or generic shape gains", "no refitted candidate or shape gains")
+            if verdict.verdict == "adequate":
+                msg = "no sign of misfit so far, but not every candidate was refitted" + msg.removeprefix(
+                    "the model is adequate")
+            verdict = replace(verdict, verdict="undecided" if verdict.verdict == "adequate" else verdict.verdict,
+                              message=msg)
+        verdict = replace(verdict, message=verdict.message + " | " + extra["stopped"]["text"])
+    if power and fitter.out_of_time():
+        fitter.skip("the detection-power estimate (--power)", "no detection limits")
+    elif power:
         with _stopwatch(timings, "power"):
             # from the user's starting model, so every library effect gets its limit (also those
             # named here), with the noise of the final model (the starting fit's holds the misfit)
@@ -266,7 +331,12 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                      window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
                      residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
                      unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
-                     data_problem=problem, **extra)
+                     data_problem=problem, named_candidates=_named(rounds, selected), **extra)
+
+
+def _named(rounds: list[_Step], selected: list[str]) -> list[CandidateResult]:
+    """The candidate result of each named effect, in order (round k named ``selected[k]``)."""
+    return [next(c for c in rounds[k].results if c.effect == name) for k, name in enumerate(selected)]
 
 
 def _step_record(r: _Step) -> dict:
@@ -279,7 +349,8 @@ def _step_record(r: _Step) -> dict:
             "placement_ties": dict(named.placement_ties) if named is not None else {}}
 
 
-def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lambda msg: None):
+def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lambda msg: None,
+            fitter: Fitter | None = None):
     """Steps 2–4 at the base model, then again after each named effect.
 
     ``run_round(current_fit, remaining_candidates, k)`` returns a :class:`_Step`.  A tentatively
@@ -299,6 +370,16 @@ def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lamb
     current, remaining = base, list(cands)
     tentative: int | None = None          # index of the round whose effect awaits the next round
     for k in range(max(0, int(max_effects)) + 1):
+        if k > 0 and fitter is not None and fitter.out_of_time():
+            named = selected[-1] if selected else "?"
+            fitter.skip(f"greedy round {k} (with {named} added)",
+                        "what the named effect leaves is not screened" + (
+                            f"; {named} stays tentative: the verdict of the round that named it stands"
+                            if tentative is not None else ""))
+            if tentative is not None:
+                rounds[tentative].verdict = rounds[tentative].verdict.fallback
+                return rounds, selected[:-1], rounds[tentative].base
+            break
         st = run_round(current, remaining, k)
         rounds.append(st)
         if tentative is not None:
@@ -398,8 +479,16 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            fix: Mapping[str, float] | None = None, seed: int = 0, n_samples: int = 800,
            top: int = 3, progress: bool = False, max_steps: int = 4,
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
-           max_evaluations: int | None = None) -> Extension:
+           max_evaluations: int | None = None, correlated: str = "auto",
+           max_time: float | None = None) -> Extension:
     """Refit with effects added one at a time and record the error fall.
+
+    One noise-model choice for the whole table, so that its Δlog Z are those of
+    :func:`diagnose`: the effects named by ``auto`` are the diagnosis's own fits (its base, after
+    its guard against AR(1) noise absorbing a misfit, and each round's named refit), and the
+    given effects (``add``) are compared at one noise model, the one the most complete model
+    chooses (an AR(1) the base chose because it absorbed the misfit an added effect explains is
+    thus replaced by white noise, as diagnose's guard does).
 
     Parameters
     ----------
@@ -411,7 +500,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time
         As in :func:`diagnose`.
 
     Returns
@@ -429,40 +518,43 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     if not adds and not auto:
         raise HbmError("extend: give effects to add (--add EFFECT[,EFFECT...]) or auto=True (--auto)")
     mf = model_free_noise(d.stress, d.segment)
+    noise_models = correlated_noises(noise_models, noise, correlated,
+                                     digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
     fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations)
-    steps = [fitter.fit(current, list(noise_models), None, _seed(seed, 0), global_restarts=2)]
+    steps: list[FitSummary] = []
     decisions: list = []
-
-    def add_step(e: Effect, k: int, start: Mapping[str, float] | None = None):
-        nonlocal current
-        mc = current.with_effects(e)
-        starts = fitter.warm_starts(steps[-1], mc, noise_models,
-                                    [{q.name: q.null for q in e.parameters}] + ([start] if start else []))
-        steps.append(fitter.fit(mc, list(noise_models), starts, _seed(seed, 1 + k)))
-        current = mc
-
-    for k, e in enumerate(adds):               # the given effects, in order
-        if e.name in current.effect_names:
-            raise HbmError(f"extend: effect {e.name!r} is already in the model {current.effect_names}")
-        add_step(e, k + 1)
-    k = len(adds)
-    if auto and k < max_steps:                 # then what diagnose names, greedily, in its order
+    if adds:
+        steps.append(fitter.fit(current, list(noise_models), None, _seed(seed, 0), global_restarts=2))
+        for k, e in enumerate(adds):               # the given effects, in order
+            if e.name in current.effect_names:
+                raise HbmError(f"extend: effect {e.name!r} is already in the model {current.effect_names}")
+            mc = current.with_effects(e)
+            starts = fitter.warm_starts(steps[-1], mc, noise_models, [{q.name: q.null for q in e.parameters}])
+            steps.append(fitter.fit(mc, list(noise_models), starts, _seed(seed, 1 + k)))
+            current = mc
+        common = steps[-1].noise
+        for k, fs in enumerate(steps[:-1]):
+            fitter.use_noise(fs, common, _seed(seed, 1 + k))
+        fitter.log(f"extend: every given step compared at {common} noise (the most complete model's choice)")
+    stopped = None
+    if auto and len(adds) < max_steps:         # then what diagnose names, greedily, in its order
         dg = diagnose(d.ds, model=current, candidates=candidates, fix=fix, seed=seed + 17,
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
-                      noise=noise, max_effects=max_steps - k, removal=False, max_evaluations=max_evaluations)
+                      noise=noise, max_effects=max_steps - len(adds), removal=False,
+                      max_evaluations=max_evaluations, correlated=correlated, max_time=max_time)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
-        by_name = {c.effect: c for c in dg.candidates}
-        placed = {st["selected"][0]: st["placements"] for st in dg.steps if st["selected"]}
-        for name in dg.selected:
-            current, placed_as = place_as_diagnosed(current, name, placed.get(name, {}))
-            chosen = by_name.get(name)
-            inst = chosen.effect_instance if chosen is not None else resolve_effect(placed_as)
-            start = dict(zip(chosen.fit.names, chosen.fit.theta_max)) if chosen is not None and chosen.fit else None
-            k += 1
-            add_step(inst, k, start=start)
-    return Extension(steps=steps, decisions=decisions, data=d,
-                     timings={"total": _time.perf_counter() - t_start}, noise=mf)
+        # the diagnosis's own fits: the same model as the last given step, fitted (and its noise
+        # chosen, with the guard) by the diagnosis, then each named effect's refit
+        gains = [None] * len(steps)
+        steps = steps[:-1] + [dg.base] + list(dg.named_fits)
+        gains += [{"delta_log_evidence": c.delta_log_evidence, "delta_log_evidence_se": c.delta_log_evidence_se,
+                   "evidence_method": c.evidence_method} for c in dg.named_candidates]
+        stopped = dg.stopped
+    else:
+        gains = []
+    return Extension(steps=steps, decisions=decisions, data=d, gains=gains,
+                     timings={"total": _time.perf_counter() - t_start}, noise=mf, stopped=stopped)
 
 
 def place_as_diagnosed(model, name: str, moves: Mapping[str, str]):

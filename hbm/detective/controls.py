@@ -10,7 +10,9 @@ reported as unexplained, with the best control's shape and where it acts
 * :class:`LocalMisfit` — a Gaussian bump in strain;
 * :class:`StepMisfit` — a smooth step in strain (a structure that locks or ruptures);
 * :class:`KinkMisfit` — a change of slope at one strain;
-* :class:`TimeTrend` — a slow trend in time (drift of the load cell).
+* :class:`TimeTrend` — a slow trend in time (drift of the load cell);
+* :class:`TimeStep` — an abrupt step in time (a grip slip), located at its time;
+* :class:`Ripple` — a periodic ripple in time (an actuator artefact), with its period.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from ..errors import HbmError
 from ..model.core import Effect, Parameter
 from .rules import CONTROL_NAME
 
-__all__ = ["Control", "LocalMisfit", "StepMisfit", "KinkMisfit", "TimeTrend", "controls_for"]
+__all__ = ["Control", "LocalMisfit", "StepMisfit", "KinkMisfit", "TimeTrend", "TimeStep", "Ripple", "controls_for"]
 
 
 class Control(Effect):
@@ -59,6 +61,10 @@ class Control(Effect):
     def region(self, x: dict[str, float], data) -> tuple[str, float, float]:
         """Where the fitted control acts: (axis, lo, hi)."""
         raise NotImplementedError
+
+    def describe(self, x: dict[str, float]) -> str:
+        """The fitted shape's own numbers in words ("" when its region says it all)."""
+        return ""
 
 
 def _strain_params(prefix: str, strain: np.ndarray, amp: float, wmin: float, wmax: float):
@@ -200,9 +206,109 @@ class TimeTrend(Control):
         return "time", float(np.min(t)), float(np.max(t))
 
 
+class TimeStep(Control):
+    """An abrupt (smooth) step in time, ``A / (1 + exp(−(t − C)/W))``: a grip slip, a load-cell
+    jump -- located at its time C, not spread over the test like a drift."""
+
+    name = "time_step"
+    strength = "TSTEP_A"
+    axis = "time"
+    reach = 4.0
+    description = "non-physical control: abrupt stress step in time (amplitude, time, duration)"
+
+    def __init__(self, amplitude: float = 0.05, t_range: tuple[float, float] = (0.0, 1.0), dt: float = 0.01) -> None:
+        a = abs(float(amplitude)) or 1e-3
+        lo, hi = float(t_range[0]), float(t_range[1])
+        w_lo, w_hi = max(0.3 * dt, 1e-6 * (hi - lo)), max(0.1 * (hi - lo), 0.6 * dt)
+        self.parameters = (Parameter("TSTEP_A", -a, a, "MPa", "step height", null=0.0),
+                           Parameter("TSTEP_C", lo, hi, "s", "time of the step", null=0.5 * (lo + hi)),
+                           Parameter("TSTEP_W", w_lo, w_hi, "s", "duration of the step",
+                                     null=float(np.sqrt(w_lo * w_hi))))
+        self.amp, self.shape_names = "TSTEP_A", ("TSTEP_C", "TSTEP_W")
+
+    @classmethod
+    def for_data(cls, time: np.ndarray | None, stress: np.ndarray):
+        t = np.asarray(time, float)
+        dt = float(np.median(np.abs(np.diff(t)))) if t.size > 1 else 1.0
+        return cls(0.5 * float(np.ptp(np.asarray(stress, float))) or 1e-3, (float(np.min(t)), float(np.max(t))),
+                   dt or 1.0)
+
+    def shape(self, loading, q):
+        if loading.time is None:
+            raise HbmError("the time-step control needs a time column")
+        return 0.5 * (1.0 + np.tanh(0.5 * (loading.time - q["TSTEP_C"]) / q["TSTEP_W"]))
+
+    def grid(self, n: int = 15) -> list[dict[str, float]]:
+        c_q, w_q = self.parameters[1], self.parameters[2]
+        cs = np.linspace(c_q.lower, c_q.upper, n + 2)[1:-1]
+        ws = np.geomspace(w_q.lower * 1.5, w_q.upper / 1.5, 3)
+        return [{"TSTEP_C": float(c), "TSTEP_W": float(w)} for c in cs for w in ws]
+
+    def region(self, x, data):
+        c, w = x["TSTEP_C"], x["TSTEP_W"]
+        t = data.time
+        return "time", float(max(c - self.reach * w, np.min(t))), float(min(c + self.reach * w, np.max(t)))
+
+
+class Ripple(Control):
+    """A periodic artefact in time, ``A·sin(2π·t/P + φ)``: an actuator or mains ripple, with a
+    fitted period, phase and amplitude (a smooth misfit control cannot absorb it, and AR(1)
+    noise only partly)."""
+
+    name = "periodic"
+    strength = "RIP_A"
+    axis = "time"
+    description = "non-physical control: periodic stress ripple in time (amplitude, period, phase)"
+
+    def __init__(self, amplitude: float = 0.05, period_range: tuple[float, float] = (1.0, 100.0)) -> None:
+        a = abs(float(amplitude)) or 1e-3
+        p_lo, p_hi = float(period_range[0]), float(period_range[1])
+        self.parameters = (Parameter("RIP_A", -a, a, "MPa", "ripple amplitude", null=0.0),
+                           Parameter("RIP_P", p_lo, p_hi, "s", "ripple period", null=float(np.sqrt(p_lo * p_hi))),
+                           Parameter("RIP_PH", 0.0, 2 * np.pi, "rad", "ripple phase", null=0.0))
+        self.amp, self.shape_names = "RIP_A", ("RIP_P", "RIP_PH")
+
+    @classmethod
+    def for_data(cls, time: np.ndarray | None, stress: np.ndarray):
+        t = np.asarray(time, float)
+        dt = float(np.median(np.abs(np.diff(t)))) if t.size > 1 else 1.0
+        span = float(np.ptp(t))
+        if not (dt > 0 and span > 8 * dt):
+            raise HbmError("the periodic control needs a time column with at least 8 samples per test")
+        # from 2.5 samples per period (near Nyquist) to half the record
+        return cls(0.5 * float(np.ptp(np.asarray(stress, float))) or 1e-3, (2.5 * dt, 0.5 * span))
+
+    def shape(self, loading, q):
+        if loading.time is None:
+            raise HbmError("the periodic control needs a time column")
+        return np.sin(2 * np.pi * loading.time / q["RIP_P"] + q["RIP_PH"])
+
+    def grid(self, n: int = 8) -> list[dict[str, float]]:
+        """Periods spaced by the frequency resolution of the record (one cycle more over it),
+        at most 150, and ``n`` phases."""
+        p_lo, p_hi = self.parameters[1].lower, self.parameters[1].upper
+        span = 2.0 * p_hi
+        k = int(np.clip(np.ceil(span / p_lo - span / p_hi) + 1, 4, 150))
+        freqs = np.linspace(1.0 / p_hi, 1.0 / p_lo, k)
+        phases = np.arange(n) * 2 * np.pi / n
+        return [{"RIP_P": float(1.0 / f), "RIP_PH": float(ph)} for f in freqs for ph in phases]
+
+    def region(self, x, data):
+        t = data.time
+        return "time", float(np.min(t)), float(np.max(t))
+
+    def describe(self, x: dict[str, float]) -> str:
+        return f"period {x['RIP_P']:.3g} s, amplitude {abs(x['RIP_A']):.3g} MPa"
+
+
 def controls_for(data) -> list[Control]:
-    """The controls applicable to a specimen (the time trend needs a time column)."""
+    """The controls applicable to a specimen (the time controls need a time column)."""
     out: list[Control] = [cls.for_data(data.strain, data.stress) for cls in (LocalMisfit, StepMisfit, KinkMisfit)]
     if data.time is not None and np.max(data.time) > 0:
         out.append(TimeTrend.for_data(data.time, data.stress))
+        out.append(TimeStep.for_data(data.time, data.stress))
+        try:
+            out.append(Ripple.for_data(data.time, data.stress))
+        except HbmError:     # too short a record for a period: no periodic control
+            pass
     return out

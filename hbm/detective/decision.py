@@ -16,8 +16,10 @@ One evidence number per refit -- its gain against the best base model found
   control, the evidence beats the best without it by ``DELTA_LOGZ_MIN``); otherwise the
   unexplained verdict of this round stands;
 * otherwise any sign of misfit -- a significant window under the fitted or the model-free
-  noise, a fitted noise that disagrees with the model-free estimate, white noise + a smooth
-  misfit preferred to AR(1) noise, or a control that gains -- gives ``"unexplained"`` with
+  noise, a fitted noise that disagrees with the model-free estimate (estimated under the fitted
+  noise model's variance shape), white noise + a smooth misfit preferred to AR(1) noise, or a
+  control that gains (> ``DELTA_LOGZ_MIN`` beside a window, > ``CONTROL_ALONE_MIN`` alone) --
+  gives ``"unexplained"`` with
   where the misfit is and the best-fitting shape;
 * ``"adequate"`` only when there is no such sign.
 """
@@ -34,7 +36,7 @@ from ..effects import CONFUSABLE_GROUPS
 from .protocols import describe_protocol, experiments_for, protocol_features
 from .refits import primary_parameters
 from .results import CandidateResult, gain
-from .rules import DELTA_LOGZ_MIN, REMOVE_TOL, RUNNER_UP_MARGIN
+from .rules import CONTROL_ALONE_MIN, DELTA_LOGZ_MIN, REMOVE_TOL, RUNNER_UP_MARGIN
 
 __all__ = ["Verdict", "decide", "gain"]
 
@@ -66,9 +68,23 @@ def misfit_signs(check_noise: dict, windows: list[dict], best_ctrl: CandidateRes
     if base_noise == "ar1" and white is not None and white.white_gain > 0:
         out.append(f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
                    f"by {white.white_gain:.1f} nats")
-    if best_ctrl is not None and gain(best_ctrl) > DELTA_LOGZ_MIN:
+    if best_ctrl is not None and gain(best_ctrl) > (DELTA_LOGZ_MIN if windows else CONTROL_ALONE_MIN):
         out.append(f"a generic shape ({best_ctrl.effect}) gains {gain(best_ctrl):.1f} nats")
     return out
+
+
+def adequate_message(noise: dict, windows: list[dict], best_ctrl: CandidateResult | None) -> str:
+    """The adequate verdict, naming only the checks that were made (and how they came out)."""
+    parts = ["no significant misfit window (family-wise 5 %)" if not windows else ""]
+    parts.append(noise.get("comparison") or "")
+    g = gain(best_ctrl)
+    if best_ctrl is not None and g > DELTA_LOGZ_MIN:
+        parts.append(f"no physical candidate gains more than {DELTA_LOGZ_MIN:.0f} nats; a generic shape "
+                     f"({best_ctrl.effect}) gains {g:.1f} nats but shows no significant window (a shape alone "
+                     f"needs {CONTROL_ALONE_MIN:.0f}: its evidence is not corrected for its free position)")
+    else:
+        parts.append(f"no candidate or generic shape gains more than {DELTA_LOGZ_MIN:.0f} nats of evidence")
+    return "the model is adequate: " + ", ".join(p for p in parts if p)
 
 
 def decide(results: list[CandidateResult], controls: list[CandidateResult], windows: list[dict],
@@ -97,9 +113,7 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
         return _unexplained(ctrl, windows, data, best, signs)
     if signs:
         return _unexplained(ctrl, windows, data, best, signs)
-    msg = "the model is adequate: no misfit window, noise as the model-free estimate, no candidate or generic " \
-          "shape gains more than {:.0f} nats of evidence".format(DELTA_LOGZ_MIN)
-    return Verdict("adequate", [], [], "", msg)
+    return Verdict("adequate", [], [], "", adequate_message(noise, windows, ctrl))
 
 
 def _effect(best: CandidateResult) -> Verdict:
@@ -160,7 +174,8 @@ def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: 
     where = None
     if ctrl is not None and ctrl.refit and ctrl.region is not None and gain(ctrl) > 0:
         axis, lo, hi = ctrl.region
-        where = {"axis": axis, "range": [lo, hi], "shape": ctrl.effect_instance.description.split(": ")[-1],
+        shape = ctrl.effect_instance.description.split(": ")[-1]
+        where = {"axis": axis, "range": [lo, hi], "shape": shape + (f", {ctrl.shape_detail}" if ctrl.shape_detail else ""),
                  "control": ctrl.effect, "delta_log_evidence": float(gain(ctrl))}
     elif windows:
         w = windows[0]

@@ -242,6 +242,18 @@ class Fitter:
         self.max_evaluations = max_evaluations   # per TMCMC evidence run (``--max-evaluations``)
         self.n = data.stress.size
         self.refine_seconds = 0.0                 # wall time of the refined evidence reruns
+        self.deadline: float | None = None        # perf_counter() time of --max-time (None: no limit)
+        #: what was left undecided when the deadline passed: (what, why) in order
+        self.undecided: list[tuple[str, str]] = []
+
+    def out_of_time(self) -> bool:
+        """Has the diagnosis's ``max_time`` passed?  (Checked between fits: a fit under way finishes.)"""
+        return self.deadline is not None and _time.perf_counter() > self.deadline
+
+    def skip(self, what: str, why: str) -> None:
+        """Record a step left undecided at the deadline (and say so in the progress log)."""
+        self.undecided.append((what, why))
+        self.log(f"max-time reached: {what} not run ({why})")
 
     def log(self, msg: str) -> None:
         """A progress line on stderr (when ``progress``)."""
@@ -251,10 +263,15 @@ class Fitter:
     def bic(self, lik, f: float) -> float:
         return -2.0 * f + len(lik.names) * math.log(self.n)
 
-    def likelihood(self, model: Model, noise: str):
-        """The likelihood of ``model`` at noise model ``noise`` with this diagnosis's prior box."""
-        return make_likelihood(model, self.data.ds, noise=noise, fix=dict(self.fix) if self.fix else None,
-                               sigma_bounds=self.sigma_bounds)
+    def likelihood(self, model: Model, noise: str, fix: Mapping[str, float] | None = None):
+        """The likelihood of ``model`` at noise model ``noise`` with this diagnosis's prior box.
+
+        Every fit of the detective (base, candidate refits, extend's steps, the removal test, the
+        cost estimate) builds its likelihood here: the one place to choose a likelihood tier.
+        ``fix`` overrides the diagnosis's fixed parameters (the removal test's reduced models).
+        """
+        fix = dict(self.fix) if fix is None and self.fix else fix
+        return make_likelihood(model, self.data.ds, noise=noise, fix=fix or None, sigma_bounds=self.sigma_bounds)
 
     def warm_starts(self, prev: FitSummary, model: Model, noises: Sequence[str],
                     effect_starts: Sequence[Mapping[str, float]]) -> dict[str, list[np.ndarray]]:
@@ -309,6 +326,18 @@ class Fitter:
         model_names = fs.model.parameter_names
         score = {k: noise_evidence(v, model_names) for k, v in table.items()}
         best = max(table, key=lambda k: score[k])   # the first of equals, as a loop would
+        self._apply(fs, best, score, seed, sample)
+
+    def use_noise(self, fs: FitSummary, noise: str, seed: int) -> None:
+        """Put ``fs`` at its optimum under ``noise`` (one of its ``noise_fits``), re-running the
+        TMCMC when that changes its noise model: the steps of one comparison share a noise model."""
+        if noise == fs.noise or noise not in fs.noise_fits:
+            return
+        score = {k: noise_evidence(v, fs.model.parameter_names) for k, v in fs.noise_fits.items()}
+        self._apply(fs, noise, score, seed, True)
+
+    def _apply(self, fs: FitSummary, best: str, score: dict, seed: int, sample: bool) -> None:
+        table = fs.noise_fits
         ch = table[best]
         changed = best != fs.noise
         lik, x = ch["lik"], np.asarray(ch["x"], float)

@@ -38,7 +38,8 @@ def _diff_var_factor(rho: float, lag: int) -> float:
     return float(_DIFF @ _AR1.autocorrelation((1.0, rho), lag * np.abs(j[:, None] - j[None, :])) @ _DIFF)
 
 
-def model_free_noise(stress: np.ndarray, segment: np.ndarray | None = None, max_lag: int = 4) -> dict:
+def model_free_noise(stress: np.ndarray, segment: np.ndarray | None = None, max_lag: int = 4,
+                     scale: np.ndarray | None = None) -> dict:
     """Noise sd and lag-1 autocorrelation from differences of the data alone.
 
     Third-order differences (which annihilate quadratic trends, so the smooth curve
@@ -49,12 +50,19 @@ def model_free_noise(stress: np.ndarray, segment: np.ndarray | None = None, max_
     the matching correction) so that kinks (load reversals, onsets) do not dominate.
     Independent of any model, hence unaffected by a misfit that a fitted AR(1) might soak up.
 
+    ``scale`` (optional, per point, > 0) is the *shape* of a heteroscedastic noise sd (e.g. the
+    fitted proportional noise's sd / its median): each difference is divided by the scale at
+    its centre, so the estimate is of the sd at scale 1 -- under the noise model's variance
+    structure.  Without it the estimate is a root-mean-square sd, which exceeds the median sd
+    of a proportional noise several-fold on curves spanning a decade of stress.
+
     Returns
     -------
     dict with ``sigma``, ``rho`` and ``sigma_iid`` (σ from lag 1 assuming ρ = 0).
     """
     y = np.asarray(stress, float)
     seg = np.zeros(y.size, int) if segment is None else np.asarray(segment)
+    w = np.ones(y.size) if scale is None else np.asarray(scale, float)
     # E[x² | x² below its 95 % quantile] / E[x²] for a Gaussian x
     q = _stats.chi2.ppf(0.95, 1)
     trim_factor = _stats.chi2.cdf(q, 3) / 0.95
@@ -62,11 +70,13 @@ def model_free_noise(stress: np.ndarray, segment: np.ndarray | None = None, max_
     for lag in range(1, max_lag + 1):
         vals = []
         for s in np.unique(seg):
-            ys = y[seg == s]
+            ys, ws = y[seg == s], w[seg == s]
             m = ys.size - 3 * lag
             if m <= 0:
                 continue
-            vals.append(sum(_DIFF[j] * ys[j * lag: j * lag + m] for j in range(4)))
+            # the scale at the difference's centre (the mean of its two middle points)
+            centre = 0.5 * (ws[lag: lag + m] + ws[2 * lag: 2 * lag + m])
+            vals.append(sum(_DIFF[j] * ys[j * lag: j * lag + m] for j in range(4)) / centre)
         v = np.concatenate(vals) if vals else np.zeros(0)
         if v.size < 8:
             break
@@ -300,6 +310,22 @@ def noise_consistent(sig_fit: float, rho_fit: float, mf: dict) -> bool:
     return bool(sig_fit / mf["sigma"] < 1.5 and rho_fit - mf["rho"] < 0.3)
 
 
+def noise_comparison(sig_fit: float, rho_fit: float, mf: dict) -> str:
+    """The fitted noise against the model-free estimate, in words that claim only what was
+    compared: "undefined" when the estimate could not be formed, the ratio otherwise."""
+    if not np.isfinite(mf.get("sigma", np.nan)) or not mf["sigma"] > 0:
+        return "no model-free noise estimate (too few points per segment): the fitted noise is not cross-checked"
+    ratio = sig_fit / mf["sigma"]
+    under = f", under {mf['under']}" if mf.get("under") else ""
+    if 1 / 1.5 <= ratio <= 1.5 and abs(rho_fit - mf["rho"]) < 0.3:
+        return (f"fitted noise sd {sig_fit:.3g} agrees with the model-free estimate {mf['sigma']:.3g}{under} "
+                f"(ratio {ratio:.2f}; rho {rho_fit:.2f} vs {mf['rho']:.2f})")
+    below = ("; a fit less noisy than the difference estimate is no sign of misfit (the differences of a "
+             "coarsely sampled, curved record keep some curve)" if ratio < 1 / 1.5 else "")
+    return (f"fitted noise sd {sig_fit:.3g} vs model-free estimate {mf['sigma']:.3g}{under} (ratio {ratio:.2f}; "
+            f"rho {rho_fit:.2f} vs {mf['rho']:.2f}){below}")
+
+
 def check_noise(base: FitSummary, model_free: dict, d: SpecimenData, seed: int,
                 alpha: float = WINDOW_ALPHA) -> NoiseCheck:
     """Cross-check the fitted noise with the model-free estimate, then scan for misfit windows.
@@ -319,8 +345,15 @@ def check_noise(base: FitSummary, model_free: dict, d: SpecimenData, seed: int,
     noise = {"model": base.noise, **noise_par, "bic": base.noise_bic, "model_free": mf,
              "evidence": dict(base.noise_evidence)}
     sig_fit = float(np.median(sd))
+    if np.ptp(sd) > 1e-6 * max(sig_fit, 1e-300):
+        # a heteroscedastic noise model: estimate the model-free level under its variance shape,
+        # so that a fitted sd is compared with the same quantity (the sd at the median scale)
+        mf = {**model_free_noise(d.stress, d.segment, scale=sd / max(sig_fit, 1e-300)),
+              "under": f"the fitted {base.noise} variance shape"}
+        noise["model_free_scaled"] = mf
     consistent = noise_consistent(sig_fit, rho_fit, mf)
     noise["consistent"] = consistent
+    noise["comparison"] = noise_comparison(sig_fit, rho_fit, mf)
     if not consistent:
         noise["note"] = ("fitted noise differs from the model-free estimate (sd {:.3g} vs {:.3g}, rho {:.2f} vs "
                          "{:.2f}): a systematic misfit is probably inflating/correlating the residuals"

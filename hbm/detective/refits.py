@@ -50,9 +50,21 @@ def refit_candidates(results: list[CandidateResult], controls: list[CandidateRes
     phys = [c for c in results[:max(0, int(top))] if max(c.score, c.local_z) >= MIN_REFIT_SCORE]
     ctrl = [c for k, c in enumerate(controls[:N_CONTROL_REFITS]) if k == 0 or c.local_z >= MIN_REFIT_SCORE]
     noises = refit_noises(base, noise_models)
-    for k, c in enumerate(phys + ctrl):
+    todo = list(enumerate(phys + ctrl))
+    if ctrl:
+        # the best control first: the yardstick of "explains the misfit" must exist when a
+        # --max-time stop leaves the rest undecided (seeds stay those of the listed order)
+        k0 = len(phys)
+        todo = [todo[k0]] + todo[:k0] + todo[k0 + 1:]
+    done = []
+    for k, c in todo:
+        if fitter.out_of_time():
+            fitter.skip(f"refit of {c.effect}", f"screened (z {max(c.score, c.local_z):.1f}), not refitted: "
+                        "its evidence gain is unknown")
+            continue
         refit_candidate(c, base, fitter, noises, seed + 1000 * (k + 1))
-    done = phys + ctrl
+        done.append(c)
+    done = [c for c in phys + ctrl if c in done]
     if reoptimise_base(base, done, fitter, seed + 77):
         fitter.log(f"base re-optimised from the refits: max logL {base.max_log_likelihood:.2f} [{base.noise}]")
     evidence_gains(done, base)
@@ -106,14 +118,26 @@ def refine_decisive(refitted: Sequence[CandidateResult], base: FitSummary, fitte
     todo = to_refine(refitted)
     if not todo:
         return []
+    if fitter.out_of_time():
+        fitter.skip("refined evidence of " + ", ".join(c.effect for c in todo),
+                    "the standard 25-step evidence stands for this comparison")
+        return []
     fitter.refine(base, seed)
+    done = []
     for k, c in enumerate(todo):
+        if fitter.out_of_time():
+            # the rest keep their standard comparison (base and refit of one comparison always
+            # come from runs of the same settings)
+            fitter.skip("refined evidence of " + ", ".join(x.effect for x in todo[k:]),
+                        "their standard 25-step evidence stands")
+            break
+        done.append(c)
         fitter.refine(c.fit, seed + 1 + k)
         std = c.delta_log_evidence_tmcmc
         _evidence_gain(c, c.fit, base)
         fitter.log(f"  {c.effect}: refined Δlog Z {c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f} "
                    f"(standard {std:.1f})")
-    return [c.effect for c in todo]
+    return [c.effect for c in done]
 
 
 def reoptimise_base(base: FitSummary, refitted: Sequence[CandidateResult], fitter: Fitter, seed: int) -> bool:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..likelihood import make_likelihood
 from ..model.core import Model
 from ..model.spyrou import BASE_EFFECTS
 from .fitting import Fitter, cma_maximise, laplace_occam
@@ -42,8 +41,7 @@ def removal_test(base: FitSummary, fitter: Fitter, seed: int) -> list[dict]:
             continue
         removed = [n for n in model.parameter_names if n not in reduced.parameter_names]
         fix = {n: v for n, v in (fitter.fix or {}).items() if n in reduced.parameter_names}
-        lik = make_likelihood(reduced, fitter.data.ds, noise=base.noise, fix=fix or None,
-                              sigma_bounds=fitter.sigma_bounds)
+        lik = fitter.likelihood(reduced, base.noise, fix=fix)
         b = np.asarray(lik.bounds, float)
         x0 = np.clip([full.get(n, 0.5 * (lo + hi)) for n, (lo, hi) in zip(lik.names, b)], b[:, 0], b[:, 1])
         x, f = cma_maximise(lik, [x0], 0.05, seed + 7 * k, maxfevals=1200)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..fit import format_at_bounds
 from ..model.core import Effect, Model
-from .rules import BAND, DELTA_LOGZ_MIN
+from .rules import BAND, DELTA_LOGZ_MIN, TMCMC_SE_FACTOR
 
 __all__ = ["FitSummary", "CandidateResult", "gain", "Diagnosis", "Extension"]
 
@@ -98,6 +98,8 @@ class CandidateResult:
     windows_after: int | None = None
     #: where a refitted control acts: (axis, lo, hi)
     region: tuple | None = None
+    #: a refitted control's own numbers in words (a ripple's period and amplitude), else ""
+    shape_detail: str = ""
     #: the cheap local refit's whole optimum (base parameters included), a refit start
     local_full: dict = field(default_factory=dict, repr=False)
     #: Laplace Δlog Z of this refit at white noise against an AR(1) base (None otherwise)
@@ -127,6 +129,7 @@ class CandidateResult:
                 "excludes_null": self.excludes_null,
                 "windows_after": self.windows_after,
                 "region": list(self.region) if self.region else None,
+                "shape_detail": self.shape_detail,
                 "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None,
                 "placements": dict(self.placements),
                 "placement_ties": {k: [_num(x) for x in v] for k, v in self.placement_ties.items()}}
@@ -147,7 +150,8 @@ class Diagnosis:
     Attributes
     ----------
     verdict : str
-        ``"adequate"``, ``"effect"``, ``"group"`` or ``"unexplained"``.
+        ``"adequate"``, ``"effect"``, ``"group"``, ``"unexplained"``, ``"data_problem"`` or, when
+        ``max_time`` stopped it before every candidate was refitted and no misfit showed, ``"undecided"``.
     selected : list of str
         The named effect (verdict ``"effect"``).
     group : list of str
@@ -213,6 +217,18 @@ class Diagnosis:
     data_problem: str | None = None
     removal: list = field(default_factory=list)
     power: dict | None = None
+    #: what the verdict can and cannot tell (:func:`hbm.detective.caveats.verdict_caveats`)
+    caveats: list = field(default_factory=list)
+    #: why the diagnosis stopped early (``max_time`` reached), and what was left undecided
+    stopped: dict | None = None
+    #: the candidate result of each named effect, in order, each from the round that named it
+    #: (``hbm extend --auto`` tabulates their fits and gains)
+    named_candidates: list = field(default_factory=list, repr=False)
+
+    @property
+    def named_fits(self) -> list:
+        """The refit of each named effect, in order."""
+        return [c.fit for c in self.named_candidates]
 
     def to_dict(self) -> dict:
         """The JSON object of ``hbm diagnose --json`` (issue 5 shape plus detail keys)."""
@@ -239,6 +255,8 @@ class Diagnosis:
             "steps": jsonable(self.steps),
             "data_problem": self.data_problem,
             "removal": jsonable(self.removal),
+            "caveats": jsonable([{k: v for k, v in c.items()} for c in self.caveats]),
+            "stopped": jsonable(self.stopped),
             "power": jsonable({k: v for k, v in self.power.items() if k != "text"}) if self.power else None,
         }
 
@@ -249,14 +267,13 @@ class Diagnosis:
         """Human-readable report (what ``hbm diagnose`` prints)."""
         b = self.base
         lines = [f"model: {' + '.join(b.effects) or 'base'}   noise: {_noise_text(self.noise)}",
-                 f"fit: RMSE {b.rmse:.4g} MPa, log Z {b.log_evidence:.2f} ± {b.log_evidence_se:.2f}, "
+                 f"fit: RMSE {b.rmse:.4g} MPa (at the optimum under {b.noise} noise, the noise model chosen here; "
+                 f"other noise models give other optima), log Z {b.log_evidence:.2f} ± {b.log_evidence_se:.2f}, "
                  f"{int(BAND * 100)}% predictive coverage {self.coverage.get('overall', NAN):.2f}"]
         lines += [f"base fit: {line.removeprefix('warning: ')}" for line in format_at_bounds(self.at_bounds)]
-        mf = self.noise.get("model_free", {})
-        if mf:
-            lines.append(f"model-free noise: sigma {mf.get('sigma', NAN):.3g} MPa, "
-                         f"rho {mf.get('rho', NAN):.2f}"
-                         + ("" if self.noise.get("consistent", True) else "  (DISAGREES with the fit)"))
+        if self.noise.get("comparison"):
+            lines.append("noise check: " + self.noise["comparison"]
+                         + ("" if self.noise.get("consistent", True) else "  (DISAGREES: a sign of misfit)"))
         if self.misfit_windows:
             lines.append("misfit windows (smoothed standardised residual, family-wise 5%):")
             for d in self.window_detail:
@@ -267,11 +284,14 @@ class Diagnosis:
             lines.append("misfit windows: none")
         lines.append("")
         lines.append("Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
-                     "(Laplace: the screen's estimate)")
+                     "(Laplace: the screen's estimate); intervals: TMCMC posterior 95 %")
         lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ ± SE':>15}"
                      f"{'Laplace':>9}{'RMSE before':>12}{'after':>11}  noise  interval of new parameter")
         for c in self.candidates:
-            iv = "; ".join(f"{k} [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in c.intervals.items())
+            # the curvature (Laplace) intervals stay in the JSON: beside the TMCMC ones they mislead
+            # (local curvature at the optimum, up to 10x narrower where the posterior is skewed)
+            iv = "; ".join(f"{k} [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in c.intervals.items()
+                           if not k.endswith("(Laplace)"))
             if c.refit:
                 tm = f"{c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f}"
                 lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{tm:>15}"
@@ -293,6 +313,8 @@ class Diagnosis:
         if self.removal and all(r["needed"] for r in self.removal):
             lines.append("removal test: every base part is needed ("
                          + ", ".join(f"{r['part']} {r['delta_log_evidence']:+.1f}" for r in self.removal) + ")")
+        if self.stopped:
+            lines.append(self.stopped["text"])
         lines.append("")
         lines.append(f"verdict: {self.verdict} — {self.message}")
         if self.suggested_experiment:
@@ -327,14 +349,32 @@ class Extension:
     #: model-free noise estimate of the data (``sigma``, ``rho``, ``sigma_iid``): the noise
     #: level the error should fall to (the figure's reference line)
     noise: dict = field(default_factory=dict)
+    #: the diagnosis of ``auto`` stopped at ``max_time`` (what it left undecided), else None
+    stopped: dict | None = None
+    #: per step after the first: the evidence gain over the previous step,
+    #: ``{"delta_log_evidence", "delta_log_evidence_se", "evidence_method"}`` -- for the effects
+    #: ``auto`` added, the diagnosis's own numbers (its refined reruns where it made them)
+    gains: list = field(default_factory=list)
+
+    def step_gain(self, i: int) -> dict | None:
+        """Step ``i``'s gain over step ``i - 1`` (None for the first step)."""
+        if i == 0:
+            return None
+        if i - 1 < len(self.gains) and self.gains[i - 1] is not None:
+            return self.gains[i - 1]
+        a, b = self.steps[i - 1], self.steps[i]
+        return {"delta_log_evidence": b.log_evidence - a.log_evidence,
+                "delta_log_evidence_se": TMCMC_SE_FACTOR * math.hypot(a.log_evidence_se, b.log_evidence_se),
+                "evidence_method": "tmcmc"}
 
     def to_dict(self) -> dict:
         return {"steps": [{"effects": list(s.effects), "rmse": _num(s.rmse),
                            "log_evidence": _num(s.log_evidence),
                            "log_evidence_se": _num(s.log_evidence_se),
                            "coverage": _num(s.coverage), "noise": s.noise,
-                           "max_log_likelihood": _num(s.max_log_likelihood)} for s in self.steps],
-                "decisions": jsonable(self.decisions)}
+                           "max_log_likelihood": _num(s.max_log_likelihood),
+                           "gain_over_previous": jsonable(self.step_gain(i))} for i, s in enumerate(self.steps)],
+                "decisions": jsonable(self.decisions), "stopped": jsonable(self.stopped)}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict())
@@ -342,14 +382,21 @@ class Extension:
     def table(self) -> str:
         """The error-fall table."""
         rows = [f"{'step':<5}{'effects':<40}{'noise':<13}{'RMSE':>10}{'log Z':>10}{'± SE':>7}"
-                f"{'dlogZ':>8}{'coverage':>10}"]
-        z0 = None
+                f"{'dlogZ(prev) ± SE':>18}{'coverage':>10}"]
+        refined = False
         for i, s in enumerate(self.steps):
             eff = "+".join(s.effects) if s.effects else "(base)"
-            dz = "" if z0 is None else f"{s.log_evidence - z0:8.2f}"
+            g = self.step_gain(i)
+            dz = "" if g is None else f"{g['delta_log_evidence']:.1f} ± {g['delta_log_evidence_se']:.1f}" + (
+                "*" if g["evidence_method"] == "tmcmc-refined" else "")
+            refined |= bool(g and g["evidence_method"] == "tmcmc-refined")
             rows.append(f"{i:<5}{eff:<40}{s.noise:<13}{s.rmse:>10.4g}{s.log_evidence:>10.2f}"
-                        f"{s.log_evidence_se:>7.2f}{dz:>8}{s.coverage:>10.2f}")
-            z0 = s.log_evidence if z0 is None else z0
+                        f"{s.log_evidence_se:>7.2f}{dz:>18}{s.coverage:>10.2f}")
+        rows.append("dlogZ(prev): evidence gain over the previous step, SE calibrated to the seed-to-seed scatter"
+                    + ("; *: from the refined evidence reruns of the diagnosis (log Z column: standard runs)"
+                       if refined else ""))
+        if self.stopped:
+            rows.append(self.stopped["text"])
         return "\n".join(rows)
 
     def __str__(self) -> str:

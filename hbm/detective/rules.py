@@ -9,6 +9,12 @@ from __future__ import annotations
 # --- decision (DESIGN.md §2: ΔBIC ≈ 6 raised false alarms on AR(1) noise, ≈ 10 did not)
 DELTA_LOGZ_MIN = 5.0      # evidence gain needed to name anything (≈ ΔBIC 10)
 RUNNER_UP_MARGIN = 3.0    # a named effect must beat the runner-up by this many nats (and 2 SE)
+#: a generic shape's gain is a sign of misfit on its own (without a significant misfit window)
+#: only above this: its evidence is not corrected for looking everywhere (its position is
+#: multimodal; the Laplace/TMCMC estimate credits one mode), while the window scan is calibrated
+#: family-wise.  A bump gaining 8.1 nats in the toe of a clean 200-point iid curve (no window) was
+#: a false alarm; an out-of-library rupture found by a bump alone gained 28.5 (validation rupture_2)
+CONTROL_ALONE_MIN = 2 * DELTA_LOGZ_MIN
 REMOVE_TOL = 3.0          # "explains the misfit about as well as the best control": within this many nats of its max log L
 
 # --- where it fails

@@ -1,4 +1,5 @@
-"""The fit figure: data, MAP curve and the 90 % posterior-predictive band (+ stress against time)."""
+"""The fit figure: data per test, the MAP model as a dense curve, the 90 % posterior-predictive band, a toe
+view and residuals (+ stress against time)."""
 
 from __future__ import annotations
 
@@ -7,32 +8,42 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fit import FitResult, fit_quality, map_prediction
+from ..fit import FitResult, fit_quality, map_estimate, map_prediction
+from ..model.core import Loading
 from . import plt, save
+from .tests_view import TEST_COLORS, dense_path, draw_curve, draw_tests, test_ids, toe_axes, wrapped
 
 __all__ = ["fit_plot"]
 
 
-def _band(ax, x, lo, hi, label):
-    """Shaded band where x is monotone; its two edges as lines along a loading path otherwise."""
-    if np.all(np.diff(x) >= 0):
-        ax.fill_between(x, lo, hi, color="#9ecae1", alpha=0.6, lw=0, label=label)
-    else:
-        ax.plot(x, lo, color="#6baed6", lw=0.8, ls="--", label=label)
-        ax.plot(x, hi, color="#6baed6", lw=0.8, ls="--")
+def _dense_map_curve(likelihood, estimate: dict, strain, time, tests):
+    """The MAP model along each test's dense path (None without a likelihood to evaluate)."""
+    if likelihood is None:
+        return None
+    model = likelihood.model
+    try:
+        theta = np.array([estimate[n] for n in model.parameter_names], float)
+        path = dense_path(strain, time, tests)
+        with np.errstate(all="ignore"):
+            s = np.asarray(model.stress(Loading(path["strain"], path["time"], path["test"]), theta), float)
+    except Exception:    # noqa: BLE001 -- a parameter missing from the estimate: draw at the data points
+        return None
+    return {**path, "stress": s.reshape(-1)}
 
 
 def fit_plot(result, data=None, *, likelihood=None, prob: float = 0.9,
              path: str | os.PathLike | None = None):
-    """Data, MAP curve and central ``prob`` posterior-predictive band; stress against time too.
+    """Data per test, the MAP model as a dense curve, the ``prob`` posterior-predictive band,
+    a toe view (log stress) and a residual panel; stress against time too where the data have it.
 
     Parameters
     ----------
     result : FitResult or SpecimenResult
-        A :class:`~hbm.fit.FitResult` evaluates the MAP curve with its likelihood; a stored
-        result uses the best posterior sample's prediction.
+        A :class:`~hbm.fit.FitResult` evaluates the MAP curve with its likelihood (densely along
+        each test's path); a stored result uses the best posterior sample's prediction at the
+        data points.
     data : xarray.Dataset, optional
-        Observed curve (``strain``, ``stress``, optional ``time``); default the stored data.
+        Observed curve (``strain``, ``stress``, optional ``time``, ``test``); default the stored data.
     likelihood : Likelihood, optional
     prob : float
         Mass of the predictive band (0.9).
@@ -48,29 +59,54 @@ def fit_plot(result, data=None, *, likelihood=None, prob: float = 0.9,
         strain = np.asarray(data["strain"].values, float)
         stress = np.asarray(data["stress"].values, float)
         tm = np.asarray(data["time"].values, float) if "time" in data else None
+        test = np.asarray(data["test"].values) if "test" in data else None
     else:
         strain, stress, tm = np.asarray(r.strain, float), np.asarray(r.stress, float), r.time
         tm = None if tm is None else np.asarray(tm, float)
-    curve = map_prediction(result, likelihood)
+        test = getattr(r, "test", None)
+    tests = test_ids(test, strain.size)
+    if likelihood is None and isinstance(result, FitResult):
+        likelihood = result.likelihood
+    curve_pts = map_prediction(result, likelihood)
+    curve = _dense_map_curve(likelihood, map_estimate(result), strain, tm, tests)
     band = None
     if r.predictive is not None:
         band = np.quantile(np.asarray(r.predictive, float), [(1 - prob) / 2, (1 + prob) / 2], axis=0)
     q = fit_quality(result, data, likelihood=likelihood, prob=prob)
     ncol = 2 if tm is not None else 1
-    fig, axes = plt.subplots(1, ncol, figsize=(5.2 * ncol, 4.0), squeeze=False)
-    label = f"{int(round(100 * prob))}% predictive band"
-    for ax, x, xl in zip(axes[0], (strain, tm), ("strain", "time (s)")):
+    fig = plt.figure(figsize=(5.6 * ncol, 6.6))
+    gs = fig.add_gridspec(2, ncol, height_ratios=[3, 1.4], hspace=0.35, wspace=0.25)
+    for j, (x, xl, axis) in enumerate(zip((strain, tm), ("strain ε (−)", "time t (s)"), ("strain", "time"))):
+        if x is None:
+            continue
+        ax = fig.add_subplot(gs[0, j])
         if band is not None:
-            _band(ax, x, band[0], band[1], label)
+            for k, t in enumerate(np.unique(tests)):
+                m = tests == t
+                ax.fill_between(x[m], band[0][m], band[1][m], color=TEST_COLORS[k % 10], alpha=0.15, lw=0)
+        draw_tests(ax, x, stress, tests, ms=3, alpha=0.8, label=j == 0)
         if curve is not None:
-            ax.plot(x, curve, color="#b2182b", lw=1.5, label="MAP")
-        ax.plot(x, stress, "o", ms=3.5, color="k", label="data")
+            draw_curve(ax, curve, axis, tests, lw=1.4)
+        elif curve_pts is not None:
+            draw_tests(ax, x, curve_pts, tests, style="-", label=False, lw=1.4)
         ax.set_xlabel(xl)
         ax.set_ylabel("stress (MPa)")
-    axes[0, 0].legend(fontsize=8, frameon=False)
+        if j == 0:
+            ax.plot([], [], "-", color="k", label="MAP model")
+            if band is not None:
+                ax.fill_between([], [], [], color="grey", alpha=0.2, label=f"{int(round(100 * prob))}% predictive band")
+            ax.legend(fontsize=7, frameon=False, loc="lower right")
+            toe_axes(ax, strain, stress, tests, curve, curve_pts)
+        # residuals below, on the same axis
+        ax = fig.add_subplot(gs[1, j])
+        if curve_pts is not None:
+            draw_tests(ax, x, stress - curve_pts, tests, style=".", label=False, ms=4)
+            ax.axhline(0, color="k", lw=0.8)
+        ax.set_xlabel(xl)
+        ax.set_ylabel("data − MAP (MPa)")
     cov = "n/a" if q["coverage90"] is None else f"{100 * q['coverage90']:.0f}%"
-    fig.suptitle(f"{r.specimen_id}: RMSE {q['rmse']:.3g} MPa ({100 * q['rmse_rel']:.1f}% of peak), "
-                 f"coverage {cov}, log Z {q['log_evidence']:.2f} ± {q['log_evidence_se']:.2f}", fontsize=9)
+    fig.suptitle(wrapped(f"{r.specimen_id}: RMSE {q['rmse']:.3g} MPa ({100 * q['rmse_rel']:.1f}% of peak), "
+                         f"coverage {cov}, log Z {q['log_evidence']:.2f} ± {q['log_evidence_se']:.2f}", 90), fontsize=9)
     if path is None:
         return fig
     return save(fig, Path(path))
