@@ -27,7 +27,7 @@ import numpy as np
 
 from . import seeds
 from ._dask_worker import drop_dask_unraisables
-from .errors import HbmError, OutputError
+from .errors import HbmError, OutputError, OutputLockedError
 from .samplers.tmcmc import checkpoint_progress
 
 __all__ = ["BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
@@ -229,6 +229,8 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
                 try:
                     path, dt = _timed_call(func, items[sid], seeds[sid], kwargs)
                     res.paths[sid], res.task_times[sid] = str(path), dt
+                except OutputLockedError as exc:  # another process writes this specimen's file
+                    res.errors[sid] = str(exc)
                 except OutputError:  # full disk, unwritable folder: every other task would fail too
                     raise
                 except HbmError as exc:
@@ -248,6 +250,8 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
                     try:
                         path, dt = f.result()
                         res.paths[sid], res.task_times[sid] = str(path), dt
+                    except OutputLockedError as exc:  # another process writes this specimen's file
+                        res.errors[sid] = str(exc)
                     except OutputError:  # full disk, unwritable folder: every other task would fail too
                         raise
                     except Exception as exc:  # keep going: report the failure at the end

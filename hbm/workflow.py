@@ -45,7 +45,7 @@ from .model import spyrou_model
 from .parallel import dask_client, map_specimens
 from .population import DEFAULT_SD_RANGE, PopulationConfig, run_population
 from .report import write_report
-from .utils import atomic_write_text
+from .utils import atomic_write_text, file_lock
 from .utils import log_progress as _log
 from .views import identified_directions, manifold_spline
 
@@ -147,9 +147,11 @@ def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, 
     ck = Path(checkpoint)
     opts = dict(options)
     opts.setdefault("tmcmc_options", None)
-    # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
-    fit_specimen(data, seed=seed, out=out_path, checkpoint_dir=ck.parent, progress=False,
-                 config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})}, **opts)
+    # the one writer rule: a concurrent 'hbm fit --out' of this file makes this specimen fail, not both
+    with file_lock(out_path, "specimen result"):
+        # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
+        fit_specimen(data, seed=seed, out=out_path, checkpoint_dir=ck.parent, progress=False,
+                     config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})}, **opts)
     return out_path
 
 

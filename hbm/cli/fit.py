@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import warnings
 from pathlib import Path
 
 from ..errors import HbmWarning
 from ..fit import fit_specimen, format_at_bounds
 from ..io import specimen_path
-from ..utils import prepare_output_dir, prepare_output_file, remove_stale_temps
+from ..utils import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
                       power_of_two_or_zero, sample_size, sweep, value_range)
@@ -81,15 +82,30 @@ def run(args: argparse.Namespace) -> int:
     figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
     if figure is not None:
         prepare_output_file(figure, "--plot")
-    remove_stale_temps(checked.parent, recursive=False, target=out.name)  # of this file, left by a killed fit
-    if args.checkpoint_dir is not None:
-        ckdir = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
-        remove_stale_temps(ckdir, recursive=False, target=f"{sid}.npz")
+    with contextlib.ExitStack() as held:
+        # the one writer rule: this fit's files are written (and their temp files swept) only
+        # under their locks; a second writer of the same file is refused at once
+        held.enter_context(file_lock(checked, "--out"))
+        if figure is not None:
+            held.enter_context(file_lock(figure, "--plot"))
+            remove_stale_temps(figure.parent, recursive=False, target=figure.name)  # a killed figure write
+        remove_stale_temps(checked.parent, recursive=False, target=out.name)  # of this file, left by a killed fit
+        ckdir = None
+        if args.checkpoint_dir is not None:
+            ckdir = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
+            held.enter_context(file_lock(ckdir / f"{sid}.npz", "--checkpoint-dir"))
+            remove_stale_temps(ckdir, recursive=False, target=f"{sid}.npz")
+        res = _fit(args, data, model, fix, bounds, prior, out, ckdir, figure)
+    return _print(args, res, figure)
+
+
+def _fit(args, data, model, fix, bounds, prior, out, ckdir, figure):
+    """The fit itself and its figure (under the output locks)."""
     res = fit_specimen(data, model=model, samples=args.samples, kernel=args.kernel, noise=args.noise,
                        fix=fix or None, bounds=None if prior is not None else (bounds or None),
                        prior=prior, seed=args.seed, restarts=args.restarts,
                        sweep=(args.sweep.name, args.sweep.width) if args.sweep else None,
-                       sobol_n=args.sobol or None, checkpoint_dir=args.checkpoint_dir,
+                       sobol_n=args.sobol or None, checkpoint_dir=ckdir,
                        out=out, progress=not args.no_progress,
                        optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds,
                        max_evaluations=check_max_evaluations(args.max_evaluations, args.samples))
@@ -99,6 +115,11 @@ def run(args: argparse.Namespace) -> int:
     if figure is not None:
         from ..plots.fit import fit_plot  # matplotlib is heavy: only when a figure is drawn
         fit_plot(res, data, path=figure)
+    return res
+
+
+def _print(args, res, figure) -> int:
+    """The summary on stdout (text or JSON)."""
     if args.json:
         print_json(res.to_json())
         return 0
