@@ -634,7 +634,9 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         Sobol base sample size (power of 2); None or 0 skips Sobol.
     checkpoint_dir : path, optional
         TMCMC checkpoint ``<dir>/<id>.npz``: an interrupted fit resumes from its last stage.
-        Removed once the result file is written.
+        Removed once the result file is written.  It is resumed whatever made it: pass a folder
+        keyed by the fit's content (:func:`hbm.identity.checkpoint_dir` of :func:`hbm.identity.fit_key`,
+        as ``hbm fit`` and ``hbm run`` do) so that one of other data or settings is never resumed.
     out : path, optional
         Write the result netCDF here (atomically; ``complete`` flag last).
     progress : bool

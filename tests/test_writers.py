@@ -110,3 +110,59 @@ def test_predict_against_a_running_run_is_refused(tmp_path, capsys):
         assert not (run / "organ" / "organ.nc").exists()
     finally:
         p.communicate("", timeout=30)
+
+
+# ------------------------------------------------------------------ checkpoints keyed by content
+def test_checkpoint_of_changed_data_is_never_resumed(tmp_path, capsys):
+    """A checkpoint of other data (one stress value changed) in --checkpoint-dir is set aside with
+    one notice; the fit equals a fresh fit bitwise."""
+    from hbm.data import load_specimen
+    from hbm.fit import fit_specimen
+
+    csv_a = toy_csv(tmp_path / "a.csv")
+    ck = tmp_path / "ck"
+    # a finished TMCMC checkpoint of the data before the edit, unkeyed (as older hbm fit wrote
+    # it) and under another key (as this hbm writes it)
+    fit_specimen(load_specimen(csv_a), samples=60, restarts=0, seed=0, checkpoint_dir=ck, progress=False)
+    old = ck / "toy.npz"
+    assert old.is_file()
+    keyed = ck / "toy-0123456789abcdef" / "toy.npz"
+    keyed.parent.mkdir()
+    keyed.write_bytes(old.read_bytes())
+    lines = Path(csv_a).read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln and ln[0].isdigit()) + 10
+    cells = lines[k].split(",")
+    cells[1] = repr(float(cells[1]) + 0.01)
+    lines[k] = ",".join(cells)
+    csv_b = tmp_path / "b.csv"
+    csv_b.write_text("\n".join(lines) + "\n")
+    common = ["fit", csv_b, "--samples", "60", "--restarts", "0", "--no-progress", "--no-plot", "--json"]
+    capsys.readouterr()
+    assert cli.main([str(a) for a in common + ["--out", tmp_path / "resumed.nc", "--checkpoint-dir", ck]]) == 0
+    err = capsys.readouterr().err
+    notices = [ln for ln in err.splitlines() if "set aside" in ln]
+    assert len(notices) == 1 and "2 checkpoint(s) of toy" in notices[0], err
+    assert cli.main([str(a) for a in common + ["--out", tmp_path / "fresh.nc"]]) == 0
+    a, b = io.read_specimen_result(tmp_path / "resumed.nc"), io.read_specimen_result(tmp_path / "fresh.nc")
+    assert np.array_equal(a.samples, b.samples) and np.array_equal(a.log_likelihood, b.log_likelihood)
+    assert a.log_evidence == b.log_evidence
+    assert old.read_bytes() == keyed.read_bytes()  # set aside: kept, untouched
+    # its own checkpoint is gone with the finished result; the key is stored with it
+    assert set(ck.rglob("*.npz")) == {old, keyed}
+    assert io.read_attrs(tmp_path / "resumed.nc")["config"]["settings_hash"] == \
+        io.read_attrs(tmp_path / "fresh.nc")["config"]["settings_hash"]
+
+
+def test_one_settings_record_keys_every_fit_argument():
+    """Every keyword argument of fit_specimen except the declared NOT_KEYED ones changes the key."""
+    import inspect
+
+    from hbm.fit import fit_specimen
+    from hbm.identity import NOT_KEYED, fit_record, settings_key
+
+    base = {"samples": 100, "seed": 0}
+    for name in inspect.signature(fit_specimen).parameters:
+        if name in NOT_KEYED:
+            continue
+        assert settings_key(fit_record({**base, name: 12345})) != settings_key(fit_record(base)), name
+    assert settings_key(fit_record({**base, "progress": False})) == settings_key(fit_record(base))

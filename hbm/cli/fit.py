@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ..errors import HbmWarning
 from ..fit import fit_specimen, format_at_bounds
+from ..identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
 from ..utils import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
@@ -82,6 +83,14 @@ def run(args: argparse.Namespace) -> int:
     figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
     if figure is not None:
         prepare_output_file(figure, "--plot")
+    options = {"samples": args.samples, "kernel": args.kernel, "noise": args.noise, "fix": fix or None,
+               "bounds": None if prior is not None else (bounds or None), "prior": prior, "seed": args.seed,
+               "restarts": args.restarts, "sweep": (args.sweep.name, args.sweep.width) if args.sweep else None,
+               "sobol_n": args.sobol or None, "optimize_options": {"maxfevals": args.maxfevals},
+               "sigma_bounds": args.sigma_bounds,
+               "max_evaluations": check_max_evaluations(args.max_evaluations, args.samples)}
+    # the content key of this fit (data, model, settings): keys its checkpoint and is stored with the result
+    key, parts = fit_key(data, model, options)
     with contextlib.ExitStack() as held:
         # the one writer rule: this fit's files are written (and their temp files swept) only
         # under their locks; a second writer of the same file is refused at once
@@ -92,30 +101,29 @@ def run(args: argparse.Namespace) -> int:
         remove_stale_temps(checked.parent, recursive=False, target=out.name)  # of this file, left by a killed fit
         ckdir = None
         if args.checkpoint_dir is not None:
-            ckdir = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
-            held.enter_context(file_lock(ckdir / f"{sid}.npz", "--checkpoint-dir"))
+            root = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
+            ckdir = checkpoint_dir(root, sid, key)
+            held.enter_context(file_lock(ckdir.parent / f"{ckdir.name}.npz", "--checkpoint-dir"))
             remove_stale_temps(ckdir, recursive=False, target=f"{sid}.npz")
-        res = _fit(args, data, model, fix, bounds, prior, out, ckdir, figure)
+            other = set_aside_checkpoints(root, {sid: ckdir})
+            if other:
+                warnings.warn(f"--checkpoint-dir: {len(other)} checkpoint(s) of {sid} made with other data, model or "
+                              f"settings set aside (not resumed): {', '.join(str(p) for p in other)}", HbmWarning,
+                              stacklevel=1)
+        res = fit_specimen(data, model=model, checkpoint_dir=ckdir, out=out, progress=not args.no_progress,
+                           config_extra={"settings_hash": key, "identity": parts}, **options)
+        _figure(res, data, figure)
     return _print(args, res, figure)
 
 
-def _fit(args, data, model, fix, bounds, prior, out, ckdir, figure):
-    """The fit itself and its figure (under the output locks)."""
-    res = fit_specimen(data, model=model, samples=args.samples, kernel=args.kernel, noise=args.noise,
-                       fix=fix or None, bounds=None if prior is not None else (bounds or None),
-                       prior=prior, seed=args.seed, restarts=args.restarts,
-                       sweep=(args.sweep.name, args.sweep.width) if args.sweep else None,
-                       sobol_n=args.sobol or None, checkpoint_dir=ckdir,
-                       out=out, progress=not args.no_progress,
-                       optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds,
-                       max_evaluations=check_max_evaluations(args.max_evaluations, args.samples))
+def _figure(res, data, figure) -> None:
+    """Box-edge warnings and the figure (under the output locks)."""
     for item in res.quality(data)["at_bounds"]:
         line = format_at_bounds([item])[0].removeprefix("warning: ")
         warnings.warn(f"{res.result.specimen_id}: {line}", HbmWarning, stacklevel=1)
     if figure is not None:
         from ..plots.fit import fit_plot  # matplotlib is heavy: only when a figure is drawn
         fit_plot(res, data, path=figure)
-    return res
 
 
 def _print(args, res, figure) -> int:
