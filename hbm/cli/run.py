@@ -189,4 +189,8 @@ def run(args: argparse.Namespace) -> int:
             print("organ prediction FAILED (see the report's organ section)")
             return 1
         print(f"organ prediction: {pred.path}")
-    return 1 if res.errors else 0
+    if res.errors:  # one line naming every failed specimen and why; the others' results are written
+        failed = "; ".join(f"{sid}: {msg}" for sid, msg in sorted(res.errors.items()))
+        print(f"hbm: error: {len(res.errors)} specimen(s) failed -- {failed}", file=sys.stderr)
+        return 1
+    return 0
