@@ -11,6 +11,7 @@ from ..errors import HbmWarning
 from ..fit import fit_specimen, format_at_bounds
 from ..identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
+from ..plausibility import edges_suggest_units
 from ..utils import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
@@ -118,9 +119,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _figure(res, data, figure) -> None:
     """Box-edge warnings and the figure (under the output locks)."""
-    for item in res.quality(data)["at_bounds"]:
+    items = res.quality(data)["at_bounds"]
+    for item in items:
         line = format_at_bounds([item])[0].removeprefix("warning: ")
         warnings.warn(f"{res.result.specimen_id}: {line}", HbmWarning, stacklevel=1)
+    units = edges_suggest_units(items, len(res.likelihood.model_names))
+    if units is not None:
+        warnings.warn(f"{res.result.specimen_id}: {units}", HbmWarning, stacklevel=1)
     if figure is not None:
         from ..plots.fit import fit_plot  # matplotlib is heavy: only when a figure is drawn
         fit_plot(res, data, path=figure)
