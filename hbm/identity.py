@@ -162,3 +162,4 @@ def set_aside_checkpoints(root: str | Path, current: Mapping[str, Path]) -> list
                and p.parent != Path(folder)]
         other += sorted(old) + [p for p in [root / f"{sid}.npz"] if p.is_file()]
     return other
+

@@ -48,7 +48,11 @@ from .utils import atomic_write_text, file_lock
 from .utils import log_progress as _log
 from .views import identified_directions, manifold_spline
 
-__all__ = ["RunConfig", "WorkflowResult", "run_workflow", "fit_task"]
+#: default output folder of hbm run and hbm fit: untracked (.gitignore), so that a run never replaces
+#: the shipped reference results in results/
+DEFAULT_OUT = "hbm-results"
+
+__all__ = ["DEFAULT_OUT", "RunConfig", "WorkflowResult", "run_workflow", "fit_task"]
 
 
 
@@ -57,7 +61,7 @@ class RunConfig:
     """Settings of ``hbm run`` (see the CLI help for their meaning)."""
 
     data: str = "data/specimens"
-    out: str = "results"
+    out: str = DEFAULT_OUT
     samples: int = 2000
     kernel: str = "rw"
     noise: str = "iid"

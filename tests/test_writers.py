@@ -166,3 +166,39 @@ def test_one_settings_record_keys_every_fit_argument():
             continue
         assert settings_key(fit_record({**base, name: 12345})) != settings_key(fit_record(base)), name
     assert settings_key(fit_record({**base, "progress": False})) == settings_key(fit_record(base))
+
+
+# ------------------------------------------------------------------ overwrites
+def test_out_holding_a_result_of_other_content_is_refused_unless_force(tmp_path, capsys):
+    out = tmp_path / "r.nc"
+    a, b = toy_csv(tmp_path / "a.csv", "rat_a"), toy_csv(tmp_path / "b.csv", "rat_b", 1.1)
+    fit = ["fit", "--out", out, *TINY_FIT]
+    assert cli.main([str(x) for x in [fit[0], a, *fit[1:]]]) == 0
+    before = out.read_bytes()
+    line = one_line_error([fit[0], b, *fit[1:]], capsys)  # another specimen
+    assert line == (f"hbm: error: --out {out} holds a result of rat_a with other data; pass --force to replace it, "
+                    "or choose another --out")
+    line = one_line_error([fit[0], a, *fit[1:], "--seed", "1"], capsys)  # same data, other settings
+    assert "holds a result of rat_a with other settings" in line
+    assert out.read_bytes() == before
+    assert cli.main([str(x) for x in [fit[0], a, *fit[1:]]]) == 0  # the same content: replaced
+    assert cli.main([str(x) for x in [fit[0], b, *fit[1:], "--force"]]) == 0
+    assert io.read_specimen_result(out).specimen_id == "rat_b"
+    other = tmp_path / "notes.nc"
+    other.write_text("my notes")
+    line = one_line_error([fit[0], a, "--out", other, *TINY_FIT], capsys)
+    assert "holds a file that is not an hbm result" in line and other.read_text() == "my notes"
+
+
+def test_default_outputs_are_untracked():
+    """hbm run's (and hbm fit's) default output folder is ignored by git: the README's first command
+    leaves 'git status' clean and the shipped reference report in results/ untouched."""
+    from hbm.workflow import DEFAULT_OUT, RunConfig
+
+    assert cli.build_parser().parse_args(["run"]).out == DEFAULT_OUT
+    assert RunConfig().out == DEFAULT_OUT and not DEFAULT_OUT.startswith("results")
+    for name in ("report.md", "run.json", "specimens/x.nc", "figures/x.png", ".hbm.lock", "specimens/.x.nc.lock"):
+        res = subprocess.run(["git", "check-ignore", "-q", f"{DEFAULT_OUT}/{name}"], cwd=ROOT)
+        assert res.returncode == 0, name
+    assert subprocess.run(["git", "ls-files", "--error-unmatch", "results/report.md"], cwd=ROOT,
+                          capture_output=True).returncode == 0

@@ -16,13 +16,15 @@ import math
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable, NamedTuple, Sequence
+from typing import Any, Callable, Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from ..data import load_specimen
 from ..effects import resolve_effect
-from ..errors import DataError, HbmError, HbmWarning, SettingError
+from ..errors import DataError, HbmError, HbmWarning, OutputError, SettingError
+from ..identity import changed
+from ..io import read_attrs
 from ..prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
 from ..utils import format_bytes, require_memory
@@ -444,6 +446,32 @@ def check_sobol_memory(setting: str, n: int, n_free: int, n_params: int, points:
 
 
 # ----------------------------------------------------------------------- output
+def check_replaceable(path: Path, parts: Mapping[str, str], option: str) -> None:
+    """Refuse to replace ``path`` unless it is absent or a result of the same content (``parts``,
+    :func:`hbm.identity.fit_key`).
+
+    A result of another specimen, other data, another model or other settings -- or a file that
+    is no hbm result at all -- is kept: :class:`~hbm.errors.OutputError` names what differs and
+    the way out (``--force`` or another ``option``).
+    """
+    path = Path(path)
+    if not path.exists():
+        return
+    attrs = read_attrs(path)
+    config = attrs.get("config") if isinstance(attrs.get("config"), dict) else {}
+    stored = config.get("identity") if isinstance(config.get("identity"), dict) else None
+    if "specimen_id" not in attrs:
+        what = "a file that is not an hbm result"
+    elif stored is None:
+        what = f"a result of {attrs['specimen_id']} without a content key (an older hbm)"
+    else:
+        diff = changed(stored, parts)
+        if not diff:
+            return
+        what = f"a result of {attrs['specimen_id']} with other {', '.join(diff)}"
+    raise OutputError(f"{option} {path} holds {what}; pass --force to replace it, or choose another {option}")
+
+
 def _jsonable(obj: Any) -> Any:
     """Convert numpy scalars/arrays and non-finite floats (-> null) for strict JSON."""
     if isinstance(obj, dict):
@@ -480,4 +508,4 @@ __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positiv
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
            "add_seed", "add_fix", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
            "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",
-           "check_sobol_memory", "print_json", "format_table", "format_bytes"]
+           "check_sobol_memory", "check_replaceable", "print_json", "format_table", "format_bytes"]

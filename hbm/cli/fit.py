@@ -11,9 +11,10 @@ from ..errors import HbmWarning
 from ..fit import fit_specimen, format_at_bounds
 from ..identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
+from ..workflow import DEFAULT_OUT
 from ..plausibility import edges_suggest_units
 from ..utils import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
-from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
+from ._common import (add_max_evaluations, check_replaceable, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
                       power_of_two_or_zero, sample_size, sweep, value_range)
 
@@ -28,7 +29,7 @@ log-evidence with its standard error.
 
 examples:
   hbm fit calvo2010_rat1
-  hbm fit data/specimens/hawkins1994_rat.csv --fix EOPT=0.192 --samples 4000 --out hawkins.nc
+  hbm fit data/specimens/hawkins1994_rat.csv --fix EOPT=0.192 --samples 4000 --out hawkins.nc --force
   hbm fit calvo2010_rat2 --kernel manifold --bounds VOLF=0.5:0.75 --sweep VOLF:0.05
 """
 
@@ -55,7 +56,10 @@ def register(subparsers) -> None:
     p.add_argument("--sobol", type=power_of_two_or_zero, default=0, metavar="N",
                    help="Sobol base sample size (power of 2; default 0 = skip)")
     add_seed(p)
-    p.add_argument("--out", metavar="FILE.nc", help="output file (default results/specimens/<id>.nc)")
+    p.add_argument("--out", metavar="FILE.nc", help="output file (default hbm-results/specimens/<id>.nc); a "
+                   "result of other content there (another specimen, data, model or settings) is refused "
+                   "unless --force")
+    p.add_argument("--force", action="store_true", help="replace a result of other content at --out")
     p.add_argument("--checkpoint-dir", metavar="DIR",
                    help="TMCMC checkpoint folder: an interrupted fit resumes from its last stage")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -79,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         check_sobol_memory(f"--sobol {args.sobol}", args.sobol, len(free_parameters(model, fix)), model.n_params,
                            points)
     sid = str(data.attrs.get("id", Path(args.specimen).stem))
-    out = Path(args.out) if args.out else specimen_path("results", sid)
+    out = Path(args.out) if args.out else specimen_path(DEFAULT_OUT, sid)
     checked = prepare_output_file(out, "--out")
     figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
     if figure is not None:
@@ -96,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         # the one writer rule: this fit's files are written (and their temp files swept) only
         # under their locks; a second writer of the same file is refused at once
         held.enter_context(file_lock(checked, "--out"))
+        if not args.force:
+            check_replaceable(checked, parts, "--out")
         if figure is not None:
             held.enter_context(file_lock(figure, "--plot"))
             remove_stale_temps(figure.parent, recursive=False, target=figure.name)  # a killed figure write

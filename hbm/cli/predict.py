@@ -39,7 +39,7 @@ Prints a table: elongation at a reference force F_ref (median [90%]), the share 
 extrapolated there, and the force at which the organ leaves the tested range.
 
 examples:
-  hbm predict organ results --geometry data/geometry/fusiform.toml
+  hbm predict organ hbm-results --geometry data/geometry/fusiform.toml
   hbm predict organ /tmp/run --geometry my_muscle.toml --samples 1000 --ref-force 0.5 --no-figures
 """
 

@@ -9,7 +9,7 @@ from ..data import load_specimens, specimen_groups
 from ..errors import SettingError
 from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
-from ..workflow import RunConfig, run_workflow
+from ..workflow import DEFAULT_OUT, RunConfig, run_workflow
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
                       sample_size, sweep)
@@ -57,8 +57,9 @@ def register(subparsers) -> None:
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default="data/specimens", metavar="DIR",
                    help="folder of specimen CSV files (default data/specimens)")
-    p.add_argument("--out", default="results", metavar="DIR",
-                   help="output folder (default results); one hbm run at a time (locked)")
+    p.add_argument("--out", default=DEFAULT_OUT, metavar="DIR",
+                   help=f"output folder (default {DEFAULT_OUT}, untracked; the shipped reference report stays in "
+                        "results/); one hbm run at a time (locked)")
     p.add_argument("--samples", type=sample_size, default=2000, metavar="N",
                    help="TMCMC population size (default 2000)")
     p.add_argument("--kernel", default="rw", choices=["rw", "manifold"], help="TMCMC move kernel (default rw)")
