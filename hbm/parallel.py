@@ -31,6 +31,7 @@ from . import seeds
 from ._dask_worker import drop_dask_unraisables
 from .errors import HbmError, OutputError, OutputLockedError
 from .samplers.tmcmc import checkpoint_progress
+from .validation import check_workers
 
 __all__ = ["ALLOWED_FAILURES", "NO_WORKER_TIMEOUT", "NO_WORKER_TIMEOUT_EXTERNAL", "BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
            "checkpoint_status"]
@@ -131,9 +132,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
     from distributed import Client, LocalCluster
 
     address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
-    n = int(workers) if workers else (os.cpu_count() or 1)
-    if not address and n < 1:
-        raise HbmError(f"--workers must be >= 1, got {workers}")
+    n = check_workers(workers) if workers else (os.cpu_count() or 1)  # the rule of --workers
     cluster = client = None
     failed = False
     try:

@@ -156,6 +156,14 @@ def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, 
     return out_path
 
 
+def _drop_checkpoint(ckpt: Path) -> None:
+    """Remove the checkpoint of a specimen whose result is complete (stale: never resumed)."""
+    with contextlib.suppress(OSError):
+        ckpt.unlink()
+    with contextlib.suppress(OSError):
+        ckpt.parent.rmdir()  # only if empty
+
+
 def _stored_hash(path) -> str | None:
     """The content key a finished specimen file was computed under (None for older files)."""
     return io.read_attrs(path).get("config", {}).get("settings_hash")
@@ -242,6 +250,7 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
         complete = io.is_complete(paths[sid])
         if complete and _stored_hash(paths[sid]) == keys[sid]:
             skipped.append(sid)
+            _drop_checkpoint(ckpts[sid])  # of a finished result (its removal failed or was interrupted)
             continue
         todo[sid] = datasets[sid]
         if complete:  # say why a finished result is not reused

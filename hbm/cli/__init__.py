@@ -82,6 +82,14 @@ def _os_error(exc: OSError) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``hbm ARGV`` (default ``sys.argv[1:]``) and return the exit status."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:  # Ctrl-C in the last moment: while an error or the ending is handled
+        print("hbm: interrupted", file=sys.stderr)
+        return 143 if isinstance(exc, _Terminated) else 130
+
+
+def _main(argv: list[str] | None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous_term = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     words = list(sys.argv[1:] if argv is None else argv)

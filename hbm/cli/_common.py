@@ -27,7 +27,9 @@ from ..identity import changed
 from ..io import read_attrs
 from ..prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
+from ..model.spyrou import PHYSICAL_RANGE
 from ..utils import format_bytes, require_memory
+from ..validation import SEED_LIMIT, check_physical_bounds, check_seed, check_workers
 
 SPECIMEN_FOLDER = Path("data") / "specimens"
 #: the shipped specimens of this checkout (an editable install), for ids given outside it
@@ -36,8 +38,6 @@ SHIPPED_FOLDER = Path(__file__).resolve().parents[2] / "data" / "specimens"
 #: --hier-samples, posterior draws of predict): a population covariance over the 9-16
 #: parameters of the base model plus effects needs more particles than parameters
 MIN_SAMPLES = 20
-#: seeds are non-negative integers below 2**32 (numpy's legacy seeding inside cma and SALib)
-SEED_LIMIT = 2 ** 32
 _FLOAT = 8  # bytes per float64
 
 
@@ -87,12 +87,20 @@ sample_size = integer(MIN_SAMPLES, f"a sample size >= {MIN_SAMPLES}")
 
 
 def seed(text: str) -> int:
-    """``type=`` rule of every ``--seed``: a non-negative integer below 2**32."""
+    """``type=`` rule of every ``--seed``: :func:`hbm.validation.check_seed` (also the API's)."""
     expected = f"a seed: an integer from 0 to {SEED_LIMIT - 1}"
-    value = _parse_int(text, expected)
-    if not 0 <= value < SEED_LIMIT:
-        raise _type_error(text, expected)
-    return value
+    try:
+        return check_seed(_parse_int(text, expected))
+    except SettingError:
+        raise _type_error(text, expected) from None
+
+
+def workers(text: str) -> int:
+    """``type=`` rule of ``--workers``: :func:`hbm.validation.check_workers` (also the API's)."""
+    try:
+        return check_workers(_parse_int(text, "an integer >= 0"), "--workers")
+    except SettingError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--workers: ")) from None
 
 
 def power_of_two(text: str) -> int:
@@ -326,6 +334,7 @@ def check_fix_bounds(model, fix: dict, bounds: dict, prior: Prior | None = None)
     (the prior's, after --bounds), and at least one parameter left free."""
     check_names(model, fix, "--fix")
     check_names(model, bounds, "--bounds")
+    check_physical_bounds(bounds, PHYSICAL_RANGE, "--bounds")
     box = {n: tuple(model.bounds[i]) for i, n in enumerate(model.parameter_names)}
     if prior is not None:
         box.update({n: (prior[n].lo, prior[n].hi) for n in model.parameter_names if n in prior})
@@ -504,7 +513,7 @@ def format_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positive_int", "non_negative_int",
-           "sample_size", "seed", "power_of_two", "power_of_two_or_zero", "real", "finite_float", "positive_float",
+           "sample_size", "seed", "workers", "power_of_two", "power_of_two_or_zero", "real", "finite_float", "positive_float",
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
            "add_seed", "add_fix", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
            "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",

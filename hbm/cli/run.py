@@ -12,7 +12,7 @@ from ..utils import output_lock, prepare_output_dir, remove_stale_temps
 from ..workflow import DEFAULT_OUT, RunConfig, run_workflow
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
-                      sample_size, sweep)
+                      sample_size, sweep, workers)
 
 #: --pool keywords (anything else is a list of model parameters)
 POOL_MODES = ("auto", "combinations", "informed", "all")
@@ -66,7 +66,7 @@ def register(subparsers) -> None:
     p.add_argument("--noise", default="iid", choices=["iid", "weighted", "proportional", "ar1"],
                    help="noise model (default iid)")
     add_model_arguments(p)
-    p.add_argument("--workers", type=non_negative_int, default=None, metavar="K",
+    p.add_argument("--workers", type=workers, default=None, metavar="K",
                    help="dask worker processes of the embedded cluster (default: all cores; 0 = no dask)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing dask scheduler, e.g. tcp://host:8786")
     add_seed(p)
