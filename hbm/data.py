@@ -29,7 +29,8 @@ then decimal commas are read):
   Cauchy stress in MPa.  The unit is judged from the physics (:mod:`hbm.plausibility`): a curve
   whose stress per unit strain (toe or peak) is stiffer than passive muscle with NO declared unit
   is refused with the declaration that fixes it; with a declared unit (or outside the range on
-  the soft side) it loads with a warning.  A cell like ``01`` (leading zero) is refused: it is the tail of a decimal comma.
+  the soft side) it loads with a warning.  A cell like ``01`` (leading zero) is refused: it is the
+  tail of a decimal comma.
 * ``time`` (optional) — seconds.
 * ``test`` (optional) — a protocol segment (a ramp, a hold, an unloading ...): integer ids, or
   labels as labs write them (``load``, ``unload``, ``hold``, ``ramp_0.01``: a letter, then

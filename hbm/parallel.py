@@ -33,7 +33,8 @@ from .errors import HbmError, OutputError, OutputLockedError
 from .samplers.tmcmc import checkpoint_progress
 from .validation import check_workers
 
-__all__ = ["ALLOWED_FAILURES", "NO_WORKER_TIMEOUT", "NO_WORKER_TIMEOUT_EXTERNAL", "BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
+__all__ = ["ALLOWED_FAILURES", "NO_WORKER_TIMEOUT", "NO_WORKER_TIMEOUT_EXTERNAL",
+           "BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
            "checkpoint_status"]
 
 #: worker deaths the embedded cluster's scheduler allows a task before it fails it (KilledWorker):

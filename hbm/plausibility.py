@@ -27,7 +27,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["PLAUSIBLE_MODULUS", "TOE_FRACTION", "secant_moduli", "implausible", "suggest_unit", "describe", "edges_suggest_units"]
+__all__ = ["PLAUSIBLE_MODULUS", "TOE_FRACTION", "secant_moduli", "implausible", "suggest_unit", "describe",
+           "edges_suggest_units"]
 
 #: plausible stress per unit strain of passive muscle, MPa (secant: Cauchy stress / strain)
 PLAUSIBLE_MODULUS = (2e-3, 3.0)

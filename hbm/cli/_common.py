@@ -513,7 +513,8 @@ def format_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positive_int", "non_negative_int",
-           "sample_size", "seed", "workers", "power_of_two", "power_of_two_or_zero", "real", "finite_float", "positive_float",
+           "sample_size", "seed", "workers", "power_of_two", "power_of_two_or_zero", "real", "finite_float",
+           "positive_float",
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
            "add_seed", "add_fix", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
            "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",

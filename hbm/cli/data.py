@@ -81,7 +81,8 @@ def _row(ds) -> list[str]:
     if len(source) > 48:
         source = source[:45] + "..."
     return [str(ds.attrs["id"]), str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
-            f"{stress[np.argmax(np.abs(stress))]:.4g}", tests, "yes" if "time" in ds else "-", _input(ds), provenance(ds), source]
+            f"{stress[np.argmax(np.abs(stress))]:.4g}", tests, "yes" if "time" in ds else "-", _input(ds),
+            provenance(ds), source]
 
 
 def run_check(args: argparse.Namespace) -> int:

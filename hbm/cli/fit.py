@@ -14,7 +14,8 @@ from ..io import specimen_path
 from ..workflow import DEFAULT_OUT
 from ..plausibility import edges_suggest_units
 from ..utils import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
-from ._common import (add_max_evaluations, check_replaceable, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
+from ._common import (check_replaceable,
+                      add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
                       power_of_two_or_zero, sample_size, sweep, value_range)
 
