@@ -5,6 +5,7 @@ the command line refuses (one rule per kind), the signed peak of a compression f
 from __future__ import annotations
 
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -127,3 +128,30 @@ def _optimize(**kw):
 
     data = load_specimen(Path(__file__).resolve().parents[1] / "data" / "specimens" / "calvo2010_rat1.csv")
     return optimize(make_likelihood(hbm.spyrou_model(), data), restarts=1, maxfevals=10, **kw)
+
+
+@pytest.mark.slow
+def test_ctrl_c_after_the_last_line_never_kills_by_the_signal(tmp_path):
+    """A Ctrl-C right after `hbm fit` printed its last line (its process is finishing) ends with
+    the command's status: 130 with 'hbm: interrupted', or 0 -- never death by SIGINT (-2)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    csv = toy_csv(tmp_path / "toy.csv")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    argv = [sys.executable, "-m", "hbm", "fit", csv, "--samples", "100", "--restarts", "0", "--no-progress",
+            "--no-plot", "--out", str(tmp_path / "t.nc"), "--force"]
+    for k in range(6):
+        p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        for line in p.stdout:
+            if line.startswith("wrote "):
+                break
+        time.sleep(0.01 * k)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode in (0, 130), (k, p.returncode, err[-500:])
+        assert p.returncode == 0 or err.splitlines()[-1] == "hbm: interrupted"
+        assert "Traceback" not in err and "Fatal Python error" not in err
