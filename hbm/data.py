@@ -26,8 +26,11 @@ then decimal commas are read):
   unless ``# stress_measure: nominal`` or the column is ``nominal_stress*`` (``cauchy_stress*``
   declares Cauchy).  Nominal stress P (force / undeformed area) becomes Cauchy stress
   σ = λ·P = (1 + ε)·P (incompressible uniaxial tension).  The loaded dataset always holds
-  Cauchy stress in MPa; a Cauchy stress above :data:`MAX_PASSIVE_STRESS` (5 MPa) is refused as
-  a unit mix-up.  A cell like ``01`` (leading zero) is refused: it is the tail of a decimal comma.
+  Cauchy stress in MPa.  The unit is judged from the physics (:mod:`hbm.plausibility`): a curve
+  whose stress per unit strain (toe or peak) is stiffer than passive muscle with NO declared unit
+  is refused with the declaration that fixes it; with a declared unit (or outside the range on
+  the soft side) it loads with a warning.  A cell like ``01`` (leading zero) is refused: it is the
+  tail of a decimal comma.
 * ``time`` (optional) — seconds.
 * ``test`` (optional) — a protocol segment (a ramp, a hold, an unloading ...): integer ids, or
   labels as labs write them (``load``, ``unload``, ``hold``, ``ramp_0.01``: a letter, then
@@ -69,6 +72,7 @@ import math
 import os
 import re
 import stat
+import warnings
 from dataclasses import dataclass
 from numbers import Real
 from pathlib import Path
@@ -78,13 +82,14 @@ import numpy as np
 import xarray as xr
 
 from ._version import __version__
-from .errors import DataError, HbmError
+from .errors import DataError, HbmError, HbmWarning
 from .model.core import Loading, Model
 from .noise import make_noise
+from .plausibility import describe, implausible, suggest_unit
 from .utils import atomic_path, as_generator
 
 __all__ = [
-    "STRAIN_RANGE", "MIN_POINTS", "MAX_PASSIVE_STRESS", "STRESS_UNITS", "DEFORMATIONS",
+    "STRAIN_RANGE", "MIN_POINTS", "STRESS_UNITS", "DEFORMATIONS",
     "load_specimen", "load_specimens", "save_specimen", "specimen_loading", "provenance",
     "input_summary", "input_line", "synthetic_specimen", "GROUP_KEY", "specimen_groups", "Segment", "ramp", "hold", "cycle", "protocol",
 ]
@@ -93,9 +98,6 @@ __all__ = [
 STRAIN_RANGE = (-0.5, 2.0)
 #: minimum number of data points in a specimen
 MIN_POINTS = 5
-#: largest plausible Cauchy stress of passive muscle in MPa; above it a file is refused as a
-#: unit mix-up (kPa or Pa read as MPa)
-MAX_PASSIVE_STRESS = 5.0
 #: stress units of ``# units_stress:`` and of column suffixes -> values per MPa
 STRESS_UNITS = {"MPa": 1.0, "kPa": 1e3, "Pa": 1e6}
 #: metadata key of a specimen's group (``# group: NAME``)
@@ -434,29 +436,34 @@ def _strain(name: str, raw: np.ndarray, deformation: str, sl0: float | None,
     return strain
 
 
-def _check_plausible(name: str, raw: np.ndarray, stress: np.ndarray, unit: str | None, nominal: bool,
-                     cols: _Columns, linenos: Sequence[int]) -> None:
-    """Refuse a Cauchy stress above MAX_PASSIVE_STRESS and name the declaration that fixes it."""
-    i = int(np.argmax(np.abs(stress)))
-    peak = abs(float(stress[i]))
-    if peak <= MAX_PASSIVE_STRESS:
+def _check_plausible(name: str, raw: np.ndarray, strain: np.ndarray, stress: np.ndarray, unit: str | None,
+                     nominal: bool, cols: _Columns, linenos: Sequence[int]) -> None:
+    """Judge the stress unit from the physics (:mod:`hbm.plausibility`): stress per unit strain in
+    the toe and at the peak against passive muscle.  An undeclared unit that makes the curve too
+    stiff is refused with the declaration that fixes it; a declared unit is the user's decision:
+    outside the range it is a warning (with the same fix), never a refusal."""
+    found = implausible(strain, stress)
+    if found is None:
         return
+    i = found[4]
     where = f"{name}: line {linenos[i]}, column {cols.names['stress']!r}"
     have = unit or "MPa"
-    smaller = [u for u in STRESS_UNITS if STRESS_UNITS[u] > STRESS_UNITS[have]]
-    guess = next((u for u in smaller if peak * STRESS_UNITS[have] / STRESS_UNITS[u] <= MAX_PASSIVE_STRESS),
-                 None)
+    guess = suggest_unit(found, have)
     if guess is None:
         fix = "check the values and their unit"
     elif cols.unit is not None:
         prefix = f"{cols.measure}_" if cols.measure else ""
         fix = f"if the values are in {guess}, rename the column to '{prefix}stress_{guess}'"
     else:
-        fix = f"add '# units_stress: {guess}'" if unit is None else f"write '# units_stress: {guess}'"
+        fix = f"add '# units_stress: {guess}'" if unit is None else f"if the values are in {guess}, write " \
+                                                                    f"'# units_stress: {guess}'"
     seen = f"{float(raw[i]):g} {'(no unit declared, read as MPa)' if unit is None else unit}"
     measure = " nominal" if nominal else ""
-    raise DataError(f"{where}: stress {seen}{measure} gives a Cauchy stress of {peak:g} MPa, implausible for "
-                    f"passive muscle (limit {MAX_PASSIVE_STRESS:g} MPa); {fix}")
+    text = (f"{where}: stress {seen}{measure} is a Cauchy stress of {abs(float(stress[i])):g} MPa: "
+            f"{describe(found)}; {fix}")
+    if unit is None and found[1] == "stiff":
+        raise DataError(text)
+    warnings.warn(text + ("" if unit is None else f" (loaded as declared: {unit})"), HbmWarning, stacklevel=3)
 
 
 def _check_sign(name: str, strain: np.ndarray, stress: np.ndarray, cols: _Columns,
@@ -599,7 +606,7 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
         if role in raw:
             data[role] = raw[role]
     _check_tests_and_time(name, data.get("time"), data.get("test"), linenos, labels)
-    _check_plausible(name, raw["stress"], stress, unit, measure == "nominal", cols, linenos)
+    _check_plausible(name, raw["stress"], data["strain"], stress, unit, measure == "nominal", cols, linenos)
     _check_sign(name, data["strain"], stress, cols, linenos)
 
     # the dataset holds Cauchy stress in MPa and strain: record what the file held

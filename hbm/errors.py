@@ -12,7 +12,7 @@ Hierarchy::
     │   └── TooLargeError         a size whose memory cannot exist on this machine
     └── OutputError (OSError)     an output/checkpoint path that cannot be created, written or
         │                         replaced, or a full disk (names the file)
-        └── OutputLockedError     the output folder is in use by another ``hbm run``
+        └── OutputLockedError     an output folder or file is being written by another hbm process
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ class OutputError(HbmError, OSError):
 
 
 class OutputLockedError(OutputError):
-    """The output folder is locked by another running ``hbm run``."""
+    """An output folder or file is locked by another running hbm process (the one writer rule)."""
 
 
 class HbmWarning(UserWarning):

@@ -34,10 +34,12 @@ from .io import SpecimenResult, json_default, write_specimen_result
 from .collapse import choose_tier, fit_collapsed
 from .likelihood import make_likelihood
 from .model import COMBINATIONS, identifiable_combinations, spyrou_model
+from .model.spyrou import PHYSICAL_RANGE
 from .noise import get_noise
 from .prior import Prior, PriorError, load_prior
 from .optimization import optimize as _cma
 from .samplers.tmcmc import tmcmc as _tmcmc
+from .validation import check_physical_bounds, check_seed
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
@@ -679,7 +681,9 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         Sobol base sample size (power of 2); None or 0 skips Sobol.
     checkpoint_dir : path, optional
         TMCMC checkpoint ``<dir>/<id>.npz``: an interrupted fit resumes from its last stage.
-        Removed once the result file is written.
+        Removed once the result file is written.  It is resumed whatever made it: pass a folder
+        keyed by the fit's content (:func:`hbm.identity.checkpoint_dir` of :func:`hbm.identity.fit_key`,
+        as ``hbm fit`` and ``hbm run`` do) so that one of other data or settings is never resumed.
     out : path, optional
         Write the result netCDF here (atomically; ``complete`` flag last).
     progress : bool
@@ -728,6 +732,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         raise HbmError(f"kernel must be 'rw' or 'manifold', got {kernel!r}")
     if int(samples) < 4:
         raise HbmError(f"samples must be >= 4, got {samples}")
+    seed = check_seed(seed)  # the rules of the command line's --seed and --bounds
+    check_physical_bounds(bounds, PHYSICAL_RANGE)
     sid = _specimen_id(data)
     prior = load_prior(prior)
     lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)

@@ -12,7 +12,13 @@ each itself a hash, so a mismatch can be explained component by component:
     the model's name, its effects (id, class, options), parameter names and prior box;
 ``settings``
     everything else the fit depends on (sampler, optimiser and Sobol settings, noise model and
-    box, fixed values, user prior, seed, package version), hashed by the caller.
+    box, fixed values, user prior, seed, package version): for a fit, :func:`fit_record` of the
+    very keyword arguments given to :func:`hbm.fit.fit_specimen` -- ONE record, so a new
+    setting is keyed without anyone having to remember a list (only :data:`NOT_KEYED` are left
+    out).
+
+:func:`fit_key` is the key of results AND checkpoints of ``hbm fit`` and ``hbm run``: a
+checkpoint of other data, model or settings is never resumed.
 
 Hashes are computed from canonical JSON (sorted keys, floats by ``repr``) and raw bytes, so
 they are the same in every process and on every run.
@@ -22,11 +28,15 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["MEANING_ATTRS", "data_key", "model_key", "settings_key", "content_key", "changed"]
+from ._version import __version__
+
+__all__ = ["MEANING_ATTRS", "NOT_KEYED", "data_key", "model_key", "settings_key", "content_key", "changed",
+           "fit_record", "fit_key", "checkpoint_dir", "set_aside_checkpoints"]
 
 #: dataset attributes that change what the arrays mean (hbm.data records its conversions here)
 MEANING_ATTRS = ("id", "units_stress", "units_stress_original", "stress_measure", "stress_measure_original",
@@ -45,6 +55,10 @@ def _canonical(obj: Any) -> Any:
         return repr(float(obj))
     if isinstance(obj, (np.integer, int, bool, str)) or obj is None:
         return obj.item() if isinstance(obj, np.generic) else obj
+    if isinstance(obj, np.random.SeedSequence):
+        return {"entropy": _canonical(obj.entropy), "spawn_key": list(map(int, obj.spawn_key))}
+    if hasattr(obj, "to_dict"):  # a Prior: its content, not its id()
+        return _canonical(obj.to_dict())
     return repr(obj)
 
 
@@ -100,3 +114,52 @@ def changed(stored: Mapping[str, str] | None, new: Mapping[str, str]) -> list[st
     if not stored:
         return list(new)
     return [k for k in new if stored.get(k) != new[k]] + [k for k in stored if k not in new]
+
+
+#: keyword arguments of :func:`hbm.fit.fit_specimen` that do not change its result: the data and
+#: model have their own components; paths, progress display and stored extras do not change numbers
+NOT_KEYED = ("data", "model", "out", "checkpoint_dir", "progress", "on_phase", "config_extra")
+
+
+def fit_record(options: Mapping[str, Any]) -> dict:
+    """The settings record of a fit: every ``fit_specimen`` keyword argument in ``options`` except
+    :data:`NOT_KEYED` (canonical JSON form; a seed as entropy and spawn key), plus the package
+    version.  Unset arguments (None) are left out, so that adding a new optional argument does not
+    change the key of fits that do not use it."""
+    record = {k: _canonical(v) for k, v in options.items() if k not in NOT_KEYED and v is not None}
+    record["version"] = __version__
+    return record
+
+
+def fit_key(data, model, options: Mapping[str, Any]) -> tuple[str, dict[str, str]]:
+    """The content key of a fit of ``data`` with ``model`` and ``fit_specimen(**options)``.
+
+    Returns
+    -------
+    key : str
+    parts : dict
+        Its components ``data``, ``model``, ``settings`` (for :func:`changed`).
+    """
+    parts = {"data": data_key(data), "model": model_key(model), "settings": settings_key(fit_record(options))}
+    return content_key(parts), parts
+
+
+def checkpoint_dir(root: str | Path, specimen_id: str, key: str) -> Path:
+    """The checkpoint folder of one keyed fit: ``<root>/<id>-<key>`` (the file inside is ``<id>.npz``)."""
+    return Path(root) / f"{specimen_id}-{key}"
+
+
+def set_aside_checkpoints(root: str | Path, current: Mapping[str, Path]) -> list[Path]:
+    """Checkpoints in ``root`` of the specimens of ``current`` ({id: keyed folder}) made under
+    another key (other data, model or settings), or unkeyed (``<root>/<id>.npz``, older hbm).
+
+    They are left on disk untouched and never resumed; the caller says so in one notice.
+    """
+    root = Path(root)
+    other: list[Path] = []
+    for sid, folder in current.items():
+        old = [p for p in root.glob(f"{sid}-*/{sid}.npz") if p.parent.name[len(sid) + 1:].isalnum()
+               and p.parent != Path(folder)]
+        other += sorted(old) + [p for p in [root / f"{sid}.npz"] if p.is_file()]
+    return other
+

@@ -57,7 +57,7 @@ import xarray as xr
 
 from . import conventions
 from ._version import __version__
-from .errors import HbmError
+from .errors import HbmError, OutputError
 from .samplers.types import StageInfo
 from .utils import atomic_path, write_error
 
@@ -336,10 +336,17 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
 
 
 def _mark_complete(path: Path) -> None:
-    """Set the root attribute ``complete = 1`` -- the very last write into the file."""
+    """Set the root attribute ``complete = 1`` -- the very last write into the file.
+
+    Only on a file that exists and was written: netCDF's append mode would create an empty
+    file (which would then count as a complete result) if another process had removed it.
+    """
     import netCDF4  # local: only needed here
 
-    with netCDF4.Dataset(path, "a") as nc:
+    if not path.is_file() or path.stat().st_size == 0:
+        raise OutputError(f"cannot mark {path} complete: the file vanished while it was written (removed by "
+                          "another process?); nothing was stored")
+    with netCDF4.Dataset(path, "r+") as nc:
         nc.setncattr("complete", np.int32(1))
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from .errors import HbmError
 from .likelihood import Likelihood
+from .validation import check_int
 
 OBJECTIVES = ("map", "wls")
 # cma needs finite values; anything out of the feasible set is ranked behind every real value
@@ -187,6 +188,9 @@ def optimize(likelihood: Likelihood, *, restarts: int = 4, seed: int = 0, object
         raise HbmError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
     if int(restarts) < 1:
         raise HbmError(f"restarts must be >= 1, got {restarts}")
+    seed = check_int(seed, "seed", 0)  # (fits pass 64-bit child seeds of the root seed here)
+    if popsize is not None:
+        popsize = check_int(popsize, "popsize", 2)
     if sweep is not None:
         _sweep_windows(likelihood, sweep)  # fail before spending any evaluations
     t0 = _time.perf_counter()

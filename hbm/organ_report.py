@@ -39,7 +39,7 @@ import xarray as xr
 
 from . import io, seeds
 from .effects import REGISTRY, make_effect
-from .errors import HbmError
+from .errors import HbmError, HbmWarning
 from .model import BASE_EFFECTS, spyrou_model
 from .model.core import Model
 from .organ import (FusiformGeometry, OrganResponse, extrapolation_mask, force_levels, load_geometry,
@@ -290,6 +290,10 @@ def predict_organ(results: str | os.PathLike, geometry: FusiformGeometry | str |
         specimens[r.specimen_id] = r
     hpath = results / "hierarchical.nc"
     hier = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
+    if hier is None and hpath.exists():  # never drop the updated and population rows silently
+        warnings.warn(f"{hpath} is incomplete or unreadable (truncated?): predictions without the hierarchical "
+                      "layer (no updated-individual or population rows); rerun 'hbm run' to rebuild it",
+                      HbmWarning, stacklevel=2)
     pred = predict_organ_results(specimens, geometry, hierarchical=hier,
                                  out=Path(out) if out is not None else results / "organ", **kwargs)
     skipped = [p.stem for p in files if p not in done]

@@ -17,7 +17,9 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -28,11 +30,22 @@ import numpy as np
 from . import seeds
 from ._dask_worker import drop_dask_unraisables
 from .blas import BLAS_ENV, single_thread_env
-from .errors import HbmError, OutputError
+from .errors import HbmError, OutputError, OutputLockedError
 from .samplers.checkpoint import checkpoint_progress
+from .validation import check_workers
 
-__all__ = ["BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
+__all__ = ["ALLOWED_FAILURES", "NO_WORKER_TIMEOUT", "NO_WORKER_TIMEOUT_EXTERNAL",
+           "BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
            "checkpoint_status"]
+
+#: worker deaths the embedded cluster's scheduler allows a task before it fails it (KilledWorker):
+#: a task that dies with its worker this often is killing it (out of memory), not unlucky
+ALLOWED_FAILURES = 2
+#: seconds a run waits for a cluster that has no worker at all: the embedded cluster's nannies
+#: restart a dead worker within seconds, so after this long they have given up; an external
+#: cluster (--scheduler, dask-jobqueue) may wait for its batch jobs much longer
+NO_WORKER_TIMEOUT = 120.0
+NO_WORKER_TIMEOUT_EXTERNAL = 1800.0
 
 def spawn_specimen_seeds(seed: int, ids) -> dict[str, np.random.SeedSequence]:
     """The ``specimen`` stream of :mod:`hbm.seeds` for each id, numbered in sorted-id order."""
@@ -75,8 +88,6 @@ def _sigint_deferred() -> Iterator[None]:
 def _quiet_shutdown() -> Iterator[None]:
     """Silence dask/tornado/asyncio while a failed or interrupted run closes its cluster
     (lost-worker warnings, cancelled-task and closed-comm tracebacks)."""
-    import logging
-
     loggers = [logging.getLogger(name) for name in _SHUTDOWN_LOGGERS]
     levels = [lg.level for lg in loggers]
     for lg in loggers:
@@ -89,6 +100,10 @@ def _quiet_shutdown() -> Iterator[None]:
     finally:
         for lg, level in zip(loggers, levels):
             lg.setLevel(level)
+
+
+def _drop_killed_worker_report(record: logging.LogRecord) -> bool:
+    return "workers died while trying to run it" not in record.getMessage()
 
 
 @contextlib.contextmanager
@@ -110,14 +125,11 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
     dashboard : bool
         Serve the dask dashboard (port 8787) for the embedded cluster.
     """
-    import logging
-
+    import dask
     from distributed import Client, LocalCluster
 
     address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
-    n = int(workers) if workers else (os.cpu_count() or 1)
-    if not address and n < 1:
-        raise HbmError(f"--workers must be >= 1, got {workers}")
+    n = check_workers(workers) if workers else (os.cpu_count() or 1)  # the rule of --workers
     cluster = client = None
     failed = False
     try:
@@ -129,12 +141,18 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
         else:
             single_thread_env()  # also for anything spawned from this process
             # both objects exist before a Ctrl-C during startup is raised, so both get closed
-            with _sigint_deferred():
+            # the scheduler's own report of a KilledWorker would precede the run's one line
+            logging.getLogger("distributed.scheduler").addFilter(_drop_killed_worker_report)
+            # worker-saturation 1: a worker holds only the task it runs, so a task that kills its
+            # worker does not count deaths against specimens merely queued there
+            with _sigint_deferred(), dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
+                                                      "distributed.scheduler.worker-saturation": 1.0}):
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                        dashboard_address=":8787" if dashboard else ":0",
                                        silence_logs=logging.ERROR if silence_logs else logging.WARNING,
                                        env=dict(BLAS_ENV), preload=["hbm._dask_worker"])
                 client = Client(cluster)
+            client.hbm_no_worker_timeout = NO_WORKER_TIMEOUT  # (read by map_specimens)
         yield client
     except BaseException:
         failed = True
@@ -166,6 +184,81 @@ class MapResult:
     task_times: dict[str, float] = field(default_factory=dict)
 
 
+def _task_error(exc: BaseException) -> str:
+    """One line for a failed specimen task (a KilledWorker says how often its worker died)."""
+    if type(exc).__name__ == "KilledWorker":
+        found = re.search(r"on (\d+) different workers", str(exc))
+        deaths = found.group(1) if found else "several"
+        return (f"its worker process died {deaths} times while running it (killed by the system, e.g. out of "
+                "memory?); not retried")
+    return f"{type(exc).__name__}: {exc}".splitlines()[0]
+
+
+def _n_workers(client) -> int | None:
+    try:
+        return len(client.scheduler_info().get("workers", {}))
+    except Exception:  # a scheduler that does not answer counts as unknown, not as empty
+        return None
+
+
+def _run_on_cluster(client, func, items, seeds, kwargs, prefix, retries, res, bar, checkpoints, poll,
+                    no_worker_timeout) -> None:
+    """Submit every task, collect results; bounded deaths, bounded retries, bounded waits."""
+    if no_worker_timeout is None:
+        no_worker_timeout = getattr(client, "hbm_no_worker_timeout", NO_WORKER_TIMEOUT_EXTERNAL)
+    timeout = float(no_worker_timeout)
+    attempts = {sid: 0 for sid in items}
+
+    def submit(sid):
+        key = f"{prefix}-{sid}" + (f"-retry{attempts[sid]}" if attempts[sid] else "")
+        return client.submit(_timed_call, func, items[sid], seeds[sid], kwargs, key=key, pure=False)
+
+    futures = {submit(sid): sid for sid in sorted(items)}
+    pending = set(futures)
+    empty_since, last_check = None, 0.0
+    while pending:
+        for f in [f for f in pending if f.done()]:
+            pending.discard(f)
+            sid = futures.pop(f)
+            try:
+                path, dt = f.result()
+                res.paths[sid], res.task_times[sid] = str(path), dt
+            except OutputLockedError as exc:  # another process writes this specimen's file
+                res.errors[sid] = str(exc)
+            except OutputError:  # full disk, unwritable folder: every other task would fail too
+                raise
+            except Exception as exc:  # keep going: report the failure at the end
+                killed = type(exc).__name__ == "KilledWorker"
+                if not killed and not isinstance(exc, HbmError) and attempts[sid] < retries:
+                    attempts[sid] += 1
+                    g = submit(sid)
+                    futures[g] = sid
+                    pending.add(g)
+                    continue
+                res.errors[sid] = _task_error(exc)
+            if bar is not None:
+                bar.update(1)
+        if bar is not None and checkpoints:
+            live = [f"{futures[f]}: {st}" for f in sorted(pending, key=lambda f: futures[f])
+                    if futures[f] in checkpoints and (st := checkpoint_status(checkpoints[futures[f]]))]
+            bar.set_postfix_str("; ".join(live)[:150], refresh=True)
+        now = time.monotonic()
+        if pending and now - last_check >= 2.0:  # a scheduler round trip: not at every poll
+            last_check = now
+            if _n_workers(client) == 0:
+                empty_since = empty_since or now
+                if now - empty_since > timeout:
+                    left = sorted(futures[f] for f in pending)
+                    failed = "".join(f"; {sid} failed: {msg}" for sid, msg in sorted(res.errors.items()))
+                    raise HbmError(f"the dask cluster has had no workers for {timeout:.0f} s; "
+                                   f"{len(left)} specimen(s) unfinished ({', '.join(left)}; their checkpoints are "
+                                   f"kept: rerun to resume){failed}")
+            else:
+                empty_since = None
+        if pending:
+            time.sleep(poll)
+
+
 def _timed_call(func, item, seed, kwargs):
     t = time.perf_counter()
     out = func(item, seed=seed, **kwargs)
@@ -175,7 +268,7 @@ def _timed_call(func, item, seed, kwargs):
 def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: int, client=None,
                   kwargs: Mapping[str, Any] | None = None, prefix: str = "fit", retries: int = 1,
                   progress: bool = True, checkpoints: Mapping[str, str | os.PathLike] | None = None,
-                  poll: float = 0.5, all_ids=None) -> MapResult:
+                  poll: float = 0.5, all_ids=None, no_worker_timeout: float | None = None) -> MapResult:
     """Run ``func(items[id], seed=<SeedSequence>, **kwargs) -> path`` for every specimen.
 
     Parameters
@@ -190,7 +283,14 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
     client : distributed.Client or None
         None runs serially in this process.
     retries : int
-        dask retries per task (a worker crash re-runs the task, which resumes from its checkpoint).
+        Re-submissions of a task that raised (not for :class:`~hbm.errors.HbmError`, which would
+        fail again).  A task whose worker dies is re-run by the scheduler (resuming from its
+        checkpoint) at most :data:`ALLOWED_FAILURES` times on the embedded cluster; one more
+        death fails that specimen (``KilledWorker``: "its worker died N times").
+    no_worker_timeout : float, optional
+        Seconds the cluster may have no worker at all before the run fails with one line
+        (default :data:`NO_WORKER_TIMEOUT` for the cluster of :func:`dask_client`,
+        :data:`NO_WORKER_TIMEOUT_EXTERNAL` for other clients): nothing waits without a deadline.
     checkpoints : mapping id -> path, optional
         TMCMC checkpoint files polled for the progress bar's stage display.
 
@@ -203,6 +303,8 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
     OutputError
         As soon as one task cannot write its result (full disk, unwritable folder): the other
         tasks would fail the same way.  Other task errors are collected in ``errors``.
+    HbmError
+        When the cluster has had no worker for ``no_worker_timeout`` seconds.
     """
     kwargs = dict(kwargs or {})
     seeds = spawn_specimen_seeds(seed, all_ids if all_ids is not None else items)
@@ -224,6 +326,8 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
                 try:
                     path, dt = _timed_call(func, items[sid], seeds[sid], kwargs)
                     res.paths[sid], res.task_times[sid] = str(path), dt
+                except OutputLockedError as exc:  # another process writes this specimen's file
+                    res.errors[sid] = str(exc)
                 except OutputError:  # full disk, unwritable folder: every other task would fail too
                     raise
                 except HbmError as exc:
@@ -231,34 +335,8 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
                 if bar is not None:
                     bar.update(1)
         else:
-            futures = {client.submit(_timed_call, func, items[sid], seeds[sid], kwargs,
-                                     key=f"{prefix}-{sid}", pure=False, retries=int(retries)): sid
-                       for sid in order}
-            pending = set(futures)
-            while pending:
-                done = [f for f in pending if f.done()]
-                for f in done:
-                    pending.discard(f)
-                    sid = futures[f]
-                    try:
-                        path, dt = f.result()
-                        res.paths[sid], res.task_times[sid] = str(path), dt
-                    except OutputError:  # full disk, unwritable folder: every other task would fail too
-                        raise
-                    except Exception as exc:  # keep going: report the failure at the end
-                        res.errors[sid] = f"{type(exc).__name__}: {exc}"
-                    if bar is not None:
-                        bar.update(1)
-                if bar is not None and checkpoints:
-                    live = []
-                    for f in sorted(pending, key=lambda f: futures[f]):
-                        sid = futures[f]
-                        st = checkpoint_status(checkpoints[sid]) if sid in checkpoints else None
-                        if st:
-                            live.append(f"{sid}: {st}")
-                    bar.set_postfix_str("; ".join(live)[:150], refresh=True)
-                if pending:
-                    time.sleep(poll)
+            _run_on_cluster(client, func, items, seeds, kwargs, prefix, int(retries), res, bar, checkpoints or {},
+                            poll, no_worker_timeout)
     finally:
         if bar is not None:
             bar.close()

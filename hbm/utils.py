@@ -4,7 +4,8 @@ Every file hbm writes goes through :func:`atomic_path`: a temporary file next to
 renamed onto it when complete, with the permissions a plain ``open()`` would give
 (``0o666 & ~umask``).  :func:`prepare_output_dir` / :func:`prepare_output_file` test an output
 location (create, write, replace) before any computation; :func:`output_lock` keeps two runs
-out of one folder; :func:`require_memory` refuses sizes whose memory cannot exist.
+out of one folder and :func:`file_lock` two writers off one file (the one writer
+rule); :func:`require_memory` refuses sizes whose memory cannot exist.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from .errors import OutputError, OutputLockedError, TooLargeError
 
 __all__ = ["atomic_path", "atomic_write_text", "as_generator", "current_umask",
            "file_mode", "remove_stale_temps", "prepare_output_dir", "prepare_output_file", "output_lock",
+           "file_lock", "file_lock_path",
            "LOCK_NAME", "available_memory", "require_memory", "format_bytes", "write_error"]
 
 #: name of the lock file :func:`output_lock` holds inside an output folder
@@ -119,8 +121,9 @@ def remove_stale_temps(folder: str | os.PathLike, *, recursive: bool = True, tar
     """Remove temporary files of :func:`atomic_path` left in ``folder`` by a killed process.
 
     Only names of the form ``.<name>.<8 characters>.tmp`` are touched (``target``: only those of
-    that file name).  Call it only while no other process writes there (under
-    :func:`output_lock`, or for a file only this process writes).
+    that file name).  Call it while holding the folder's :func:`output_lock` or the file's
+    :func:`file_lock`; temporary files of a target whose :func:`file_lock` another process holds
+    are never touched.
 
     Returns
     -------
@@ -135,6 +138,10 @@ def remove_stale_temps(folder: str | os.PathLike, *, recursive: bool = True, tar
     removed = []
     for p in found:
         if _TEMP_RE.match(p.name) and p.is_file() and not p.is_symlink():
+            target = p.parent / p.name[1:-len(".abcdefgh.tmp")]
+            if _locked_elsewhere(file_lock_path(target)) or (
+                    recursive and _locked_elsewhere(p.parent / LOCK_NAME) and p.parent != folder):
+                continue  # a live writer's file: only the lock holder sweeps it
             with contextlib.suppress(OSError):
                 p.unlink()
                 removed.append(p)
@@ -242,18 +249,23 @@ def _lock_holder(lock: Path) -> str:
     return f"pid {pid}" if pid.isdigit() else "pid unknown"
 
 
-@contextlib.contextmanager
-def output_lock(folder: str | os.PathLike) -> Iterator[Path]:
-    """Hold an exclusive lock on ``folder`` (``fcntl.flock`` on ``<folder>/.hbm.lock``).
+#: lock files this process holds now (a second flock from the same process would fail, so the
+#: temp sweep asks here first)
+_HELD: set[Path] = set()
 
-    A second process asking for the same folder gets :class:`OutputLockedError`
-    ("``<folder>`` is in use by another hbm run (pid N)") at once instead of duplicating or
-    interleaving the work.  The lock goes with the process (also on kill -9); the lock file stays.
-    """
+
+def file_lock_path(path: str | os.PathLike) -> Path:
+    """The lock file of one output file: ``<folder>/.<name>.lock`` (``.hbm.lock`` for a folder)."""
+    path = Path(path).expanduser().absolute()
+    return path / LOCK_NAME if path.is_dir() else path.parent / f".{path.name}.lock"
+
+
+@contextlib.contextmanager
+def _flock(lock: Path, busy: str) -> Iterator[Path]:
+    """Hold ``fcntl.flock`` on ``lock`` (created if absent); ``busy``: message if another holds it."""
     import fcntl  # POSIX only; imported here so that Windows can still import hbm.utils
 
-    folder = Path(folder)
-    lock = folder / LOCK_NAME
+    lock = lock.absolute()
     try:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
     except OSError as exc:
@@ -264,16 +276,64 @@ def output_lock(folder: str | os.PathLike) -> Iterator[Path]:
         except OSError as exc:
             if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
                 raise OutputError(f"cannot lock {lock}: {_reason(exc)}") from None
-            raise OutputLockedError(f"{folder} is in use by another hbm run ({_lock_holder(lock)})") from None
+            raise OutputLockedError(f"{busy} ({_lock_holder(lock)})") from None
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
+        _HELD.add(lock)
         try:
             yield lock
         finally:
+            _HELD.discard(lock)
             with contextlib.suppress(OSError):
                 os.ftruncate(fd, 0)  # before the unlock: a waiting run must not read a stale pid
     finally:
         os.close(fd)  # releases the flock
+
+
+def _locked_elsewhere(lock: Path) -> bool:
+    """True if another process holds ``lock`` now (probed without waiting, released at once)."""
+    import fcntl
+
+    if lock.absolute() in _HELD or not lock.is_file():
+        return False
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)  # releases a probe lock
+    return False
+
+
+@contextlib.contextmanager
+def output_lock(folder: str | os.PathLike) -> Iterator[Path]:
+    """Hold an exclusive lock on ``folder`` (``fcntl.flock`` on ``<folder>/.hbm.lock``).
+
+    A second process asking for the same folder gets :class:`OutputLockedError`
+    ("``<folder>`` is in use by another hbm run (pid N)") at once instead of duplicating or
+    interleaving the work.  The lock goes with the process (also on kill -9); the lock file stays.
+    """
+    folder = Path(folder)
+    with _flock(folder / LOCK_NAME, f"{folder} is in use by another hbm run") as lock:
+        yield lock
+
+
+@contextlib.contextmanager
+def file_lock(path: str | os.PathLike, what: str = "output file") -> Iterator[Path]:
+    """Hold the writer's lock of one output file (:func:`file_lock_path`) while it is produced.
+
+    The one writer rule: a process writes ``path`` (and sweeps its temporary files) only while
+    it holds this lock; a second writer gets :class:`OutputLockedError` naming ``what`` and the
+    holder at once.  Lock files stay (removing them would race with a waiting writer).
+    """
+    path = Path(path).expanduser().absolute()
+    with _flock(file_lock_path(path), f"{what} {path} is being written by another hbm process; wait for it to "
+                                      "finish or choose another output") as lock:
+        yield lock
 
 
 def _meminfo_available() -> int | None:

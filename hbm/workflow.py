@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,14 +42,18 @@ from .data import GROUP_KEY, load_specimens, specimen_groups
 from .errors import DataError, HbmError
 from .fit import fit_specimen
 from .model import spyrou_model
-from .parallel import dask_client, map_specimens
+from .parallel import dask_client, map_specimens, spawn_specimen_seeds
 from .population import DEFAULT_SD_RANGE, PopulationConfig, run_population
 from .report import write_report
-from .utils import atomic_write_text
+from .utils import atomic_write_text, file_lock
 from .utils import log_progress as _log
 from .views import identified_directions, manifold_spline
 
-__all__ = ["RunConfig", "WorkflowResult", "run_workflow", "fit_task"]
+#: default output folder of hbm run and hbm fit: untracked (.gitignore), so that a run never replaces
+#: the shipped reference results in results/
+DEFAULT_OUT = "hbm-results"
+
+__all__ = ["DEFAULT_OUT", "RunConfig", "WorkflowResult", "run_workflow", "fit_task"]
 
 
 
@@ -58,7 +62,7 @@ class RunConfig:
     """Settings of ``hbm run`` (see the CLI help for their meaning)."""
 
     data: str = "data/specimens"
-    out: str = "results"
+    out: str = DEFAULT_OUT
     samples: int = 2000
     kernel: str = "rw"
     noise: str = "iid"
@@ -86,6 +90,8 @@ class RunConfig:
     retries: int = 1
     quick: bool = False
     tmcmc_options: dict | None = None
+    #: likelihood tier of every specimen's fit ("auto": collapsed where the model allows, or "full")
+    likelihood: str = "auto"
     #: user prior (:meth:`hbm.prior.Prior.to_dict`), or None for the model's box (uniform)
     prior: dict | None = None
     #: reference sarcomere length (µm) for files with a sarcomere_length_um column (``--sl0``)
@@ -106,15 +112,16 @@ class RunConfig:
         if int(self.samples) < 10:
             raise HbmError(f"--samples must be >= 10, got {self.samples}")
 
-    def fit_settings(self) -> dict:
-        """The settings that change a specimen's result (used to decide whether to re-fit)."""
-        return {"samples": int(self.samples), "kernel": self.kernel, "noise": self.noise,
-                "seed": int(self.seed), "sobol_n": int(self.sobol_n) if self.sobol else 0,
-                "restarts": int(self.restarts), "sweep": self.sweep, "maxfevals": int(self.maxfevals),
-                "fix": self.fix or None, "bounds": {k: list(map(float, v)) for k, v in (self.bounds or {}).items()}
-                or None, "tmcmc_options": self.tmcmc_options or None, "version": __version__,
-                # only when set, so that default runs keep their settings hash (and their reuse)
-                **({"prior": self.prior} if self.prior else {})}
+    def fit_options(self, sigma_bounds: tuple[float, float]) -> dict:
+        """The keyword arguments of every specimen's :func:`hbm.fit.fit_specimen` (all but data,
+        seed and paths) -- the ONE settings record: the same dict runs the fits and keys their
+        results and checkpoints (:func:`hbm.identity.fit_key`), so no setting can be forgotten."""
+        return {"samples": self.samples, "kernel": self.kernel, "noise": self.noise, "fix": self.fix,
+                "bounds": self.bounds, "restarts": self.restarts, "sweep": self.sweep,
+                "sobol_n": self.sobol_n if self.sobol else None, "tmcmc_options": self.tmcmc_options,
+                "optimize_options": {"maxfevals": self.maxfevals}, "sigma_bounds": tuple(sigma_bounds),
+                "likelihood": self.likelihood,
+                **({"prior": self.prior, "bounds": None} if self.prior else {})}
 
     def population_config(self) -> PopulationConfig:
         """The settings of the population layer (:func:`hbm.population.run_population`)."""
@@ -127,10 +134,6 @@ class RunConfig:
                                 **({"exact_burn": 200, "exact_keep": 12} if self.quick else {}))
 
 
-def _settings_hash(settings: Mapping) -> str:
-    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
 def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, options: Mapping,
              identity_parts: Mapping[str, str] | None = None) -> str:
     """One dask task: fit one specimen and write ``out_path``; returns the path.
@@ -141,15 +144,27 @@ def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, 
     returned untouched (idempotent).
     """
     single_thread_env()
+    if os.environ.get("HBM_TEST_KILL_WORKER") == str(data.attrs.get("id")):
+        os.kill(os.getpid(), 9)  # test hook: this specimen kills its worker (as an out-of-memory kill does)
     if io.is_complete(out_path) and _stored_hash(out_path) == settings_hash:
         return out_path
     ck = Path(checkpoint)
     opts = dict(options)
     opts.setdefault("tmcmc_options", None)
-    # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
-    fit_specimen(data, seed=seed, out=out_path, checkpoint_dir=ck.parent, progress=False,
-                 config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})}, **opts)
+    # the one writer rule: a concurrent 'hbm fit --out' of this file makes this specimen fail, not both
+    with file_lock(out_path, "specimen result"):
+        # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
+        fit_specimen(data, seed=seed, out=out_path, checkpoint_dir=ck.parent, progress=False,
+                     config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})}, **opts)
     return out_path
+
+
+def _drop_checkpoint(ckpt: Path) -> None:
+    """Remove the checkpoint of a specimen whose result is complete (stale: never resumed)."""
+    with contextlib.suppress(OSError):
+        ckpt.unlink()
+    with contextlib.suppress(OSError):
+        ckpt.parent.rmdir()  # only if empty
 
 
 def _stored_hash(path) -> str | None:
@@ -218,22 +233,27 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
         specimen_groups(datasets, cfg.group_by)
     ids = sorted(datasets)
     model = model if model is not None else spyrou_model()
-    settings = cfg.fit_settings()
     sigma_box = _common_sigma_box(datasets)
-    settings["sigma_bounds"] = list(sigma_box)
-    shash = _settings_hash(settings)
-    # one content key per specimen (hbm.identity): its data, the model, the settings (seed included)
-    parts = {sid: {"data": identity.data_key(datasets[sid]), "model": identity.model_key(model),
-                   "settings": shash} for sid in ids}
-    keys = {sid: identity.content_key(parts[sid]) for sid in ids}
+    options = cfg.fit_options(sigma_box)  # the one settings record (RunConfig.fit_options)
+    # one content key per specimen (hbm.identity): its data, the model, the settings with its own seed
+    specimen_seeds = spawn_specimen_seeds(cfg.seed, ids)
+    keyed = {sid: identity.fit_key(datasets[sid], model, {**options, "seed": specimen_seeds[sid]}) for sid in ids}
+    keys = {sid: keyed[sid][0] for sid in ids}
+    parts = {sid: keyed[sid][1] for sid in ids}
+    settings = identity.fit_record({**options, "seed": cfg.seed})  # for run.json
     paths = {sid: io.specimen_path(out, sid) for sid in ids}
     # a checkpoint is keyed by the content key: one made on other data or another model is never resumed
-    ckpts = {sid: out / "checkpoints" / f"{sid}-{keys[sid]}" / f"{sid}.npz" for sid in ids}
+    ckpts = {sid: identity.checkpoint_dir(out / "checkpoints", sid, keys[sid]) / f"{sid}.npz" for sid in ids}
+    other = identity.set_aside_checkpoints(out / "checkpoints", {sid: ckpts[sid].parent for sid in ids})
+    if other:
+        _log(f"{len(other)} checkpoint(s) of other data, model or settings set aside (not resumed): "
+             f"{', '.join(str(p.relative_to(out)) for p in other)}", cfg.progress)
     todo, skipped = {}, []
     for sid in ids:
         complete = io.is_complete(paths[sid])
         if complete and _stored_hash(paths[sid]) == keys[sid]:
             skipped.append(sid)
+            _drop_checkpoint(ckpts[sid])  # of a finished result (its removal failed or was interrupted)
             continue
         todo[sid] = datasets[sid]
         if complete:  # say why a finished result is not reused
@@ -242,11 +262,7 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     _log(f"{len(ids)} specimens in {cfg.data}: {len(skipped)} complete (skipped), {len(todo)} to fit"
          + (f" ({sum(c.exists() for c in ckpts.values())} resuming from checkpoints)"
             if any(ckpts[s].exists() for s in todo) else ""), cfg.progress)
-    options = {"model": model, "samples": cfg.samples, "kernel": cfg.kernel, "noise": cfg.noise,
-               "fix": cfg.fix, "bounds": cfg.bounds, "restarts": cfg.restarts, "sweep": cfg.sweep,
-               "sobol_n": cfg.sobol_n if cfg.sobol else None, "tmcmc_options": cfg.tmcmc_options,
-               "optimize_options": {"maxfevals": cfg.maxfevals}, "sigma_bounds": sigma_box,
-               **({"prior": cfg.prior, "bounds": None} if cfg.prior else {})}
+    options = {"model": model, **options}
     timings: dict[str, float] = {}
     if client is not None:
         ctx = contextlib.nullcontext(client)
@@ -285,8 +301,8 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, opt
                              checkpoints={sid: ckpts[sid] for sid in todo}, all_ids=ids)
         errors, task_times = mres.errors, mres.task_times
     timings["specimens_wall"] = time.perf_counter() - t
-    for sid, msg in errors.items():
-        _log(f"specimen {sid} FAILED: {msg}", True)
+    for sid, msg in errors.items():  # (hbm run ends with one 'hbm: error:' line naming them)
+        _log(f"specimen {sid} FAILED: {msg}", cfg.progress)
 
     results = {sid: io.read_specimen_result(paths[sid]) for sid in ids if io.is_complete(paths[sid])}
     for phase in ("cmaes", "tmcmc", "predictive", "sobol"):

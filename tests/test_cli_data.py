@@ -16,7 +16,7 @@ def test_check_shipped_folder(capsys):
     assert main(["data", "check", str(SPECIMENS)]) == 0
     out, err = capsys.readouterr()
     lines = out.strip().splitlines()
-    assert lines[0].split()[:4] == ["id", "points", "strain", "max"]
+    assert lines[0].split()[:4] == ["id", "points", "strain", "peak"]  # signed: compression files too
     body = [ln for ln in lines[2:] if ln.startswith(("calvo", "hawkins"))]
     assert len(body) == 6
     assert all("synthetic" in ln for ln in body)

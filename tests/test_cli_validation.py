@@ -93,6 +93,7 @@ def _bad_values(action: argparse.Action, tmp_path: Path) -> list[str]:
         return ["bogus"]
     named = {rules.seed: ["-1", str(rules.SEED_LIMIT), "1.5", "x"],
              rules.positive_int: ["0", "-3", "2.5"], rules.non_negative_int: ["-1", "x"],
+             rules.workers: ["-1", "x", "100000"],
              rules.sample_size: [str(rules.MIN_SAMPLES - 1), "0", "-5", "many"],
              rules.power_of_two: ["0", "1", "1000", "-8"], rules.power_of_two_or_zero: ["3", "-2"],
              rules.positive_float: ["0", "-1", "nan", "inf"], rules.name_list: ["a,,b", "a,a", ","],

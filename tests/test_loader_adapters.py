@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ import pytest
 
 from hbm.cli import main
 from hbm.data import input_summary, load_specimen, load_specimens, save_specimen, specimen_loading
-from hbm.errors import DataError
+from hbm.errors import DataError, HbmWarning
 
 ROOT = Path(__file__).resolve().parents[1]
 MEASURED = ROOT / "data" / "measured"
@@ -215,23 +216,41 @@ def test_largest_int64_test_id_loads(tmp_path):
 
 
 # ------------------------------------------------------------------ plausibility
+# stress per unit strain (secant, Cauchy/strain) of passive muscle: 0.002-3 MPa (hbm.plausibility)
 @pytest.mark.parametrize("head, meta, values, fragments", [
     ("strain,stress", "", [s for s in S], ["line 7", "stress 48 (no unit declared, read as MPa)",
-                                           "add '# units_stress: kPa'"]),
+                                           "at the peak 160 MPa", "add '# units_stress: kPa'"]),
     ("strain,stress", "", [s * 1e3 for s in S], ["line 7", "48000", "add '# units_stress: Pa'"]),
-    ("strain,stress", "# units_stress: kPa\n", [s * 1e3 for s in S],
-     ["line 8", "48000 kPa", "48 MPa", "write '# units_stress: Pa'"]),
-    ("strain,stress_kPa", "", [s * 1e3 for s in S], ["rename the column to 'stress_Pa'"]),
     ("strain,nominal_stress", "", [0.1, 0.2, 0.5, 1, 2, 4.5], ["4.5", "nominal", "Cauchy stress of 5.85 MPa"]),
-    ("strain,stress", "# units_stress: Pa\n", [s * 1e6 for s in S], ["check the values and their unit"]),
 ])
-def test_implausible_stress_is_refused(tmp_path, head, meta, values, fragments):
+def test_implausible_undeclared_stress_is_refused(tmp_path, head, meta, values, fragments):
     refused(write(tmp_path, meta + head + "\n" + rows(E, values)), ["passive muscle", *fragments])
 
 
-def test_stress_just_below_the_limit_loads(tmp_path):
-    ds = load_specimen(write(tmp_path, "strain,stress\n" + rows(E, [0, 1, 2, 3, 4, 5.0])))
-    assert ds.stress.values.max() == 5.0
+@pytest.mark.parametrize("head, meta, values, fragments", [
+    ("strain,stress", "# units_stress: kPa\n", [s * 1e3 for s in S],
+     ["line 8", "48000 kPa", "48 MPa", "write '# units_stress: Pa'", "loaded as declared: kPa"]),
+    ("strain,stress_kPa", "", [s * 1e3 for s in S], ["rename the column to 'stress_Pa'"]),
+    ("strain,stress", "# units_stress: Pa\n", [s * 1e6 for s in S], ["check the values and their unit"]),
+    ("strain,stress", "# units_stress: kPa\n", [s * 1e-3 for s in S], ["below the", "'# units_stress: MPa'"]),
+])
+def test_implausible_declared_stress_loads_with_a_warning(tmp_path, head, meta, values, fragments):
+    """A declared unit is the user's decision: outside the plausible range a warning, never a refusal."""
+    with pytest.warns(HbmWarning) as seen:
+        ds = load_specimen(write(tmp_path, meta + head + "\n" + rows(E, values)))
+    text = " ".join(str(w.message) for w in seen)
+    assert all(f in text for f in ["passive muscle", *fragments]), text
+    factor = {"kPa": 1e-3, "Pa": 1e-6}[ds.attrs["units_stress_original"]]
+    assert ds.stress.values[-1] == pytest.approx(values[-1] * factor)
+
+
+def test_stiffness_just_below_the_limit_loads(tmp_path):
+    # peak 0.897 MPa at strain 0.3 (2.99 MPa per unit strain); toe 0.2/0.1 = 2 MPa
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = load_specimen(write(tmp_path, "strain,stress\n" + rows(E, [0, 0.1, 0.2, 0.3, 0.5, 0.897])))
+    assert ds.stress.values.max() == 0.897
+    refused(write(tmp_path, "strain,stress\n" + rows(E, [0, 0.1, 0.2, 0.3, 0.5, 0.903])), ["3.01 MPa"])
 
 
 # ------------------------------------------------------------------ bad metadata values

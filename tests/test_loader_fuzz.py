@@ -240,9 +240,9 @@ def meaning(raw: bytes, sl0=None):
     if measure == "nominal":
         stress = [(1.0 + e) * x for e, x in zip(strain, stress)]
     peak = max(abs(x) for x in stress)
-    if peak > 5.0:
-        return None
     at = next(i for i, x in enumerate(stress) if abs(x) == peak)  # the first largest, as np.argmax
+    if unit is None and _too_stiff(strain, stress, at):  # an undeclared unit stiffer than muscle: refused
+        return None
     if strain[at] * stress[at] < 0:  # tension positive
         return None
     test, time = cols.get("test"), cols.get("time")
@@ -271,6 +271,23 @@ def meaning(raw: bytes, sl0=None):
         except ValueError:
             return None
     return {"strain": strain, "stress": stress, "time": time, "test": test, "labels": labels}
+
+
+def _too_stiff(strain, stress, at) -> bool:
+    """Stress per unit strain above 3 MPa at the peak (largest |stress| over the largest |strain| on
+    its side), or in the toe (the point nearest 30 % of that strain, the first of equals), written
+    out independently of hbm.plausibility."""
+    ep = strain[at]
+    if ep == 0:
+        return False
+    reach = max(abs(e) for e in strain if e != 0 and (e > 0) == (ep > 0))
+    if abs(stress[at]) / reach > 3.0:
+        return True
+    side = [i for i, e in enumerate(strain) if e != 0 and (e > 0) == (ep > 0) and abs(e) < reach]
+    if not side:
+        return False
+    j = min(side, key=lambda i: (abs(abs(strain[i]) - 0.3 * reach), i))
+    return abs(stress[j] / strain[j]) > 3.0
 
 
 # ----------------------------------------------------------------------------- valid base files

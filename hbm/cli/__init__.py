@@ -10,6 +10,8 @@ internal error is one line too (exit 1); ``HBM_DEBUG=1`` shows its traceback.
 from __future__ import annotations
 
 import argparse
+import atexit
+import contextlib
 import importlib
 import json
 import os
@@ -82,6 +84,27 @@ def _os_error(exc: OSError) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``hbm ARGV`` (default ``sys.argv[1:]``) and return the exit status."""
+    if argv is None and threading.current_thread() is threading.main_thread():  # the command's own process
+        atexit.register(_ignore_late_interrupt)  # runs after the atexit handlers registered during the run
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:  # Ctrl-C in the last moment: while an error or the ending is handled
+        print("hbm: interrupted", file=sys.stderr)
+        return 143 if isinstance(exc, _Terminated) else 130
+
+
+def _ignore_late_interrupt() -> None:
+    """Ignore Ctrl-C in the process's very last moments (after its atexit work).
+
+    Python's finalisation puts a Python-level SIGINT handler back to the OS default, so a Ctrl-C
+    then would kill the process by the signal (no message, exit -2) after everything was written
+    and printed; an ignored signal stays ignored, and the process ends with its own status.
+    """
+    with contextlib.suppress(ValueError, OSError):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _main(argv: list[str] | None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous_term = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     words = list(sys.argv[1:] if argv is None else argv)

@@ -16,17 +16,21 @@ import math
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable, NamedTuple, Sequence
+from typing import Any, Callable, Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from ..data import load_specimen
 from ..effects import resolve_effect
-from ..errors import DataError, HbmError, HbmWarning, SettingError
+from ..errors import DataError, HbmError, HbmWarning, OutputError, SettingError
+from ..identity import changed
+from ..io import read_attrs
 from ..prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
 from ..noise import get_noise, noise_model_names
+from ..model.spyrou import PHYSICAL_RANGE
 from ..utils import format_bytes, require_memory
+from ..validation import SEED_LIMIT, check_physical_bounds, check_seed, check_workers
 
 
 class RegistryChoices:
@@ -60,6 +64,15 @@ def n_noise_parameters(noise: str | None) -> int:
         return max(len(get_noise(name).names) for name in noise_model_names())
     return len(get_noise(noise).names)
 
+def add_likelihood(p: argparse.ArgumentParser, choices: Sequence[str]) -> None:
+    """``--likelihood``: the tier of every fit of the command (:func:`hbm.collapse.choose_tier`)."""
+    p.add_argument("--likelihood", default="auto", choices=list(choices),
+                   help="auto (default): integrate the linear amplitudes exactly and sample only the nonlinear and "
+                        "noise parameters where the model and noise allow it, else the full likelihood"
+                        + ("; collapsed: require that" if "collapsed" in choices else "")
+                        + "; full: sample every parameter (today's path, for comparison)")
+
+
 SPECIMEN_FOLDER = Path("data") / "specimens"
 #: the shipped specimens of this checkout (an editable install), for ids given outside it
 SHIPPED_FOLDER = Path(__file__).resolve().parents[2] / "data" / "specimens"
@@ -67,8 +80,6 @@ SHIPPED_FOLDER = Path(__file__).resolve().parents[2] / "data" / "specimens"
 #: --hier-samples, posterior draws of predict): a population covariance over the 9-16
 #: parameters of the base model plus effects needs more particles than parameters
 MIN_SAMPLES = 20
-#: seeds are non-negative integers below 2**32 (numpy's legacy seeding inside cma and SALib)
-SEED_LIMIT = 2 ** 32
 _FLOAT = 8  # bytes per float64
 
 
@@ -118,12 +129,20 @@ sample_size = integer(MIN_SAMPLES, f"a sample size >= {MIN_SAMPLES}")
 
 
 def seed(text: str) -> int:
-    """``type=`` rule of every ``--seed``: a non-negative integer below 2**32."""
+    """``type=`` rule of every ``--seed``: :func:`hbm.validation.check_seed` (also the API's)."""
     expected = f"a seed: an integer from 0 to {SEED_LIMIT - 1}"
-    value = _parse_int(text, expected)
-    if not 0 <= value < SEED_LIMIT:
-        raise _type_error(text, expected)
-    return value
+    try:
+        return check_seed(_parse_int(text, expected))
+    except SettingError:
+        raise _type_error(text, expected) from None
+
+
+def workers(text: str) -> int:
+    """``type=`` rule of ``--workers``: :func:`hbm.validation.check_workers` (also the API's)."""
+    try:
+        return check_workers(_parse_int(text, "an integer >= 0"), "--workers")
+    except SettingError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--workers: ")) from None
 
 
 def power_of_two(text: str) -> int:
@@ -357,6 +376,7 @@ def check_fix_bounds(model, fix: dict, bounds: dict, prior: Prior | None = None)
     (the prior's, after --bounds), and at least one parameter left free."""
     check_names(model, fix, "--fix")
     check_names(model, bounds, "--bounds")
+    check_physical_bounds(bounds, PHYSICAL_RANGE, "--bounds")
     box = {n: tuple(model.bounds[i]) for i, n in enumerate(model.parameter_names)}
     if prior is not None:
         box.update({n: (prior[n].lo, prior[n].hi) for n in model.parameter_names if n in prior})
@@ -477,6 +497,32 @@ def check_sobol_memory(setting: str, n: int, n_free: int, n_params: int, points:
 
 
 # ----------------------------------------------------------------------- output
+def check_replaceable(path: Path, parts: Mapping[str, str], option: str) -> None:
+    """Refuse to replace ``path`` unless it is absent or a result of the same content (``parts``,
+    :func:`hbm.identity.fit_key`).
+
+    A result of another specimen, other data, another model or other settings -- or a file that
+    is no hbm result at all -- is kept: :class:`~hbm.errors.OutputError` names what differs and
+    the way out (``--force`` or another ``option``).
+    """
+    path = Path(path)
+    if not path.exists():
+        return
+    attrs = read_attrs(path)
+    config = attrs.get("config") if isinstance(attrs.get("config"), dict) else {}
+    stored = config.get("identity") if isinstance(config.get("identity"), dict) else None
+    if "specimen_id" not in attrs:
+        what = "a file that is not an hbm result"
+    elif stored is None:
+        what = f"a result of {attrs['specimen_id']} without a content key (an older hbm)"
+    else:
+        diff = changed(stored, parts)
+        if not diff:
+            return
+        what = f"a result of {attrs['specimen_id']} with other {', '.join(diff)}"
+    raise OutputError(f"{option} {path} holds {what}; pass --force to replace it, or choose another {option}")
+
+
 def _jsonable(obj: Any) -> Any:
     """Convert numpy scalars/arrays and non-finite floats (-> null) for strict JSON."""
     if isinstance(obj, dict):
@@ -509,8 +555,9 @@ def format_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positive_int", "non_negative_int",
-           "sample_size", "seed", "power_of_two", "power_of_two_or_zero", "real", "finite_float", "positive_float",
+           "sample_size", "seed", "workers", "power_of_two", "power_of_two_or_zero", "real", "finite_float",
+           "positive_float",
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
            "add_seed", "add_fix", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
            "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",
-           "check_sobol_memory", "print_json", "format_table", "format_bytes"]
+           "check_sobol_memory", "check_replaceable", "print_json", "format_table", "format_bytes"]

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from ..data import input_summary, load_specimen, provenance
 from ..errors import DataError, HbmError, SettingError
 from ._common import add_data_arguments
@@ -79,7 +81,8 @@ def _row(ds) -> list[str]:
     if len(source) > 48:
         source = source[:45] + "..."
     return [str(ds.attrs["id"]), str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
-            f"{stress.max():.4g}", tests, "yes" if "time" in ds else "-", _input(ds), provenance(ds), source]
+            f"{stress[np.argmax(np.abs(stress))]:.4g}", tests, "yes" if "time" in ds else "-", _input(ds),
+            provenance(ds), source]
 
 
 def run_check(args: argparse.Namespace) -> int:
@@ -104,7 +107,7 @@ def run_check(args: argparse.Namespace) -> int:
         if input_summary(ds):
             notes.append(f"{sid}: {input_summary(ds)}")
     if rows:
-        head = ["id", "points", "strain", "max stress [MPa]", "tests", "time", "input", "provenance", "source"]
+        head = ["id", "points", "strain", "peak stress [MPa]", "tests", "time", "input", "provenance", "source"]
         widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
         line = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
         print(line(head))

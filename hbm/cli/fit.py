@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import warnings
 from pathlib import Path
 
 from ..errors import HbmWarning
 from ..export.stability import fit_line as stability_line
 from ..fit import fit_specimen, format_at_bounds
+from ..identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
-from ..utils import prepare_output_dir, prepare_output_file, remove_stale_temps
-from ._common import NOISE_CHOICES, n_noise_parameters
-from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
+from ..workflow import DEFAULT_OUT
+from ..plausibility import edges_suggest_units
+from ..utils import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
+from ._common import NOISE_CHOICES, add_likelihood, n_noise_parameters
+from ._common import (check_replaceable,
+                      add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
                       free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
                       power_of_two_or_zero, sample_size, sweep, value_range)
 
@@ -27,7 +32,7 @@ log-evidence with its standard error.
 
 examples:
   hbm fit calvo2010_rat1
-  hbm fit data/specimens/hawkins1994_rat.csv --fix EOPT=0.192 --samples 4000 --out hawkins.nc
+  hbm fit data/specimens/hawkins1994_rat.csv --fix EOPT=0.192 --samples 4000 --out hawkins.nc --force
   hbm fit calvo2010_rat2 --kernel manifold --bounds VOLF=0.5:0.75 --sweep VOLF:0.05
 """
 
@@ -44,10 +49,7 @@ def register(subparsers) -> None:
                    help="noise model (default iid Gaussian with unknown sigma)")
     p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
     add_model_arguments(p)
-    p.add_argument("--likelihood", default="auto", choices=["auto", "collapsed", "full"],
-                   help="auto (default): integrate the linear amplitudes exactly and sample only the nonlinear and "
-                        "noise parameters where the model and noise allow it, else the full likelihood; "
-                        "collapsed: require that; full: sample every parameter")
+    add_likelihood(p, ("auto", "collapsed", "full"))
     p.add_argument("--restarts", type=non_negative_int, default=4, metavar="K",
                    help="CMA-ES restarts (0 = skip; default 4)")
     p.add_argument("--sweep", type=sweep, metavar="NAME:WIDTH",
@@ -58,7 +60,10 @@ def register(subparsers) -> None:
     p.add_argument("--sobol", type=power_of_two_or_zero, default=0, metavar="N",
                    help="Sobol base sample size (power of 2; default 0 = skip)")
     add_seed(p)
-    p.add_argument("--out", metavar="FILE.nc", help="output file (default results/specimens/<id>.nc)")
+    p.add_argument("--out", metavar="FILE.nc", help="output file (default hbm-results/specimens/<id>.nc); a "
+                   "result of other content there (another specimen, data, model or settings) is refused "
+                   "unless --force")
+    p.add_argument("--force", action="store_true", help="replace a result of other content at --out")
     p.add_argument("--checkpoint-dir", metavar="DIR",
                    help="TMCMC checkpoint folder: an interrupted fit resumes from its last stage")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -83,30 +88,63 @@ def run(args: argparse.Namespace) -> int:
         check_sobol_memory(f"--sobol {args.sobol}", args.sobol, len(free_parameters(model, fix)), model.n_params,
                            points)
     sid = str(data.attrs.get("id", Path(args.specimen).stem))
-    out = Path(args.out) if args.out else specimen_path("results", sid)
+    out = Path(args.out) if args.out else specimen_path(DEFAULT_OUT, sid)
     checked = prepare_output_file(out, "--out")
     figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
     if figure is not None:
         prepare_output_file(figure, "--plot")
-    remove_stale_temps(checked.parent, recursive=False, target=out.name)  # of this file, left by a killed fit
-    if args.checkpoint_dir is not None:
-        ckdir = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
-        remove_stale_temps(ckdir, recursive=False, target=f"{sid}.npz")
-    res = fit_specimen(data, model=model, samples=args.samples, kernel=args.kernel, noise=args.noise,
-                       fix=fix or None, bounds=None if prior is not None else (bounds or None),
-                       prior=prior, seed=args.seed, restarts=args.restarts,
-                       sweep=(args.sweep.name, args.sweep.width) if args.sweep else None,
-                       sobol_n=args.sobol or None, checkpoint_dir=args.checkpoint_dir,
-                       out=out, progress=not args.no_progress,
-                       optimize_options={"maxfevals": args.maxfevals}, sigma_bounds=args.sigma_bounds,
-                       max_evaluations=check_max_evaluations(args.max_evaluations, args.samples),
-                       likelihood=args.likelihood)
-    for item in res.quality(data)["at_bounds"]:
+    options = {"samples": args.samples, "kernel": args.kernel, "noise": args.noise, "fix": fix or None,
+               "bounds": None if prior is not None else (bounds or None), "prior": prior, "seed": args.seed,
+               "restarts": args.restarts, "sweep": (args.sweep.name, args.sweep.width) if args.sweep else None,
+               "sobol_n": args.sobol or None, "optimize_options": {"maxfevals": args.maxfevals},
+               "sigma_bounds": args.sigma_bounds,
+               "max_evaluations": check_max_evaluations(args.max_evaluations, args.samples),
+               "likelihood": args.likelihood}
+    # the content key of this fit (data, model, settings): keys its checkpoint and is stored with the result
+    key, parts = fit_key(data, model, options)
+    with contextlib.ExitStack() as held:
+        # the one writer rule: this fit's files are written (and their temp files swept) only
+        # under their locks; a second writer of the same file is refused at once
+        held.enter_context(file_lock(checked, "--out"))
+        if not args.force:
+            check_replaceable(checked, parts, "--out")
+        if figure is not None:
+            held.enter_context(file_lock(figure, "--plot"))
+            remove_stale_temps(figure.parent, recursive=False, target=figure.name)  # a killed figure write
+        remove_stale_temps(checked.parent, recursive=False, target=out.name)  # of this file, left by a killed fit
+        ckdir = None
+        if args.checkpoint_dir is not None:
+            root = prepare_output_dir(args.checkpoint_dir, "--checkpoint-dir")
+            ckdir = checkpoint_dir(root, sid, key)
+            held.enter_context(file_lock(ckdir.parent / f"{ckdir.name}.npz", "--checkpoint-dir"))
+            remove_stale_temps(ckdir, recursive=False, target=f"{sid}.npz")
+            other = set_aside_checkpoints(root, {sid: ckdir})
+            if other:
+                warnings.warn(f"--checkpoint-dir: {len(other)} checkpoint(s) of {sid} made with other data, model or "
+                              f"settings set aside (not resumed): {', '.join(str(p) for p in other)}", HbmWarning,
+                              stacklevel=1)
+        res = fit_specimen(data, model=model, checkpoint_dir=ckdir, out=out, progress=not args.no_progress,
+                           config_extra={"settings_hash": key, "identity": parts}, **options)
+        _figure(res, data, figure)
+    return _print(args, res, figure)
+
+
+def _figure(res, data, figure) -> None:
+    """Box-edge warnings and the figure (under the output locks)."""
+    items = res.quality(data)["at_bounds"]
+    for item in items:
         line = format_at_bounds([item])[0].removeprefix("warning: ")
         warnings.warn(f"{res.result.specimen_id}: {line}", HbmWarning, stacklevel=1)
+    units = edges_suggest_units(items, len(res.likelihood.model_names))
+    if units is not None:
+        warnings.warn(f"{res.result.specimen_id}: {units}", HbmWarning, stacklevel=1)
     if figure is not None:
         from ..plots.fit import fit_plot  # matplotlib is heavy: only when a figure is drawn
         fit_plot(res, data, path=figure)
+
+
+def _print(args, res, figure) -> int:
+    """The summary on stdout (text or JSON)."""
     if args.json:
         print_json(res.to_json())
         return 0

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 from pathlib import Path
 
-from ..errors import HbmError
+from ..errors import HbmError, OutputError, OutputLockedError
 from ..organ import load_geometry
 from ..organ_report import format_summary, predict_organ
-from ..utils import prepare_output_dir, require_memory
+from ..utils import file_lock, output_lock, prepare_output_dir, remove_stale_temps, require_memory
 from ._common import add_seed, integer, positive_float, real, sample_size
 
 DESCRIPTION = """\
@@ -38,7 +39,7 @@ Prints a table: elongation at a reference force F_ref (median [90%]), the share 
 extrapolated there, and the force at which the organ leaves the tested range.
 
 examples:
-  hbm predict organ results --geometry data/geometry/fusiform.toml
+  hbm predict organ hbm-results --geometry data/geometry/fusiform.toml
   hbm predict organ /tmp/run --geometry my_muscle.toml --samples 1000 --ref-force 0.5 --no-figures
 """
 
@@ -81,12 +82,24 @@ def run_organ(args: argparse.Namespace) -> int:
     require_memory(8.0 * args.samples * args.forces, f"--samples {args.samples} with --forces {args.forces}",
                    f"{args.samples} draws x {args.forces} forces x 8 bytes")
     geometry = load_geometry(args.geometry)  # before reading results: a bad file fails fast
-    if Path(args.results).is_dir():  # (a missing RESULTS is predict_organ's own one-line error)
-        prepare_output_dir(args.out or Path(args.results) / "organ", "--out", files=("organ.nc",),
-                           subdirs=("figures",))
-    pred = predict_organ(args.results, geometry, out=args.out, samples=args.samples, forces=args.forces,
-                         extrapolate=args.extrapolate, ref_force=args.ref_force, near=args.near, seed=args.seed,
-                         figures=not args.no_figures, optima_specimen=args.optima_specimen)
+    with contextlib.ExitStack() as held:
+        if Path(args.results).is_dir():  # (a missing RESULTS is predict_organ's own one-line error)
+            out = prepare_output_dir(args.out or Path(args.results) / "organ", "--out", files=("organ.nc",),
+                                     subdirs=("figures",))
+            # the one writer rule: the run folder's lock (refused while 'hbm run' writes there), then organ.nc's
+            try:
+                held.enter_context(output_lock(Path(args.results)))
+            except OutputLockedError:
+                raise
+            except OutputError:  # a read-only RESULTS folder: nobody writes there, --out is elsewhere
+                if Path(args.results).absolute() in out.parents:
+                    raise
+            held.enter_context(file_lock(out / "organ.nc", "--out"))
+            remove_stale_temps(out, recursive=False, target="organ.nc")  # leftovers of a killed prediction
+            remove_stale_temps(out / "figures", recursive=False)
+        pred = predict_organ(args.results, geometry, out=args.out, samples=args.samples, forces=args.forces,
+                             extrapolate=args.extrapolate, ref_force=args.ref_force, near=args.near,
+                             seed=args.seed, figures=not args.no_figures, optima_specimen=args.optima_specimen)
     print(geometry.describe())
     print(format_summary(pred.rows))
     for note in pred.notes:

@@ -12,13 +12,13 @@ from ..data import load_specimens, specimen_groups
 from ..errors import SettingError
 from ..organ_report import organ_report_hook
 from ..utils import output_lock, prepare_output_dir, remove_stale_temps
-from ..workflow import RunConfig, run_workflow
+from ..workflow import DEFAULT_OUT, RunConfig, run_workflow
 from ..model import BASE_EFFECTS
 from ..population import POOL_MODES
-from ._common import NOISE_CHOICES, n_noise_parameters
+from ._common import NOISE_CHOICES, add_likelihood, n_noise_parameters
 from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
                       free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
-                      sample_size, sweep)
+                      sample_size, sweep, workers)
 
 #: what hbm run writes inside --out (checked before the first fit)
 OUT_FILES = ("report.md", "run.json", "hierarchical.nc", "manifolds.nc")
@@ -61,15 +61,17 @@ def register(subparsers) -> None:
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default="data/specimens", metavar="DIR",
                    help="folder of specimen CSV files (default data/specimens)")
-    p.add_argument("--out", default="results", metavar="DIR",
-                   help="output folder (default results); one hbm run at a time (locked)")
+    p.add_argument("--out", default=DEFAULT_OUT, metavar="DIR",
+                   help=f"output folder (default {DEFAULT_OUT}, untracked; the shipped reference report stays in "
+                        "results/); one hbm run at a time (locked)")
     p.add_argument("--samples", type=sample_size, default=2000, metavar="N",
                    help="TMCMC population size (default 2000)")
     p.add_argument("--kernel", default="rw", choices=["rw", "manifold"], help="TMCMC move kernel (default rw)")
     p.add_argument("--noise", default="iid", choices=NOISE_CHOICES,
                    help="noise model (default iid)")
     add_model_arguments(p)
-    p.add_argument("--workers", type=non_negative_int, default=None, metavar="K",
+    add_likelihood(p, ("auto", "full"))
+    p.add_argument("--workers", type=workers, default=None, metavar="K",
                    help="dask worker processes of the embedded cluster (default: all cores; 0 = no dask)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing dask scheduler, e.g. tcp://host:8786")
     p.add_argument("--scheduler-file", metavar="FILE",
@@ -194,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
                     retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
                     hier_exact=None if args.hier_exact == "none" else args.hier_exact,
                     prior=prior.to_dict() if prior is not None else None, sl0=args.sl0, group_by=args.group_by,
-                    tmcmc_options=_budget(args))
+                    tmcmc_options=_budget(args), likelihood=args.likelihood)
     _check_sizes(cfg, datasets, model, fix)
     hooks = []
     if getattr(args, "geometry", None):
@@ -219,4 +221,8 @@ def run(args: argparse.Namespace) -> int:
             print("organ prediction FAILED (see the report's organ section)")
             return 1
         print(f"organ prediction: {pred.path}")
-    return 1 if res.errors else 0
+    if res.errors:  # one line naming every failed specimen and why; the others' results are written
+        failed = "; ".join(f"{sid}: {msg}" for sid, msg in sorted(res.errors.items()))
+        print(f"hbm: error: {len(res.errors)} specimen(s) failed -- {failed}", file=sys.stderr)
+        return 1
+    return 0

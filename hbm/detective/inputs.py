@@ -10,12 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from ..data import load_specimen
+from ..data import STRESS_UNITS, load_specimen
 from ..effects import REGISTRY, family, load_effect, make_effect
 from ..errors import HbmError, HbmWarning
 from ..model.core import Effect, Loading, Model
 from ..model.spyrou import BASE_EFFECTS, spyrou_model
-from .rules import FEW_POINTS, MIN_POINTS, PASSIVE_STRESS_RANGE
+from ..plausibility import describe, implausible, suggest_unit
+from .rules import FEW_POINTS, MIN_POINTS
 
 __all__ = ["SpecimenData", "as_data", "unit_anomaly", "resolve_effect", "resolve_model", "resolve_candidates", "added_effects"]
 
@@ -69,26 +70,19 @@ def as_data(data) -> SpecimenData:
 
 
 def unit_anomaly(d: SpecimenData) -> str | None:
-    """A stress scale no passive muscle shows: the file is probably in other units.
+    """A stiffness no passive muscle shows: the file is probably in other units.
 
-    Passive skeletal muscle reaches roughly 1 kPa – 2 MPa (DESIGN.md §1; thesis data ≈ 0.01 – 0.3
-    MPa) over the strains tested; a curve whose largest |stress| is more than ×20 above that
-    range (or ×20 below it with strains above 10 %) is reported as a data problem with the
-    power of ten that would bring it back (kPa or Pa instead of MPa), not analysed as physics.
+    The loader's check (:mod:`hbm.plausibility`: stress per unit strain in the toe and at the
+    peak against passive muscle), reported as a data problem with the unit that would bring the
+    curve back, not analysed as physics.
     """
-    top = float(np.max(np.abs(d.stress)))
-    lo, hi = PASSIVE_STRESS_RANGE
-    if top > 20 * hi:
-        k = int(np.clip(round(math.log10(top / 0.1) / 3.0), 1, 3)) * 3
-        unit = {3: "kPa", 6: "Pa"}.get(k, f"1e-{k} MPa")
-        return (f"the stress is about 10^{k} times what passive muscle reaches (max |stress| {top:.3g} where "
-                f"{lo:g}–{hi:g} MPa is expected): the file is probably in {unit}, not MPa -- divide by 1e{k}; "
-                "a data problem, not missing physics")
-    if top < lo / 20 and float(np.ptp(d.strain)) > 0.1:
-        return (f"the stress is far below what passive muscle reaches (max |stress| {top:.3g} MPa over "
-                f"{np.ptp(d.strain):.2f} strain, {lo:g}–{hi:g} MPa expected): wrong units or column? "
-                "A data problem, not missing physics")
-    return None
+    found = implausible(d.strain, d.stress)
+    if found is None:
+        return None
+    unit = suggest_unit(found)
+    fix = (f"the file is probably in {unit}, not MPa -- divide by 1e{int(round(math.log10(STRESS_UNITS[unit])))}"
+           if unit in ("kPa", "Pa") else "wrong units, stress measure or column?")
+    return f"{describe(found)}: {fix}; a data problem, not missing physics"
 
 
 def resolve_effect(c) -> Effect:

@@ -79,11 +79,14 @@ energy form is the one to use for data with compressive strains (:func:`compress
 
 from __future__ import annotations
 
+import math
+
 from typing import Mapping
 
 import numpy as np
 
 from ..errors import HbmError
+from ..validation import check_positive
 from .core import Effect, Loading, Model, Parameter, State
 
 # exp(709) is the largest finite double; T2 up to 200 with λ up to 3 stays far below, but a
@@ -100,6 +103,11 @@ GF = Parameter("GF", 1e-4, 0.1, "MPa", "shear modulus of the fiber phase")
 GM = Parameter("GM", 1e-4, 0.1, "MPa", "shear modulus of the ECM phase")
 
 BASE_PARAMETERS = (VOLF, EOPT, P1, T1, T2, THETA, GF, GM)
+#: what the physics allows, whatever box a user chooses: a volume fraction in [0, 1], an angle
+#: between 0 and 90 degrees to the fibres, non-negative moduli, rates and scales, a fibre strain
+#: above -1 (a stretch above 0)
+PHYSICAL_RANGE = {"VOLF": (0.0, 1.0), "EOPT": (-1.0, math.inf), "P1": (0.0, math.inf), "T1": (0.0, math.inf),
+                  "T2": (0.0, math.inf), "THETA": (0.0, 90.0), "GF": (0.0, math.inf), "GM": (0.0, math.inf)}
 
 
 def collagen_onset_stretch(theta_deg):
@@ -377,8 +385,10 @@ def spyrou_model(iso_factor: float = 1.0, form: str = "thesis") -> Model:
     Raises
     ------
     HbmError
-        For an unknown ``form``.
+        For an unknown ``form``; :class:`~hbm.errors.SettingError` for an ``iso_factor`` that is
+        not a finite number > 0 (the rule of ``--iso-factor``).
     """
+    iso_factor = check_positive(iso_factor, "iso_factor")
     collagen = HelicalCollagen() if _check_form(form) == "thesis" else EnergyHelicalCollagen()
     effects = (NeoHookeanMatrix(iso_factor), PassiveFibers(), collagen)
     name = "spyrou" if iso_factor == 1.0 else f"spyrou(k_iso={iso_factor:.4g})"

@@ -78,7 +78,7 @@ def combinations(names, samples) -> dict[str, np.ndarray]:
             "LOGTAU1": col["LOGTAU1"], "sigma": col["sigma"]}
 
 
-def gold(n: int, steps: int, seeds: list[int]) -> dict:
+def gold(n: int, steps: int, seeds: list[int], path: Path = GOLD) -> dict:
     lik = likelihood()
     runs = []
     for seed in seeds:
@@ -103,8 +103,83 @@ def gold(n: int, steps: int, seeds: list[int]) -> dict:
            "how_obtained": f"full-space random-walk TMCMC, N={n}, {steps} Metropolis steps per stage, "
                            f"seeds {seeds}, pooled (means of the runs)",
            "runs": runs}
-    atomic_write_text(GOLD, json.dumps(out, indent=1) + "\n")
+    atomic_write_text(path, json.dumps(out, indent=1) + "\n")
     return out
+
+
+def _errors(gold_: dict, names, samples, log_z: float) -> tuple[float, float]:
+    """(|log Ẑ − gold|, worst |mean − gold mean| / gold sd over the combinations)."""
+    comb = combinations(names, samples)
+    ref = gold_["posterior_mean_and_sd"]
+    worst = max(abs(float(comb[k].mean()) - m) / sd for k, (m, sd) in ref.items())
+    return abs(log_z - gold_["log_evidence"]), worst
+
+
+def gold_collapsed(n: int, steps: int, draws: int, seeds: list[int], path: Path) -> dict:
+    """The gold by the collapsed route: TMCMC over φ at large N, importance finish with many draws."""
+    from hbm.collapse import CollapsedLikelihood, sample_collapsed
+
+    lik = likelihood()
+    cl = CollapsedLikelihood(lik)
+    runs = []
+    for seed in seeds:
+        c = time.process_time()
+        fit = sample_collapsed(cl, n, seed=seed, importance_draws=draws, max_steps=steps)
+        nat = lik.to_natural(fit.samples)
+        comb = combinations(lik.names, nat)
+        runs.append({"seed": seed, "log_evidence": fit.log_evidence, "log_evidence_se": fit.log_evidence_se,
+                     "evidence_source": fit.evidence_source, "evaluations": fit.n_evaluations,
+                     "cpu_s": time.process_time() - c, "quadrature_error": fit.quadrature_error,
+                     "mean": {k: float(v.mean()) for k, v in comb.items()},
+                     "sd": {k: float(v.std()) for k, v in comb.items()}})
+        print(f"seed {seed}: log Z {fit.log_evidence:.4f} ± {fit.log_evidence_se:.4f} ({fit.evidence_source})",
+              flush=True)
+    keys = runs[0]["mean"]
+    logz = [r["log_evidence"] for r in runs]
+    out = {"log_evidence": statistics.fmean(logz),
+           "log_evidence_sd_between_runs": statistics.stdev(logz) if len(logz) > 1 else None,
+           "posterior_mean_and_sd": {k: [statistics.fmean(r["mean"][k] for r in runs),
+                                         statistics.fmean(r["sd"][k] for r in runs)] for k in keys},
+           "how_obtained": f"collapsed likelihood (amplitudes integrated exactly), TMCMC over the nonlinear "
+                           f"parameters N={n}, <= {steps} steps per stage, importance finish with {draws} draws, "
+                           f"seeds {seeds}",
+           "runs": runs}
+    atomic_write_text(path, json.dumps(out, indent=1) + "\n")
+    return out
+
+
+def compare(seeds: list[int], path: Path) -> list[dict]:
+    """Today's default full-space TMCMC against the collapsed tier (TMCMC alone and with the IS finish)."""
+    from hbm.collapse import CollapsedLikelihood, sample_collapsed
+
+    gold_ = json.loads(GOLD.read_text())
+    lik = likelihood()
+    cl = CollapsedLikelihood(lik)
+    rows = []
+    for seed in seeds:   # interleaved: every setting on the same seed before the next seed
+        c = time.process_time()
+        res = tmcmc(lik, lik.bounds, seed=seed, progress=False)
+        dz, dm = _errors(gold_, lik.names, lik.to_natural(res.samples), res.log_evidence)
+        rows.append({"setting": "full space, default (N=2000)", "seed": seed, "evaluations": res.n_evaluations,
+                     "cpu_s": time.process_time() - c, "log_evidence": res.log_evidence,
+                     "log_evidence_se": res.log_evidence_se, "abs_error": dz, "worst_mean_sd": dm})
+        for name, kw in (("collapsed, N=1000, <= 10 steps", {"importance_draws": 0}),
+                         ("collapsed, N=1000, <= 10 steps + IS 10k", {"importance_draws": 10000}),
+                         ("collapsed, N=500, <= 10 steps + IS 10k", {"importance_draws": 10000, "_n": 500})):
+            c = time.process_time()
+            n = kw.pop("_n", 1000)
+            fit = sample_collapsed(cl, n, seed=seed, max_steps=10, **kw)
+            dz, dm = _errors(gold_, lik.names, lik.to_natural(fit.samples), fit.log_evidence)
+            rows.append({"setting": name, "seed": seed, "evaluations": fit.n_evaluations,
+                         "cpu_s": time.process_time() - c, "log_evidence": fit.log_evidence,
+                         "log_evidence_se": fit.log_evidence_se, "evidence_source": fit.evidence_source,
+                         "abs_error": dz, "worst_mean_sd": dm})
+        for r in rows[-4:]:
+            print(f"seed {seed} {r['setting']:<42} evals {r['evaluations']:>9} cpu {r['cpu_s']:6.1f} s "
+                  f"|dlogZ| {r['abs_error']:.3f} (SE {r['log_evidence_se']:.3f}) worst mean {r['worst_mean_sd']:.2f} sd",
+                  flush=True)
+    atomic_write_text(path, json.dumps(rows, indent=1) + "\n")
+    return rows
 
 
 def main(argv=None) -> int:
@@ -115,11 +190,26 @@ def main(argv=None) -> int:
     g.add_argument("--n", type=int, default=8000)
     g.add_argument("--steps", type=int, default=80)
     g.add_argument("--seeds", type=int, default=2)
+    g.add_argument("--first-seed", type=int, default=0)
+    g.add_argument("--out", type=Path, default=GOLD)
+    gc = sub.add_parser("gold-collapsed")
+    gc.add_argument("--n", type=int, default=4000)
+    gc.add_argument("--steps", type=int, default=30)
+    gc.add_argument("--draws", type=int, default=100000)
+    gc.add_argument("--seeds", type=int, default=3)
+    gc.add_argument("--out", type=Path, default=OUT / "qlv_benchmark_gold_collapsed.json")
+    cp = sub.add_parser("compare")
+    cp.add_argument("--seeds", type=int, default=10)
+    cp.add_argument("--out", type=Path, default=OUT / "qlv_posterior.json")
     a = ap.parse_args(argv)
     if a.cmd == "make":
         print(make())
+    elif a.cmd == "gold-collapsed":
+        print(json.dumps(gold_collapsed(a.n, a.steps, a.draws, list(range(a.seeds)), a.out), indent=1)[:1500])
+    elif a.cmd == "compare":
+        compare(list(range(a.seeds)), a.out)
     else:
-        print(json.dumps(gold(a.n, a.steps, list(range(a.seeds))), indent=1)[:2000])
+        print(json.dumps(gold(a.n, a.steps, list(range(a.first_seed, a.first_seed + a.seeds)), a.out), indent=1)[:2000])
     return 0
 
 

@@ -1,0 +1,70 @@
+"""The dask layer never waits without a deadline (issue 26): a specimen whose worker keeps
+dying fails after a bounded number of deaths, and a cluster without workers fails the run with
+one line."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hbm import io
+from hbm.errors import HbmError
+from hbm.parallel import ALLOWED_FAILURES, map_specimens
+from test_writers import toy_csv
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _NeverDone:
+    def done(self):
+        return False
+
+
+class _EmptyCluster:
+    """A client whose workers are all gone: tasks never finish."""
+
+    def submit(self, *args, **kwargs):
+        return _NeverDone()
+
+    def scheduler_info(self):
+        return {"workers": {}}
+
+
+def _never(item, seed):  # pragma: no cover - never runs
+    raise AssertionError
+
+
+def test_a_cluster_without_workers_fails_the_run_with_one_line():
+    t = time.perf_counter()
+    with pytest.raises(HbmError, match=r"no workers for 0 s; 2 specimen\(s\) unfinished \(a, b;"):
+        map_specimens(_never, {"a": 1, "b": 2}, seed=0, client=_EmptyCluster(), progress=False, poll=0.01,
+                      no_worker_timeout=0.1)
+    assert time.perf_counter() - t < 10
+
+
+@pytest.mark.slow
+def test_a_worker_killed_three_times_fails_its_specimen_within_a_minute(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    toy_csv(data / "s1.csv", "s1")
+    toy_csv(data / "s2.csv", "s2", 1.1)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "HBM_TEST_KILL_WORKER": "s1"}
+    t = time.perf_counter()
+    p = subprocess.run([sys.executable, "-m", "hbm", "run", "--data", str(data), "--out", str(tmp_path / "out"),
+                        "--samples", "40", "--restarts", "0", "--sweep", "none", "--no-sobol", "--no-hierarchical",
+                        "--no-figures", "--workers", "2", "--no-progress"],
+                       capture_output=True, text=True, env=env, timeout=120)
+    wall = time.perf_counter() - t
+    errors = [ln for ln in p.stderr.splitlines() if ln.startswith("hbm: error:")]
+    assert p.returncode == 1, p.stderr
+    assert errors == [f"hbm: error: 1 specimen(s) failed -- s1: its worker process died {ALLOWED_FAILURES + 1} "
+                      "times while running it (killed by the system, e.g. out of memory?); not retried"], p.stderr
+    assert "Traceback" not in p.stderr
+    assert io.is_complete(tmp_path / "out" / "specimens" / "s2.nc")
+    assert not (tmp_path / "out" / "specimens" / "s1.nc").exists()
+    assert wall < 60, wall
