@@ -1,0 +1,246 @@
+"""Load specimen CSV files (one or a folder) into checked xarray Datasets."""
+
+from __future__ import annotations
+
+import csv
+
+import json
+
+
+import re
+
+
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import xarray as xr
+
+
+from ..errors import DataError
+
+
+from .columns import GROUP_KEY, MIN_POINTS, STRESS_UNITS, _COLUMNS, _Columns, _DECIMAL_COMMA_RE, _LONG, _MEASURES, _META_RE, _SEPARATOR_HINT, _UNITS, _UNIT_NAMES, _check_plausible, _check_sign, _check_sl0, _columns, _declared, _is_float, _number, _read_text, _record, _reference_sl, _same_labels, _show, _strain, _test_column
+
+
+def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
+    """Read and validate one specimen CSV, converting units, stress measure and deformation.
+
+    Parameters
+    ----------
+    path : str or Path
+        CSV file in the format described in the module docstring (README "Data format").
+    sl0 : float, optional
+        Reference sarcomere length in µm for a ``sarcomere_length_um`` column
+        (strain = SL/SL0 − 1), for files without ``# reference_sarcomere_length_um``.  If the
+        file declares one too, both must be equal.  Ignored for other deformation columns.
+
+    Returns
+    -------
+    xarray.Dataset
+        Dimension ``point``; variables ``strain``, ``stress`` (Cauchy, MPa) and, when present,
+        ``time`` (s) and ``test`` (int).  Attributes: the metadata (strings), ``id``
+        (metadata ``id`` or the file stem), ``source_file`` and the record of every conversion
+        (``units_stress_original``, ``stress_measure_original``, ``deformation_input``,
+        ``reference_sarcomere_length_um``, ``test_labels``).
+
+    Raises
+    ------
+    DataError
+        One-line message naming the file, line (and column) and the expectation.
+    """
+    path = Path(path)
+    name = str(path)
+    sl0 = _check_sl0(sl0)
+    text = _read_text(path)
+    if not text.strip():
+        raise DataError(f"{name}: empty file, expected '# key: value' metadata lines and a "
+                        "header with strain,stress")
+
+    attrs: dict[str, str] = {}
+    meta_line: dict[str, int] = {}
+    header: list[str] | None = None
+    header_lineno = 0
+    cols: _Columns | None = None
+    rows: list[tuple[int, list[str]]] = []
+    delimiter = ","
+    for lineno, line in enumerate(text.split("\n"), start=1):
+        if not line.strip():
+            continue
+        if line.lstrip().startswith("#"):
+            if header is not None:
+                raise DataError(f"{name}: line {lineno}: expected a data row, got a '#' line after "
+                                f"the header (metadata '# key: value' lines go before the header)")
+            m = _META_RE.match(line.strip())
+            if not m:
+                raise DataError(f"{name}: line {lineno}: unknown metadata format {_show(line.strip())}, "
+                                "expected '# key: value'")
+            key, value = re.sub(r"\s+", "_", m.group(1)), m.group(2).strip()
+            if key in attrs:
+                raise DataError(f"{name}: line {lineno}: metadata key {key!r} repeated "
+                                f"(first on line {meta_line[key]})")
+            if key == GROUP_KEY and not value:  # a group must have a name the report can use
+                raise DataError(f"{name}: line {lineno}: metadata {GROUP_KEY} is empty, expected a group name "
+                                "(e.g. a species, muscle or protocol)")
+            attrs[key], meta_line[key] = value, lineno
+            continue
+        if header is None:  # the header fixes the separator: ',' or, in a header without one, tab or ';'
+            delimiter = "," if "," in line else "\t" if "\t" in line else ";" if ";" in line else ","
+        try:
+            cells = next(csv.reader([line], delimiter=delimiter))
+        except csv.Error as exc:  # e.g. a cell over the csv module's 128 KiB field limit
+            raise DataError(f"{name}: line {lineno}: unreadable CSV row ({exc}), expected "
+                            "comma-separated numbers") from None
+        if delimiter != ",":  # spreadsheets that separate by tab/';' write decimal commas: 0,01 -> 0.01
+            cells = [_DECIMAL_COMMA_RE.sub(r"\1.\2", c) for c in cells]
+        if header is None:
+            if all(_is_float(c) for c in cells):
+                raise DataError(f"{name}: line {lineno}: expected a header with strain,stress before the data, "
+                                f"got a numeric row {_show(line.strip())}")
+            cols = _columns(name, cells, lineno, line)
+            header, header_lineno = [c.strip().lower() for c in cells], lineno
+            continue
+        if [c.strip().lower() for c in cells] == header:
+            raise DataError(f"{name}: line {lineno}: duplicate header (first on line {header_lineno}), "
+                            "expected a data row")
+        if len(cells) != len(header):
+            hint = _SEPARATOR_HINT if any(c in line for c in ";\t") else ""
+            raise DataError(f"{name}: line {lineno}: ragged row with {len(cells)} cells, expected "
+                            f"{len(header)} like the header on line {header_lineno}{hint}")
+        rows.append((lineno, cells))
+
+    if header is None or cols is None:
+        raise DataError(f"{name}: no header line, expected a header with strain,stress after the metadata")
+    unit = _declared(name, attrs, meta_line, "units_stress", _UNIT_NAMES, cols.unit, cols.names["stress"])
+    measure = _declared(name, attrs, meta_line, "stress_measure", {m: m for m in _MEASURES}, cols.measure,
+                        cols.names["stress"])
+    ref = _reference_sl(name, attrs, meta_line, sl0)
+    if cols.deformation == "sarcomere_length_um" and ref is None:
+        raise DataError(f"{name}: line {header_lineno}, column {cols.names['deformation']!r}: a sarcomere "
+                        "length needs the reference SL0 (strain = SL/SL0 - 1); add "
+                        "'# reference_sarcomere_length_um: <SL0 in um, e.g. 2.0>' or pass sl0 (--sl0)")
+    if len(rows) < MIN_POINTS:
+        raise DataError(f"{name}: {len(rows)} data rows, expected at least {MIN_POINTS} points")
+
+    linenos = [ln for ln, _ in rows]
+    raw: dict[str, np.ndarray] = {}
+    labels = None
+    for role, j in sorted(cols.index.items(), key=lambda kv: kv[1]):
+        column = cols.names[role]
+        if role == "test":
+            raw[role], labels = _test_column(name, [cells[j] for _, cells in rows], linenos, column)
+            continue
+        raw[role] = np.asarray([_number(cells[j], f"{name}: line {lineno}, column {column!r}")
+                                for lineno, cells in rows], dtype=float)
+
+    data: dict[str, np.ndarray] = {"strain": _strain(name, raw["deformation"], cols.deformation, ref,
+                                                     cols.names["deformation"], linenos)}
+    stress = raw["stress"]
+    if unit not in (None, "MPa"):
+        stress = stress / STRESS_UNITS[unit]
+    if measure == "nominal":
+        stress = (1.0 + data["strain"]) * stress  # incompressible uniaxial: sigma = lambda * P
+    data["stress"] = stress
+    for role in ("time", "test"):
+        if role in raw:
+            data[role] = raw[role]
+    _check_tests_and_time(name, data.get("time"), data.get("test"), linenos, labels)
+    _check_plausible(name, raw["stress"], data["strain"], stress, unit, measure == "nominal", cols, linenos)
+    _check_sign(name, data["strain"], stress, cols, linenos)
+
+    # the dataset holds Cauchy stress in MPa and strain: record what the file held
+    if unit is not None:
+        attrs["units_stress"] = "MPa"  # the declaration now describes the dataset
+        if unit != "MPa":
+            _record(name, attrs, meta_line, "units_stress_original", unit)
+    if measure is not None:
+        attrs["stress_measure"] = "cauchy"
+        if measure == "nominal":
+            _record(name, attrs, meta_line, "stress_measure_original", "nominal")
+    if cols.deformation != "strain":
+        _record(name, attrs, meta_line, "deformation_input", cols.deformation)
+    if cols.deformation == "sarcomere_length_um":
+        attrs["reference_sarcomere_length_um"] = repr(ref)
+    if labels is not None:
+        _record(name, attrs, meta_line, "test_labels", json.dumps(labels), same=_same_labels)
+    attrs.setdefault("id", path.stem)
+    attrs["source_file"] = str(path)
+    return _dataset(data, attrs)
+
+
+def _check_tests_and_time(name: str, time: np.ndarray | None, test: np.ndarray | None,
+                          linenos: Sequence[int], labels: Sequence[str] | None = None) -> None:
+    n = len(linenos)
+    show = (lambda t: repr(labels[t])) if labels is not None else str  # noqa: E731
+    if test is not None:
+        seen: dict[int, int] = {}
+        for i in range(n):
+            t = int(test[i])
+            if i and t != test[i - 1] and t in seen:
+                raise DataError(f"{name}: line {linenos[i]}, column 'test': test {show(t)} reappears after "
+                                f"other tests (first block ends before line {linenos[seen[t]]}), expected "
+                                "the rows of each test to be contiguous")
+            seen.setdefault(t, i)
+    if time is None:
+        return
+    drops = np.flatnonzero(np.diff(time) < 0) + 1
+    for i in drops:
+        new_test = test is not None and test[i] != test[i - 1]
+        if new_test and time[i] == 0.0:
+            continue  # a new test that starts from rest: a new loading history
+        where = f"{name}: line {linenos[i]}, column 'time'"
+        if new_test:
+            raise DataError(f"{where}: time drops from {time[i - 1]!r} to {time[i]!r} at the start of test "
+                            f"{show(int(test[i]))}; expected it to continue (>= {time[i - 1]!r}, same loading "
+                            "history) or to restart at exactly 0 (new history from rest)")
+        raise DataError(f"{where}: decreasing time ({time[i - 1]!r} -> {time[i]!r}); expected non-decreasing "
+                        "time within a test (time may restart at 0 only where a new test starts)")
+
+
+def _dataset(data: Mapping[str, np.ndarray], attrs: Mapping[str, str]) -> xr.Dataset:
+    variables = {}
+    for col in _COLUMNS:
+        if col in data:
+            variables[col] = xr.Variable("point", np.asarray(data[col]),
+                                         {"units": _UNITS[col], "long_name": _LONG[col]})
+    return xr.Dataset(variables, attrs=dict(attrs))
+
+
+def load_specimens(folder: str | Path, *, sl0: float | None = None) -> dict[str, xr.Dataset]:
+    """Load every ``*.csv`` in ``folder`` (not recursive).
+
+    Parameters
+    ----------
+    folder : str or Path
+        Folder of specimen CSV files.
+    sl0 : float, optional
+        Reference sarcomere length in µm for files with a ``sarcomere_length_um`` column and no
+        ``# reference_sarcomere_length_um`` line (see :func:`load_specimen`).
+
+    Returns
+    -------
+    dict
+        ``id -> Dataset`` sorted by id.
+
+    Raises
+    ------
+    DataError
+        If the folder is missing or has no CSV, a file is malformed, or two files share an id.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"{folder}: not a directory, expected a folder of specimen CSV files")
+    files = sorted(folder.glob("*.csv"))
+    if not files:
+        raise DataError(f"{folder}: no *.csv files, expected at least one specimen file")
+    out: dict[str, xr.Dataset] = {}
+    for f in files:
+        ds = load_specimen(f, sl0=sl0)
+        sid = ds.attrs["id"]
+        if sid in out:
+            raise DataError(f"{f}: duplicate specimen id {sid!r} (also in {out[sid].attrs['source_file']}), "
+                            "expected unique ids (metadata 'id' or file stem)")
+        out[sid] = ds
+    return dict(sorted(out.items()))
+
+
