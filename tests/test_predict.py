@@ -17,6 +17,7 @@ from conftest import cli_error
 from scipy.optimize import brentq
 
 from hbm import io
+from hbm.errors import HbmError
 from hbm.model import spyrou_model
 from hbm.model.spyrou import identifiable_combinations
 from hbm.organ import load_geometry, nominal_stress, organ_response
@@ -139,7 +140,7 @@ def test_organ_file_written_and_readable(prediction):
         assert org.curves[sid]["updated"].attrs["n_draws"] == 80
     assert org.population is not None and org.population.attrs["n_draws"] == 80
     assert org.attrs["geometry"]["length"] == 30.0 and org.attrs["samples"] == SETTINGS["samples"]
-    with pytest.raises(io.HbmError, match="no such result file"):
+    with pytest.raises(HbmError, match="no such result file"):
         io.read_organ(prediction.path.parent / "nope.nc")
 
 

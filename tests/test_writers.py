@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import hbm.cli as cli
+from hbm.io.common import _mark_complete as mark_complete
 from hbm import io
 from hbm.errors import OutputError
 from hbm.model import spyrou_model
@@ -48,7 +49,7 @@ def test_completion_is_never_marked_on_a_missing_file(tmp_path):
     # before: netCDF's append mode created a 239-byte file that is_complete() accepted
     gone = tmp_path / "gone.nc"
     with pytest.raises(OutputError, match="vanished"):
-        io._mark_complete(gone)
+        mark_complete(gone)
     assert not gone.exists() and not io.is_complete(gone)
 
 
