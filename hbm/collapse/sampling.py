@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..samplers.importance import ImportanceResult, importance_evidence
+from ..samplers.importance import MIN_ESS, ImportanceResult, importance_evidence
 from ..samplers.tmcmc import tmcmc
 from .likelihood import CollapsedLikelihood
 
@@ -78,7 +78,7 @@ def _systematic(x: np.ndarray, log_w: np.ndarray, n: int, rng: np.random.Generat
 
 
 def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, seed: int,
-                     importance_draws: int = 0, min_ess_fraction: float = 0.1, importance_adapt: float = 0.3,
+                     importance_draws: int = 0, min_ess: float = MIN_ESS, importance_adapt: float = 0.3,
                      progress: bool = False,
                      checkpoint=None, n_out: int | None = None, **tmcmc_options) -> CollapsedFit:
     """TMCMC over φ on the collapsed likelihood, optional importance finish, completed posterior.
@@ -93,8 +93,8 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     importance_draws : int
         Proposal draws of the importance finish; 0 skips it.  When it is accepted its evidence
         is reported and the posterior population is resampled from its weighted draws.
-    min_ess_fraction : float
-        Smallest accepted importance ESS per draw.
+    min_ess : float
+        Smallest accepted importance ESS (absolute).
     importance_adapt : float
         Share of the importance draws spent on a first round that refits the t proposal to its
         own weighted draws (:func:`~hbm.samplers.importance.importance_evidence`, ``adapt``).  On
@@ -119,7 +119,7 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     imp = None
     if importance_draws:
         imp = importance_evidence(cl, cl.bounds, tr.samples, int(importance_draws),
-                                  seed=np.random.SeedSequence([int(seed), 2]), min_ess_fraction=min_ess_fraction,
+                                  seed=np.random.SeedSequence([int(seed), 2]), min_ess=min_ess,
                                   adapt=importance_adapt)
         if imp.accepted:
             log_z, log_z_se, source = imp.log_evidence, imp.log_evidence_se, "importance"

@@ -10,7 +10,9 @@ from fresh draws of q.  Reported with the estimate: its standard error (delta me
 weights' mean), the effective sample size (Σw)²/Σw² and the Pareto k̂ of the weights
 (:func:`hbm.samplers.psis.pareto_khat`).  The estimate is *refused* -- ``accepted`` False with
 the reason, and the caller keeps its own value -- when k̂ > 0.7 (the weights' variance is
-infinite or the proposal misses mass) or the ESS is below ``min_ess_fraction`` of the draws.
+infinite or the proposal misses mass) or the ESS is below ``min_ess`` (an absolute number: the
+relative Monte Carlo error of Ẑ is about 1/√ESS, so ESS ≥ 200 keeps log Ẑ within ~0.07 nats, and
+the posterior resampled from the draws has at least that many distinct points).
 
 Sampler-layer code: it knows nothing about muscles.
 """
@@ -25,7 +27,10 @@ from scipy.special import gammaln, logsumexp
 from ..errors import HbmError
 from .psis import K_HAT_THRESHOLD, pareto_khat
 
-__all__ = ["ImportanceResult", "importance_evidence"]
+__all__ = ["ImportanceResult", "importance_evidence", "MIN_ESS"]
+
+#: smallest accepted effective sample size of the weights: 1/√200 ≈ 7 % relative error of Ẑ
+MIN_ESS = 200.0
 
 
 @dataclass
@@ -43,7 +48,7 @@ class ImportanceResult:
     n_draws : int
         Draws the estimate rests on (the last round's).
     accepted : bool
-        k̂ ≤ 0.7 and ESS ≥ ``min_ess_fraction``·draws.
+        k̂ ≤ 0.7 and ESS ≥ ``min_ess``.
     reason : str or None
         Why the estimate was refused.
     samples, log_weights : ndarray
@@ -98,7 +103,7 @@ def _draw_round(log_likelihood, lo, hi, mean, cov, m, df, rng, batch) -> tuple[n
 
 
 def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, df: float = 5.0,
-                        inflate: float = 1.5, min_ess_fraction: float = 0.1, batch: int = 5000,
+                        inflate: float = 1.5, min_ess: float = MIN_ESS, batch: int = 5000,
                         adapt: float = 0.0) -> ImportanceResult:
     """log Z by importance sampling from a t proposal fitted to posterior ``samples``.
 
@@ -118,8 +123,9 @@ def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, 
         is too narrow).
     inflate : float
         Factor on the draws' covariance.
-    min_ess_fraction : float
-        Smallest ESS / n_draws accepted.
+    min_ess : float
+        Smallest effective sample size accepted (absolute: it sets the estimate's precision,
+        whatever the number of draws).
     batch : int
         Rows per call of ``log_likelihood``.
     adapt : float
@@ -166,6 +172,6 @@ def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, 
     reason = None
     if not khat <= K_HAT_THRESHOLD:
         reason = f"Pareto k̂ {khat:.2f} > {K_HAT_THRESHOLD}: the proposal misses part of the posterior"
-    elif ess < min_ess_fraction * m:
-        reason = f"ESS {ess:.0f} of {m} draws ({100 * ess / m:.1f}%) is below {100 * min_ess_fraction:.0f}%"
+    elif ess < min_ess:
+        reason = f"ESS {ess:.0f} of {m} draws ({100 * ess / m:.1f}%) is below {min_ess:.0f}"
     return ImportanceResult(lz, se, ess, khat, m, reason is None, reason, xn, logw - logsumexp(logw), m + m1)

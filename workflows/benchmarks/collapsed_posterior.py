@@ -9,7 +9,7 @@ Settings, interleaved seed by seed in one run:
 * ``collapsed + IS`` -- N = 500, at most 5 MH steps per stage, and an importance-sampling finish
   (10 000 draws of a t proposal in the sampler's coordinates, 30 % of them in a first round that
   refits the proposal): its evidence and its resampled
-  draws as the posterior when k̂ ≤ 0.7 and ESS ≥ 10 %, else TMCMC's.
+  draws as the posterior when k̂ ≤ 0.7 and ESS ≥ 200, else TMCMC's.
 * ``full default`` -- today's full-space TMCMC at its defaults (N = 2000), the baseline.
 
 Per run: evaluations (basis evaluations count as model evaluations; the completion's full-model
