@@ -149,19 +149,29 @@ def _fit_quality(wres, base: Path) -> str:
         try:
             q = fit_quality(r)
         except Exception as exc:  # a quality table is a bonus; never lose the report over it
-            rows.append([sid, f"(failed: {exc})", "", ""])
+            rows.append([sid, f"(failed: {exc})", "", "", ""])
             continue
-        rows.append([sid, fmt(q["rmse"]), f"{100 * q['rmse_rel']:.2f}", f"{100 * q['coverage90']:.0f}%"])
+        rows.append([sid, fmt(q["rmse"]), f"{100 * q['rmse_rel']:.2f}", f"{100 * q['coverage90']:.0f}%",
+                     _tier(r)])
         edges += [f"- {sid}: " + line.removeprefix("warning: ") for line in format_at_bounds(at_bounds(r))]
     text = ("## Fit quality and box edges\n\nRMSE of the best fit (MAP) and the fraction of points inside "
-            "the 90% posterior-predictive band.\n\n"
-            + _table(["specimen", "RMSE (MPa)", "RMSE (% of peak)", "90% coverage"], rows))
+            "the 90% posterior-predictive band; the likelihood tier that produced each posterior (collapsed: the "
+            "linear amplitudes integrated exactly, only the nonlinear and noise parameters sampled).\n\n"
+            + _table(["specimen", "RMSE (MPa)", "RMSE (% of peak)", "90% coverage", "likelihood"], rows))
     if edges:
         text += ("\n\nParameters whose best fit, or more than 20% of whose posterior, lies within 2% of a box "
                  "edge: the result there rests on the prior box, not on the data.\n\n" + "\n".join(edges))
     else:
         text += "\n\nNo parameter sits on a box edge."
     return text
+
+
+def _tier(r) -> str:
+    """The likelihood tier of a stored result, with the evidence's source when it is not TMCMC's."""
+    c = r.config if isinstance(r.config, dict) else {}
+    tier = str(c.get("likelihood_tier", "full"))
+    source = (c.get("collapsed") or {}).get("evidence_source") if isinstance(c.get("collapsed"), dict) else None
+    return tier if not source or source == "tmcmc" else f"{tier} (evidence: {source})"
 
 
 def _combinations(wres, base: Path) -> str:
