@@ -218,37 +218,6 @@ class BoxGaussianIntegral:
             out[rows, cols] = self._take(rows)._closed_form_log(mu[rows, cols][:, None])[:, 0]
         return out
 
-    def _closed_form_numpy(self, mu: np.ndarray) -> np.ndarray:
-        """The numpy form of :meth:`_closed_form` (the compiled kernel's independent check)."""
-        pr = self.priors[0]
-        h = self.h[:, 0][:, None]
-        flat = (h == 0.0)[..., None]
-        s = (1.0 / np.sqrt(np.where(h == 0.0, 1.0, h)))[..., None]
-        kn = pr.knots[:, None, :]
-        pv = pr.knot_values[:, None, :]
-        z = (kn - mu[..., None]) / s  # (n, M, K)
-        u = ndtr(-np.abs(z))  # tail probability beyond |z|
-        e = np.exp(-0.5 * z * z)
-        z0, z1, u0, u1, e0, e1 = z[..., :-1], z[..., 1:], u[..., :-1], u[..., 1:], e[..., :-1], e[..., 1:]
-        dphi = np.where(z0 >= 0, u0 - u1, np.where(z1 <= 0, u1 - u0, 1.0 - u0 - u1))
-        width = kn[..., 1:] - kn[..., :-1]
-        slope = np.where(width > 0, (pv[..., 1:] - pv[..., :-1]) / np.where(width > 0, width, 1.0), 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mz = (e0 - e1) / (np.sqrt(2.0 * np.pi) * dphi)
-        mz = np.where(dphi > 0, np.clip(mz, z0, z1), 0.5 * (z0 + z1))
-        pm = pv[..., :-1] + slope * s * (mz - z0)  # density at the truncated mean (linear piece)
-        total = (np.sqrt(2.0 * np.pi) * s[..., 0] * np.sum(np.maximum(dphi, 0.0) * np.maximum(pm, 0.0), axis=-1))
-        flat_total = np.sum(width * 0.5 * (pv[..., 1:] + pv[..., :-1]), axis=-1) + 0.0 * mu
-        total = np.where(flat[..., 0], flat_total, total)
-        with np.errstate(divide="ignore"):
-            out = np.log(total)
-        bad = ~(total > 1e-250)
-        if bad.any():
-            rows, cols = np.nonzero(bad)
-            sub = self._take(rows)
-            out[rows, cols] = sub._closed_form_log(mu[rows, cols][:, None])[:, 0]
-        return out
-
     def _closed_form_log(self, mu: np.ndarray, upper=None) -> np.ndarray:
         """:meth:`_closed_form` in log space, piece by piece (any distance; ``upper`` cuts the support)."""
         pr = self.priors[0]

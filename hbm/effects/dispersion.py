@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Effect, Parameter
-from ..model.spyrou import unit_contribution
+from ..model.spyrou import CollagenAmplitude
 from ._common import collagen_excess, collagen_kernel, COLLAGEN_IMAGING, needs
 
 # Gauss–Legendre rule on [-1, 1].  The quadrature runs only over the engaged part of the
@@ -15,7 +15,7 @@ from ._common import collagen_excess, collagen_kernel, COLLAGEN_IMAGING, needs
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(12)
 
 
-class Dispersion(Effect):
+class Dispersion(CollagenAmplitude, Effect):  # a correction to the collagen column
     """Collagen angle dispersion: the helical collagen averaged over θ ∈ [THETA − Δ, THETA + Δ].
 
     ::
@@ -47,13 +47,6 @@ class Dispersion(Effect):
     description = "collagen helix-angle dispersion (uniform over THETA ± DISP)"
     reference = "Gasser TC, Ogden RW, Holzapfel GA (2006) J R Soc Interface 3:15-35"
     experiment = needs(COLLAGEN_IMAGING)
-    linear_parameters = ("T1",)  # a correction to the collagen column, (1 − c)·T1 times a shape
-
-    def amplitude_coefficients(self, p):
-        return {"T1": ("(1-VOLF)*T1", 1.0 - p["VOLF"])}
-
-    def unit_stress(self, state, p):
-        return {"(1-VOLF)*T1": unit_contribution(self, state, p, VOLF=0.0, T1=1.0)}
 
     @staticmethod
     def averaged_kernel(lam: np.ndarray, theta, t2, d) -> np.ndarray:

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Effect, Parameter
-from ..model.spyrou import unit_contribution
+from ..model.spyrou import CollagenAmplitude
 from ._common import COLLAGEN_IMAGING, EXP_CLIP, collagen_excess, collagen_kernel, needs
 
 
-class Recruitment(Effect):
+class Recruitment(CollagenAmplitude, Effect):  # a correction to the collagen column
     """Gradual recruitment of the helical collagen instead of a sharp onset at λH = 1.
 
     The crimped fibrils of one bundle straighten at different stretches.  With the excess
@@ -41,13 +41,6 @@ class Recruitment(Effect):
     description = "gradual collagen recruitment (uniform distribution of straightening stretches)"
     reference = "Shearer T (2015) J Biomech 48:290-297"
     experiment = needs(COLLAGEN_IMAGING)
-    linear_parameters = ("T1",)  # a correction to the collagen column, (1 − c)·T1 times a shape
-
-    def amplitude_coefficients(self, p):
-        return {"T1": ("(1-VOLF)*T1", 1.0 - p["VOLF"])}
-
-    def unit_stress(self, state, p):
-        return {"(1-VOLF)*T1": unit_contribution(self, state, p, VOLF=0.0, T1=1.0)}
 
     @staticmethod
     def averaged_kernel(x: np.ndarray, t2, w) -> np.ndarray:

@@ -193,21 +193,28 @@ class PassiveFibers(Effect):
         return {"VOLF": lam * p1 * ramp, "P1": lam * c * ramp, "EOPT": -lam * c * p1 * on}
 
 
-class HelicalCollagen(Effect):
-    """ECM collagen wound at THETA: λ·(1−c)·T1·(exp(T2·(λH−1)) − 1) for λH > 1 (eqs. 1.12–1.14)."""
+class CollagenAmplitude:
+    """Linear structure of the collagen and of its corrections (recruitment, dispersion): each
+    contribution is (1 − c)·T1 times a shape, so T1 feeds the column (1-VOLF)*T1 with weight 1 − c
+    and the unit curve is the effect's own stress at VOLF = 0, T1 = 1.  Mix in before
+    :class:`~hbm.model.core.Effect`."""
 
-    name = "collagen"
-    stage = "elastic"
-    parameters = (VOLF, T1, T2, THETA)
-    description = "exponential helical collagen of the ECM, engaged beyond the onset stretch"
     linear_parameters = ("T1",)
 
     def amplitude_coefficients(self, p):
         return {"T1": ("(1-VOLF)*T1", 1.0 - p["VOLF"])}
 
     def unit_stress(self, state, p):
-        # also right for the energy form and the collagen corrections, which scale as (1−c)·T1
         return {"(1-VOLF)*T1": unit_contribution(self, state, p, VOLF=0.0, T1=1.0)}
+
+
+class HelicalCollagen(CollagenAmplitude, Effect):
+    """ECM collagen wound at THETA: λ·(1−c)·T1·(exp(T2·(λH−1)) − 1) for λH > 1 (eqs. 1.12–1.14)."""
+
+    name = "collagen"
+    stage = "elastic"
+    parameters = (VOLF, T1, T2, THETA)
+    description = "exponential helical collagen of the ECM, engaged beyond the onset stretch"
 
     @staticmethod
     def _parts(state, p):

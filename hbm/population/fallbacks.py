@@ -20,8 +20,8 @@ import numpy as np
 from .. import io, seeds
 from ..errors import HbmError
 from ..likelihood import make_likelihood
-from ..samplers.hierarchical import (ExactSpecimen, GroupedResult, ReuseSpecimen, joint_gibbs, refine_individual,
-                                     systematic_resample)
+from ..samplers.hierarchical import ExactSpecimen, GroupedResult, ReuseSpecimen, joint_gibbs, refine_individual
+from ..samplers.resampling import resample
 from ..utils import log_progress as _log
 from .config import PopulationConfig
 
@@ -155,7 +155,7 @@ def exact_gibbs(cfg: PopulationConfig, h, exact_ids: Sequence[str], results: Map
     pooled_cols = {j: h.model.names.index(n) for j, n in enumerate(coords.names_y) if n in h.model.names}
     specs = {}
     for sid in h.specimens:
-        idx = systematic_resample(np.asarray(h.updated_weights[sid], float), nc, rng)
+        idx = resample(np.asarray(h.updated_weights[sid], float), nc, rng)
         idx = rng.permutation(idx)  # systematic resampling sorts: pair rows with hyper draws at random
         if sid in exact_ids:
             y = coords.y_of(results[sid].samples)

@@ -30,11 +30,11 @@ from .pooling import PoolChoice, auto_pool, prior_sd_transformed
 from ..psis import K_HAT_THRESHOLD, pareto_khat
 from .refine import refine_individual
 from .result import HierarchicalResult
-from .reuse import ESTIMATORS, defensive_log_weights, mixture_log_weights, systematic_resample
+from .reuse import ESTIMATORS, defensive_log_weights, mixture_log_weights
 from .two_level import hierarchical
 
 __all__ = [
-    "HierarchicalResult", "HierarchicalModel", "hierarchical", "refine_individual", "systematic_resample",
+    "HierarchicalResult", "HierarchicalModel", "hierarchical", "refine_individual",
     "kernel_bandwidth", "auto_pool", "PoolChoice", "prior_sd_transformed", "TRANSFORMS", "ESTIMATORS",
     "reuse_diagnostics", "reuse_unreliable", "defensive_log_weights", "mixture_log_weights", "draw_population",
     "GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences", "variance_split", "truncnorm_ppf",

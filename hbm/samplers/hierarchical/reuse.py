@@ -70,16 +70,10 @@ from ...errors import HbmError
 from ..resampling import resample
 from .model import HierarchicalModel
 
-__all__ = ["ESTIMATORS", "ReuseEstimator", "Stage1", "check_box", "pack_stage1", "systematic_resample",
+__all__ = ["ESTIMATORS", "ReuseEstimator", "Stage1", "check_box", "pack_stage1",
            "defensive_log_weights", "mixture_log_weights"]
 
 ESTIMATORS = ("raw", "kernel")
-
-
-def systematic_resample(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of ``n`` systematic-resampling draws from normalised-or-not ``weights``
-    (:func:`hbm.samplers.resampling.resample`, kept under this name for the layer's callers)."""
-    return resample(weights, n, rng, "systematic")
 
 
 def _ess(w: np.ndarray) -> float:
@@ -290,7 +284,7 @@ class ReuseEstimator:
                 w /= w.sum()
                 key = self.data.specimens[i]
                 weights[key], ess[key] = w, _ess(w)
-                updated[key] = self.data.samples[i][systematic_resample(w, n, rng)]
+                updated[key] = self.data.samples[i][resample(w, n, rng)]
         return updated, weights, ess
 
 
