@@ -618,3 +618,68 @@ def test_compiled_closed_form_equals_the_numpy_form():
     fast, ref = box._closed_form(mu), _numpy_closed_form(box, mu)
     assert np.all(np.isfinite(fast))
     np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
+
+
+def _kinked_problem(edge_sd=(30.0, 30.0, 30.0, 4.5)):
+    """A trapezoid column whose Gaussian straddles its first kink, two uniforms inside their boxes
+    (``edge_sd``: the first uniform's mode, in its marginal sd, above its lower edge, per row)."""
+    n = len(edge_sd)
+    c = np.linspace(0.65, 0.75, n)
+    pri = [ColumnPrior("G", [Term.of("GF", 1e-4, 0.1), Term.of("GM", 1e-4, 0.1)], np.column_stack([c, 1 - c])),
+           ColumnPrior("AF", [Term.of("P1", 1e-4, 0.5)], c[:, None]),
+           ColumnPrior("AM", [Term.of("T1", 0.0, 3.0)], (1 - c)[:, None])]
+    sd = np.array([0.004, 0.004, 0.02])
+    corr = np.array([[1.0, -0.7, 0.4], [-0.7, 1.0, -0.2], [0.4, -0.2, 1.0]])
+    cov = corr * np.outer(sd, sd)
+    kink = pri[0].knots[:, 1]
+    mode = np.column_stack([kink + 0.3 * sd[0], 1e-4 * c + np.asarray(edge_sd) * sd[1], np.full(n, 0.5)])
+    H = np.broadcast_to(np.linalg.inv(cov), (n, 3, 3)).copy()
+    b = np.einsum("nij,nj->ni", H, mode)
+    yy = np.einsum("ni,ni->n", b, mode) + 20.0
+    return H, b, yy, pri
+
+
+def test_one_kinked_column_is_closed_form_and_its_error_bound_holds():
+    """All columns but one constant on the mass: log I = the 1-D closed form of the kinked column's
+    marginal (no margin needed there); the neglected edge mass of the others is bounded per row.
+    The fine quadrature is the independent check."""
+    H, b, yy, pri = _kinked_problem()
+    box = BoxGaussianIntegral(H, b, yy, pri)
+    inside, exact, bound, kink = box._interior()
+    # rows 0–2 by the second rule (the G column across its kink), row 3 (4.5 sd from an edge) refused
+    assert inside.tolist() == [True, True, True, False] and np.all(kink == 0)
+    # the reference quadrature with a wider window (the default 5 sd window truncates ~7e-7 here)
+    quad = BoxGaussianIntegral(H, b, yy, pri, width=9.0)._value(24)
+    np.testing.assert_allclose(exact, quad[:3], atol=1e-9)
+    assert np.all(bound < 1e-12)
+    # accepted with a looser tolerance, row 3's real error (its edge mass) stays within its bound
+    inside, exact, bound, _ = box._interior(tol=1e-3)
+    assert inside.all()
+    err = abs(exact[3] - quad[3])
+    assert 1e-7 < err <= bound[3] < 1e-4, (err, bound[3])
+    # and the default log_integral uses the quadrature for it
+    v, e = box.log_integral(refine=True)
+    assert v[3] == box._take([3])._value(box.nodes)[0] and np.all(e[:3] < 1e-12)
+
+
+def test_draws_of_the_closed_form_rows_have_the_exact_moments():
+    """Draws for a one-kinked-column row: the kinked column against its exact 1-D density on a fine
+    grid, the others through the exact Gaussian conditional moments."""
+    H, b, yy, pri = _kinked_problem((30.0,))
+    m = 40000
+    rep = [ColumnPrior(p.name, p.terms, np.repeat(p.weights, m, 0)) for p in pri]
+    A = BoxGaussianIntegral(np.repeat(H, m, 0), np.repeat(b, m, 0), np.repeat(yy, m), rep).draw(np.random.default_rng(7))
+    cov = np.linalg.inv(H[0])
+    mode = np.linalg.solve(H[0], b[0])
+    x = np.linspace(pri[0].lo[0], pri[0].hi[0], 200001)
+    w = pri[0].pdf(x[None, :])[0] * np.exp(-0.5 * (x - mode[0]) ** 2 / cov[0, 0])
+    w /= w.sum()
+    mg = (w * x).sum()
+    vg = (w * (x - mg) ** 2).sum()
+    assert abs(mg - mode[0]) > 8 * np.sqrt(vg / m)  # the kink moves the mean: a plain Gaussian would fail
+    for j in range(3):
+        beta = cov[j, 0] / cov[0, 0]
+        mean = mode[j] + beta * (mg - mode[0])
+        var = vg if j == 0 else cov[j, j] - beta * cov[0, j] + beta ** 2 * vg
+        assert abs(A[:, j].mean() - mean) < 4 * np.sqrt(var / m)
+        assert A[:, j].std() == pytest.approx(np.sqrt(var), rel=4 * np.sqrt(0.5 / m) + 1e-3)

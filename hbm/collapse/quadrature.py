@@ -25,6 +25,10 @@ How
   log-uniform columns are integrated in log A.
 * **Error estimate**: the same integral with 1.5× the nodes per panel; the difference is
   returned with the value (:meth:`BoxGaussianIntegral.log_integral`).
+* **Closed-form rows** skip the quadrature (:meth:`BoxGaussianIntegral._interior`): every column
+  deep inside one linear piece, or all columns but one constant on the mass and that one
+  integrated over its kinks by the 1-D closed form -- with a per-row bound on the neglected mass
+  as their error.
 
 Draws of A given the data (:meth:`BoxGaussianIntegral.draw`) go outermost first: each outer
 column from its marginal given the columns already drawn, tabulated on a fine grid per panel
@@ -39,7 +43,7 @@ import itertools
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
-from .kernels import closed_form_linear
+from .kernels import closed_form_linear, draw_linear_gaussian
 
 
 __all__ = ["BoxGaussianIntegral", "box_qp", "truncated_normal_log_mass"]
@@ -50,6 +54,9 @@ FLAT = 1e-9
 #: rows whose Gaussian lies this many marginal sd inside one linear piece of every column's
 #: density are integrated in closed form (:meth:`BoxGaussianIntegral.interior`)
 INTERIOR_MARGIN = 6.0
+#: largest bound on the neglected relative mass of a row integrated by the one-kinked-column rule
+#: (:meth:`BoxGaussianIntegral._interior`): its error in log I, far below the quadrature's
+INTERIOR_TOL = 1e-6
 
 
 def truncated_normal_log_mass(z0, z1) -> tuple[np.ndarray, np.ndarray]:
@@ -371,30 +378,21 @@ class BoxGaussianIntegral:
         return -0.5 * self.const + self._inner(self.k, np.zeros((self.n, 1, 0)), nodes)[:, 0]
 
     def interior(self, margin: float = INTERIOR_MARGIN) -> tuple[np.ndarray, np.ndarray]:
-        """Rows whose Gaussian lies deep inside the prior's linear pieces, and their exact log I.
-
-        Where the unconstrained Gaussian N(Â, H⁻¹) of a row lies ``margin`` marginal sd inside
-        its column's support *and* inside one linear piece of that column's density, for every
-        column, the box truncation removes less than 2k·Φ(−margin) of the mass (2e-8 relative
-        at 6 sd for k = 3) and the density is a product of linear functions over the mass:
-
-            log I = −c/2 + Σ_j log √(2π/h_j) + log E[Π_j p_j(A_j)],
-            E[Π_j p_j(A_j)] = Π_j p_j(Â_j) + s_a·s_b·Σ_ab·Π_{j≠a,b} p_j(Â_j)
-
-        (s_j the density slopes; Isserlis' theorem; exact for at most two sloped columns, which
-        covers every uniform-term prior of the base model: one trapezoid).  Rows that do not
-        qualify — a flat column, a mode near a box edge or a kink, a log-uniform column, three
-        sloped columns — go through the quadrature.
+        """Rows whose log I has a closed form (:meth:`_interior`), and that value.
 
         Returns
         -------
         mask : ndarray (n,) of bool
         value : ndarray (mask.sum(),)
         """
+        mask, value, _, _ = self._interior(margin)
+        return mask, value
+
+    def _gaussian(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The unconstrained Gaussian N(Â, H⁻¹) of each row: mode (n, k), covariance (n, k, k), and
+        a mask of rows where it exists (no flat column, finite inverse)."""
         n, k = self.n, self.k
-        ok = np.all(self.h > 0.0, axis=1) & all(p.linear for p in self.priors)
-        if not ok.any():
-            return ok, np.zeros(0)
+        ok = np.all(self.h > 0.0, axis=1)
         # the unconstrained mode by back-substitution of the elimination, μ_j = g_j − Σ_{l>j} C_jl A_l
         mode = np.zeros((n, k))
         for j in range(k - 1, -1, -1):
@@ -402,38 +400,118 @@ class BoxGaussianIntegral:
         with np.errstate(all="ignore"):
             cov_s = np.linalg.inv(np.where(ok[:, None, None], self.Hs0, np.eye(k)))
         cov = cov_s / (self.d[:, :, None] * self.d[:, None, :])
-        sd = np.sqrt(np.maximum(np.einsum("nii->ni", cov), 0.0))
         ok &= np.all(np.isfinite(cov), axis=(1, 2))
-        lo, hi = mode - margin * sd, mode + margin * sd
+        return mode, cov, ok
+
+    def _interior(self, margin: float = INTERIOR_MARGIN, tol: float = INTERIOR_TOL):
+        """Rows whose Gaussian lies inside the prior's linear pieces, their exact log I and error bound.
+
+        **All columns inside one piece.**  Where the unconstrained Gaussian N(Â, H⁻¹) of a row
+        lies ``margin`` marginal sd inside its column's support *and* inside one linear piece of
+        that column's density, for every column, the box truncation removes less than
+        2k·Φ(−margin) of the mass (2e-8 relative at 6 sd for k = 3) and the density is a product
+        of linear functions over the mass:
+
+            log I = −c/2 + Σ_j log √(2π/h_j) + log E[Π_j p_j(A_j)],
+            E[Π_j p_j(A_j)] = Π_j p_j(Â_j) + s_a·s_b·Σ_ab·Π_{j≠a,b} p_j(Â_j)
+
+        (s_j the density slopes; Isserlis' theorem; exact for at most two sloped columns).
+
+        **One column across its kinks.**  Where every column but one (j*) is constant (density
+        p_j(Â_j)) on the piece holding its mode, E[Π_j p_j(A_j)] = Π_{j≠j*} p_j(Â_j)·E[p_j*(A_j*)]
+        with A_j* ~ N(Â_j*, Σ_j*j*) its marginal: the 1-D closed form of the innermost column
+        (:func:`~hbm.collapse.kernels.closed_form_linear`), exact over j*'s whole support and
+        kinks.  Neglected: the Gaussian mass of the other columns outside their pieces, where
+        the density differs from the constant; relative to I it is at most
+
+            x = max p_j* / E[p_j*(A_j*)] · Σ_{j≠j*} max p_j / p_j(Â_j) · P(A_j ∉ piece_j),
+
+        computed per row; the row is taken when its error bound −log(1 − x) ≤ ``tol``.  On
+        the muscle benchmark this is the common case (G's posterior straddles its trapezoid's
+        kinks while the fibre and collagen amplitudes sit well inside their boxes).
+
+        Rows that qualify for neither -- a flat column, two columns near a box edge or a kink, a
+        log-uniform column, three sloped columns -- go through the quadrature.
+
+        Returns
+        -------
+        mask : ndarray (n,) of bool
+        value, error : ndarray (mask.sum(),)
+            log I and a bound on its error (log units).
+        kink : ndarray (mask.sum(),) of int
+            A column j* such that every other column is constant on the mass (the draws of
+            :meth:`draw` go through it), −1 for rows with two sloped columns.
+        """
+        n, k = self.n, self.k
+        none = (np.zeros(n, bool), np.zeros(0), np.zeros(0), np.zeros(0, int))
+        if not all(p.linear for p in self.priors):
+            return none
+        mode, cov, ok = self._gaussian()
+        if not ok.any():
+            return none
+        sd = np.sqrt(np.maximum(np.einsum("nii->ni", cov), 0.0))
+        rows = np.arange(n)
         dens = np.ones((n, k))
         slope = np.zeros((n, k))
+        inside = np.ones((n, k), bool)  # margin sd inside the mode's piece
+        out = np.ones((n, k))  # Gaussian mass outside the mode's piece
+        peak = np.ones((n, k))  # max of the density
         for j, pr in enumerate(self.priors):
             kn, kv = pr.knots, pr.knot_values
             piece = np.clip(np.sum(kn <= mode[:, j][:, None], axis=1) - 1, 0, kn.shape[1] - 2)
-            rows = np.arange(n)
             a0, a1 = kn[rows, piece], kn[rows, piece + 1]
             v0, v1 = kv[rows, piece], kv[rows, piece + 1]
-            ok &= (lo[:, j] >= a0) & (hi[:, j] <= a1) & (a1 > a0)
+            inside[:, j] = (mode[:, j] - margin * sd[:, j] >= a0) & (mode[:, j] + margin * sd[:, j] <= a1) & (a1 > a0)
             with np.errstate(divide="ignore", invalid="ignore"):
                 slope[:, j] = np.where(a1 > a0, (v1 - v0) / (a1 - a0), 0.0)
+                s = np.where(sd[:, j] > 0, sd[:, j], 1.0)
+                out[:, j] = np.where((a1 > a0) & (sd[:, j] > 0), ndtr((a0 - mode[:, j]) / s) + ndtr((mode[:, j] - a1) / s), 1.0)
             dens[:, j] = v0 + slope[:, j] * (mode[:, j] - a0)
+            peak[:, j] = kv.max(axis=1)
         sloped = np.abs(slope) * sd > 1e-12 * np.maximum(dens, 1e-300)
-        ok &= (np.sum(sloped, axis=1) <= 2) & np.all(dens > 0.0, axis=1)
-        if not ok.any():
-            return ok, np.zeros(0)
-        r = np.flatnonzero(ok)
-        expect = np.prod(dens[r], axis=1)
-        for a, b in itertools.combinations(range(k), 2):  # the pair term of Isserlis' theorem
-            both = sloped[r, a] & sloped[r, b]
-            if both.any():
-                others = np.prod(np.delete(dens[r], [a, b], axis=1), axis=1)
-                expect = expect + np.where(both, slope[r, a] * slope[r, b] * cov[r, a, b] * others, 0.0)
+        first = ok & inside.all(axis=1) & (np.sum(sloped, axis=1) <= 2) & np.all(dens > 0.0, axis=1)
+        # second rule: j* = the worst column (a sloped one must be j*); the others constant
         with np.errstate(divide="ignore", invalid="ignore"):
-            value = (-0.5 * self.const[r] + k * _LOG_SQRT_2PI - 0.5 * np.sum(np.log(self.h[r]), axis=1)
-                     + np.log(expect))
-        good = np.isfinite(value)
-        ok[r[~good]] = False
-        return ok, value[good]
+            tail = np.where(dens > 0.0, peak / np.where(dens > 0.0, dens, 1.0) * out, np.inf)
+        key = np.where(sloped, np.inf, tail)
+        kink = np.argmax(np.where(np.isnan(key), np.inf, key), axis=1)
+        others = np.ones((n, k), bool)
+        others[rows, kink] = False
+        rest = np.where(others, tail, 0.0)
+        second = ok & ~first & np.all(~(others & sloped), axis=1) & np.all(np.isfinite(rest), axis=1)
+        second &= np.sum(rest, axis=1) * 1.0 <= tol  # before E[p_j*], which only widens the bound
+        value = np.full(n, np.nan)
+        error = np.zeros(n)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            base = -0.5 * self.const + k * _LOG_SQRT_2PI - 0.5 * np.sum(np.log(self.h), axis=1)
+            r = np.flatnonzero(first)
+            if r.size:
+                expect = np.prod(dens[r], axis=1)
+                for a, b in itertools.combinations(range(k), 2):  # the pair term of Isserlis' theorem
+                    both = sloped[r, a] & sloped[r, b]
+                    if both.any():
+                        oth = np.prod(np.delete(dens[r], [a, b], axis=1), axis=1)
+                        expect = expect + np.where(both, slope[r, a] * slope[r, b] * cov[r, a, b] * oth, 0.0)
+                value[r] = base[r] + np.log(expect)
+                error[r] = 2.0 * k * ndtr(-margin)
+            for j, pr in enumerate(self.priors):
+                r = np.flatnonzero(second & (kink == j))
+                if not r.size:
+                    continue
+                var = cov[r, j, j]
+                # log E[p_j(A_j)] = log ∫ p_j(a)·exp(−(a − Â_j)²/2v) da − log √(2πv)
+                le = closed_form_linear(np.ascontiguousarray(pr.knots[r], float),
+                                        np.ascontiguousarray(pr.knot_values[r], float),
+                                        np.ascontiguousarray(1.0 / var), np.ascontiguousarray(mode[r, j][:, None]))[:, 0]
+                le -= _LOG_SQRT_2PI + 0.5 * np.log(var)
+                lrest = np.sum(np.log(np.where(others[r], dens[r], 1.0)), axis=1)
+                value[r] = base[r] + lrest + le
+                # neglected/I ≤ x (relative to the closed form), so |Δ log I| ≤ −log(1 − x)
+                error[r] = -np.log1p(-np.minimum(np.exp(np.log(peak[r, j]) - le) * np.sum(rest[r], axis=1), 0.5))
+        mask = (first | second) & np.isfinite(value) & (error <= np.maximum(tol, 2.0 * k * ndtr(-margin)))
+        # rows with two sloped columns (first rule) are drawn through the quadrature: kink −1
+        kinks = np.where(first & (np.sum(sloped, axis=1) > 1), -1, kink)
+        return mask, value[mask], error[mask], kinks[mask]
 
     # -- public ------------------------------------------------------------------------------
     def log_integral(self, refine: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
@@ -444,7 +522,7 @@ class BoxGaussianIntegral:
         value : ndarray (n,)
         error : ndarray (n,) or None
         """
-        inside, exact = self.interior()
+        inside, exact, bound, _ = self._interior()
         v = np.empty(self.n)
         v[inside] = exact
         err = np.zeros(self.n) if refine else None
@@ -454,17 +532,58 @@ class BoxGaussianIntegral:
             v[rest] = sub._value(self.nodes)
             if refine:
                 err[rest] = np.abs(sub._value(self.nodes + self.nodes // 2) - v[rest])
-        if refine:  # the interior rows' only error is the truncated mass
-            err[inside] = 2.0 * self.k * ndtr(-INTERIOR_MARGIN)
+        if refine:  # the interior rows' only error is the neglected mass (its bound)
+            err[inside] = bound
         return v, err
 
     def draw(self, rng: np.random.Generator, grid: int = 17) -> np.ndarray:
         """One draw of A per row from ∝ Π p_j(A_j)·exp(−Q(A)/2) on the box, (n, k) in column order.
 
-        Outer columns from their tabulated conditional marginal (``grid`` points per panel,
-        piecewise-linear interpolant); the innermost closed-form column exactly by bisection
-        of its CDF.
+        Rows with a closed form in which all columns but one (j*) are constant on the mass
+        (:meth:`_interior`): A_j* exactly from p_j*(a)·N(a; Â_j*, Σ_j*j*) by inverting its CDF,
+        the others from their Gaussian given A_j* (the mass this leaves outside their pieces is
+        the row's error bound, ≤ :data:`INTERIOR_TOL`; such a draw is moved to the piece's edge).
+        Other rows: outer columns from their tabulated conditional marginal (``grid`` points per
+        panel, piecewise-linear interpolant); the innermost closed-form column exactly by
+        inverting its CDF.
         """
+        n, k = self.n, self.k
+        out = np.empty((n, k))
+        inside, _, _, kink = self._interior()
+        r = np.flatnonzero(inside)[kink >= 0]
+        kink = kink[kink >= 0]
+        rest = np.setdiff1d(np.arange(n), r)
+        if rest.size:
+            out[rest] = (self._take(rest) if rest.size < n else self)._draw_quadrature(rng, grid)
+        if r.size:
+            mode, cov, _ = self._take(r)._gaussian()
+            rows = np.arange(r.size)
+            var = cov[rows, kink, kink]
+            a = np.empty(r.size)
+            for j, pr in enumerate(self.priors):
+                sel = np.flatnonzero(kink == j)
+                if sel.size:
+                    a[sel] = self._take(r[sel])._draw_closed(mode[sel, j], rng, column=j, h=1.0 / var[sel])
+            # the others given A_j*: Gaussian with mean Â + Σ_·j*(a − Â_j*)/Σ_j*j*
+            cj = cov[rows, :, kink]  # (m, k)
+            m = mode + cj * ((a - mode[rows, kink]) / var)[:, None]
+            cc = cov - cj[:, :, None] * cj[:, None, :] / var[:, None, None]
+            keep = np.ones((r.size, k), bool)
+            keep[rows, kink] = False
+            cc = np.where(keep[:, :, None] & keep[:, None, :], cc, 0.0) + np.where(keep, 0.0, 1.0)[:, :, None] * np.eye(k)
+            L = np.linalg.cholesky(cc)
+            z = np.einsum("nij,nj->ni", L, rng.standard_normal((r.size, k)))
+            val = np.where(keep, m + z, 0.0)
+            val[rows, kink] = a
+            for j, pr in enumerate(self.priors):  # the neglected tail (≤ INTERIOR_TOL): onto the box
+                val[:, j] = np.clip(val[:, j], pr.lo[r], pr.hi[r])
+            out[r] = val
+        res = np.empty((n, k))
+        res[:, self.perm] = out
+        return res
+
+    def _draw_quadrature(self, rng: np.random.Generator, grid: int) -> np.ndarray:
+        """:meth:`draw` of rows without a closed form, (n, k) in the internal column order."""
         n, k = self.n, self.k
         vals = np.zeros((n, 1, 0))
         for pos in range(k - 1, -1, -1):
@@ -482,9 +601,7 @@ class BoxGaussianIntegral:
                 f = f + self._inner(pos, sub.reshape(n, Q, -1), self.nodes).reshape(n, 1, Q)
                 a = self._draw_grid(pos, pts[:, 0], f[:, 0], grid, rng)
             vals = np.concatenate([a[:, None, None], vals], axis=2)
-        out = np.empty((n, k))
-        out[:, self.perm] = vals[:, 0, :]
-        return out
+        return vals[:, 0, :]
 
     def _draw_grid(self, pos, pts, logf, grid, rng) -> np.ndarray:
         """Sample the piecewise-linear interpolant of exp(logf) on the per-panel grids."""
@@ -518,12 +635,31 @@ class BoxGaussianIntegral:
         x = a0 + t * (a1 - a0)
         return np.exp(x) if pr.log_coords else x
 
-    def _draw_closed(self, mu, rng, iters: int = 60) -> np.ndarray:
-        """Exact draw of the innermost column given μ (n,) by bisection of its closed-form CDF."""
+    def _draw_closed(self, mu, rng, iters: int = 60, column: int = 0, h=None) -> np.ndarray:
+        """Exact draw of a piecewise-linear column (default the innermost) given its centre μ (n,)
+        and precision ``h`` (default the innermost's conditional one), by inverting its CDF:
+        compiled (:func:`~hbm.collapse.kernels.draw_linear_gaussian`), with a log-space bisection
+        for the rows whose mass underflows there."""
+        pr = self.priors[column]
+        h = self.h[:, 0] if h is None else np.asarray(h, float)
+        u = rng.random(mu.shape[0])
+        out = draw_linear_gaussian(np.ascontiguousarray(pr.knots, float), np.ascontiguousarray(pr.knot_values, float),
+                                   np.ascontiguousarray(h, float), np.ascontiguousarray(mu, float), u)
+        bad = np.flatnonzero(np.isnan(out))
+        if bad.size:
+            sub = self._take(bad)
+            if column:  # the log-space path works on column 0: move this column there
+                sub.priors = [sub.priors[column]] + sub.priors[1:]
+            sub.h = np.column_stack([h[bad]] + [sub.h[:, 1:]]) if sub.h.shape[1] > 1 else h[bad][:, None]
+            out[bad] = sub._bisect_closed(mu[bad], np.log(u[bad]), iters)
+        return out
+
+    def _bisect_closed(self, mu, log_u, iters: int) -> np.ndarray:
+        """Inverse CDF of the innermost column at quantile exp(log_u) by bisection in log space."""
         pr = self.priors[0]
         lo, hi = pr.lo.copy(), pr.hi.copy()
-        total = self._closed_form(mu[:, None])[:, 0]
-        target = total + np.log(rng.random(mu.shape[0]))
+        total = self._closed_form_log(mu[:, None])[:, 0]
+        target = total + log_u
         a, z = lo.copy(), hi.copy()
         for _ in range(iters):  # bisection steps, each vectorised over rows
             mid = 0.5 * (a + z)
