@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..samplers.importance import MIN_ESS, ImportanceResult, importance_evidence
+from ..samplers.importance import FINISH_MIXTURE, FINISH_RESERVE, MIN_ESS, ImportanceResult, importance_evidence
 from ..samplers.tmcmc import tmcmc
 from .likelihood import CollapsedLikelihood
 
@@ -96,10 +96,12 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     min_ess : float
         Smallest accepted importance ESS (absolute).
     importance_adapt : float
-        Share of the importance draws spent on a first round that refits the t proposal to its
-        own weighted draws (:func:`~hbm.samplers.importance.importance_evidence`, ``adapt``).  On
-        the muscle benchmark (seeds 0–9, N = 500 pilot) one round was refused in 4/10 (ESS 5–9 %
-        or k̂ 1.06), 0.3 in none (ESS 12–20 %, k̂ ≤ 0.5, |Δlog Ẑ| ≤ 0.08).
+        Share of the importance draws spent on a first round that refits the proposal to its
+        own weighted draws (:func:`~hbm.samplers.importance.importance_evidence`, ``adapt``; the
+        refit is a mixture of :data:`~hbm.samplers.importance.FINISH_MIXTURE` t components, and
+        :data:`~hbm.samplers.importance.FINISH_RESERVE` of the draws are spent only when the
+        estimate is refused).  On the muscle benchmark (seeds 0–9, N = 500 pilot) one round was
+        refused in 4/10 (ESS 5–9 % or k̂ 1.06), 0.3 in none (ESS 12–20 %, k̂ ≤ 0.5, |Δlog Ẑ| ≤ 0.08).
     progress : bool
     checkpoint : path, optional
         TMCMC checkpoint file.
@@ -120,7 +122,7 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     if importance_draws:
         imp = importance_evidence(cl, cl.bounds, tr.samples, int(importance_draws),
                                   seed=np.random.SeedSequence([int(seed), 2]), min_ess=min_ess,
-                                  adapt=importance_adapt)
+                                  adapt=importance_adapt, mixture=FINISH_MIXTURE, reserve=FINISH_RESERVE)
         if imp.accepted:
             log_z, log_z_se, source = imp.log_evidence, imp.log_evidence_se, "importance"
     phi = np.asarray(tr.samples, float)
