@@ -465,7 +465,8 @@ class BoxGaussianIntegral:
             with np.errstate(divide="ignore", invalid="ignore"):
                 slope[:, j] = np.where(a1 > a0, (v1 - v0) / (a1 - a0), 0.0)
                 s = np.where(sd[:, j] > 0, sd[:, j], 1.0)
-                out[:, j] = np.where((a1 > a0) & (sd[:, j] > 0), ndtr((a0 - mode[:, j]) / s) + ndtr((mode[:, j] - a1) / s), 1.0)
+                out[:, j] = np.where((a1 > a0) & (sd[:, j] > 0),
+                                     ndtr((a0 - mode[:, j]) / s) + ndtr((mode[:, j] - a1) / s), 1.0)
             dens[:, j] = v0 + slope[:, j] * (mode[:, j] - a0)
             peak[:, j] = kv.max(axis=1)
         sloped = np.abs(slope) * sd > 1e-12 * np.maximum(dens, 1e-300)
@@ -502,7 +503,8 @@ class BoxGaussianIntegral:
                 # log E[p_j(A_j)] = log ∫ p_j(a)·exp(−(a − Â_j)²/2v) da − log √(2πv)
                 le = closed_form_linear(np.ascontiguousarray(pr.knots[r], float),
                                         np.ascontiguousarray(pr.knot_values[r], float),
-                                        np.ascontiguousarray(1.0 / var), np.ascontiguousarray(mode[r, j][:, None]))[:, 0]
+                                        np.ascontiguousarray(1.0 / var),
+                                        np.ascontiguousarray(mode[r, j][:, None]))[:, 0]
                 le -= _LOG_SQRT_2PI + 0.5 * np.log(var)
                 lrest = np.sum(np.log(np.where(others[r], dens[r], 1.0)), axis=1)
                 value[r] = base[r] + lrest + le
@@ -570,7 +572,8 @@ class BoxGaussianIntegral:
             cc = cov - cj[:, :, None] * cj[:, None, :] / var[:, None, None]
             keep = np.ones((r.size, k), bool)
             keep[rows, kink] = False
-            cc = np.where(keep[:, :, None] & keep[:, None, :], cc, 0.0) + np.where(keep, 0.0, 1.0)[:, :, None] * np.eye(k)
+            # the kinked column's row and column replaced by the identity (its value is set below)
+            cc = np.where(keep[:, :, None] & keep[:, None, :], cc, 0.0) + (~keep)[:, :, None] * np.eye(k)
             L = np.linalg.cholesky(cc)
             z = np.einsum("nij,nj->ni", L, rng.standard_normal((r.size, k)))
             val = np.where(keep, m + z, 0.0)

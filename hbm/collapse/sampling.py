@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from ..samplers.importance import FINISH_MIXTURE, FINISH_RESERVE, MIN_ESS, ImportanceResult, importance_evidence
+from ..samplers.importance import (FINISH_MIXTURE, FINISH_RESERVE, MIN_ESS, ImportanceResult,
+                                   importance_evidence)
 from ..samplers.tmcmc import tmcmc
 from .likelihood import CollapsedLikelihood
 
@@ -157,11 +158,11 @@ def fit_collapsed(cl: CollapsedLikelihood, n_samples: int, *, seed: int, progres
     With no TMCMC options given: TMCMC with N = min(``n_samples``, 500) and at most 5 MH steps per
     stage, then the importance finish with up to max(10 000, 5·``n_samples``) draws (80 % unless
     refused), whose resampled draws give the ``n_samples`` posterior draws (~30 k evaluations on the
-    muscle benchmark).  When the finish is refused (k̂ > 0.7 or ESS < 200), TMCMC runs again with N = ``n_samples`` and at
-    most 10 steps per stage (its evidence and population are used; the evaluations of both runs
-    are counted).  With TMCMC options (e.g. ``n_steps``, ``max_evaluations``): one TMCMC run with
-    N = ``n_samples`` and those options (``max_steps`` 10 unless given), and an importance finish
-    only if ``importance_draws`` is among them.
+    muscle benchmark).  When the finish is refused (k̂ > 0.7 or ESS < 200), TMCMC runs again with
+    N = ``n_samples`` and at most 10 steps per stage (its evidence and population are used; the
+    evaluations of both runs are counted).  With TMCMC options (e.g. ``n_steps``,
+    ``max_evaluations``): one TMCMC run with N = ``n_samples`` and those options (``max_steps`` 10
+    unless given), and an importance finish only if ``importance_draws`` is among them.
 
     Parameters
     ----------
