@@ -423,7 +423,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         cf = fit_collapsed(collapsed, int(samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
         y, log_lik, n_evaluations = cf.samples, cf.log_likelihood, cf.n_evaluations
         # FitResult.tmcmc: the φ run's stages and evidence, with the completed full rows as samples
-        tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik)
+        tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik, chains=cf.chains)
         log_z, log_z_se, collapsed_info = cf.log_evidence, cf.log_evidence_se, cf.info
     else:
         tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,
@@ -486,7 +486,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         model=model.name, effects=list(model.effect_names), config=config, seed=root_seed,
         fixed=dict(lik.fixed), version=__version__,
         prior={n: lik.prior[n].to_dict() for n in lik.names},
-        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())})
+        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())},
+        chains=tr.chains)
     res.at_bounds = at_bounds(res)
     path = None
     if out is not None:

@@ -11,6 +11,12 @@ integrated exactly.
 Random streams (all from the caller's TMCMC seed ``s``): TMCMC ``s``; the amplitude draws
 ``SeedSequence([s, 1])``; the importance draws ``SeedSequence([s, 2])``; the resampling of the
 accepted importance draws into the posterior population ``SeedSequence([s, 3])``.
+
+Chains (:mod:`hbm.samplers.chains`): the posterior keeps the TMCMC run's islands as chains, or,
+after an accepted importance finish, K independent batches of the importance draws each resampled
+into its own chain (K = the run's ``n_islands``; pooled as one chain, with the reason, when the
+batches' evidences disagree).  The completion draws the amplitudes row by row, so every row stays
+in its chain.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ..samplers.chains import Chains, importance_batches
 from ..samplers.importance import MIN_ESS, ImportanceResult, importance_evidence
 from ..samplers.tmcmc import tmcmc
 from .likelihood import CollapsedLikelihood
@@ -55,6 +62,8 @@ class CollapsedFit:
         Largest |log L_c − log L_c'| (refined rule) over up to :data:`ERROR_ROWS` posterior rows.
     info : dict
         JSON-able summary (tier, sampled parameters, columns, the numbers above).
+    chains : Chains
+        How ``samples`` splits into chains (chain-major).
     """
 
     samples: np.ndarray
@@ -67,6 +76,7 @@ class CollapsedFit:
     n_evaluations: int
     quadrature_error: float
     info: dict = field(default_factory=dict)
+    chains: Chains = field(default_factory=lambda: Chains(1, "pooled", "not recorded"))
 
 
 def _systematic(x: np.ndarray, log_w: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -123,11 +133,14 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
                                   adapt=importance_adapt)
         if imp.accepted:
             log_z, log_z_se, source = imp.log_evidence, imp.log_evidence_se, "importance"
-    phi = np.asarray(tr.samples, float)
+    phi, chains = np.asarray(tr.samples, float), tr.chains
     if imp is not None and imp.accepted:
-        # the accepted importance draws are the better posterior sample (ESS ≫ N): resample N of them
-        phi = _systematic(imp.samples, imp.log_weights, int(n_out or phi.shape[0]),
-                          np.random.default_rng(np.random.SeedSequence([int(seed), 3])))
+        # the accepted importance draws are the better posterior sample (ESS ≫ N): resample N of them,
+        # batch by batch into chains (or pooled, as before, when the batches disagree)
+        n_post = int(n_out or phi.shape[0])
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 3]))
+        idx, chains = importance_batches(imp.log_weights, n_post, int(tr.config.n_islands), rng)
+        phi = imp.samples[idx] if idx is not None else _systematic(imp.samples, imp.log_weights, n_post, rng)
     full = cl.complete(phi, np.random.default_rng(np.random.SeedSequence([int(seed), 1])))
     ll = cl.lik(full)
     step = max(1, phi.shape[0] // ERROR_ROWS)
@@ -139,9 +152,10 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
             "tmcmc_evaluations": int(tr.n_evaluations)}
     if imp is not None:
         info["importance"] = imp.to_dict()
+    info["chains"] = {"n_chains": chains.n_chains, "method": chains.method}
     return CollapsedFit(samples=full, log_likelihood=np.asarray(ll, float), log_evidence=log_z,
                         log_evidence_se=log_z_se, evidence_source=source, tmcmc=tr, importance=imp,
-                        n_evaluations=int(n_eval), quadrature_error=qerr, info=info)
+                        n_evaluations=int(n_eval), quadrature_error=qerr, info=info, chains=chains)
 
 
 #: the default collapsed fit's first attempt: a small TMCMC run and an importance finish
