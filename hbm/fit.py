@@ -39,12 +39,12 @@ from .prior import Prior, PriorError, load_prior
 from .optimization import optimize as _cma
 from .samplers.tmcmc import tmcmc as _tmcmc
 from .validation import check_physical_bounds, check_seed
-from .quality import (EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, edges, fit_quality, format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
+from .quality import (EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, chain_rhat, chains_line, edges, fit_quality, format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
            "format_at_bounds", "map_prediction", "quality_lines", "tier_line", "EDGE_TOL", "EDGE_MASS",
-           "RIDGE_NOTE"]
+           "RIDGE_NOTE", "chain_rhat", "chains_line"]
 
 def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
     """``"VOLF:0.05"`` -> ("VOLF", 0.05)."""
@@ -230,7 +230,7 @@ class FitResult:
         if r.fixed:
             rows.append("fixed: " + ", ".join(f"{k}={v:g}" for k, v in r.fixed.items()))
         rows.append(_prior_line(r))
-        return "\n".join(head + quality_lines(self.quality(prob=prob)) + [tier_line(r)] + rows)
+        return "\n".join(head + quality_lines(self.quality(prob=prob)) + [tier_line(r), chains_line(r)] + rows)
 
     def to_json(self, prob: float = 0.9) -> dict[str, Any]:
         """One JSON-able dict: :func:`fit_quality` plus identification of the run.
@@ -247,6 +247,9 @@ class FitResult:
                   "input": r.config.get("input", ""),
                   "likelihood_tier": r.config.get("likelihood_tier", "full"),
                   "likelihood_note": r.config.get("likelihood_note", ""),
+                  "chains": {"n_chains": r.chains.n_chains, "method": r.chains.method, "note": r.chains.note,
+                             "max_rhat": max((chain_rhat(r, r.samples[:, j]) for j in range(len(r.names))),
+                                             default=float("nan"))},
                   "path": None if self.path is None else str(self.path)})
         return json.loads(json.dumps(q, default=json_default))
 

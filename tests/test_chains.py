@@ -193,3 +193,41 @@ def test_rows_that_no_longer_split_into_chains_are_stored_as_one(tmp_path):
     r = _specimen(Chains(4, "tmcmc_islands", "x"), n=402)
     back = io.read_specimen_result(io.write_specimen_result(r, tmp_path / "r.nc"))
     assert back.chains.n_chains == 1 and "do not split" in back.chains.note
+
+
+def test_default_fit_file_gives_finite_rhat_for_every_parameter(tmp_path):
+    from hbm.data import synthetic_specimen
+    from hbm.fit import fit_specimen
+    from hbm.model import spyrou_model
+
+    truth = {"VOLF": 0.9, "EOPT": 0.15, "P1": 0.06, "T1": 1.0, "T2": 14.0, "THETA": 59.0, "GF": 0.03, "GM": 0.02}
+    data = synthetic_specimen(spyrou_model(), truth, np.linspace(0, 0.42, 30), 0.002, 1, attrs={"id": "syn"})
+    res = fit_specimen(data, samples=400, restarts=0, seed=11, progress=False, out=tmp_path / "syn.nc")
+    assert res.result.chains.n_chains == 4  # the default (collapsed) fit: importance batches as chains
+    idata = az.from_netcdf(str(res.path))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s = az.summary(idata)
+    assert set(s.index) == set(res.result.names)
+    assert np.isfinite(s["r_hat"]).all() and (s["r_hat"] < 1.05).all(), s["r_hat"]
+    assert idata.posterior.attrs["chains"] in ("importance_batches", "tmcmc_islands")
+
+
+def test_summary_rhat_column_matches_arviz(tmp_path):
+    from hbm.cli.summary import rows
+    from hbm.fit import chains_line
+
+    r = _specimen(Chains(4, "tmcmc_islands", "four islands"), n=800)
+    r.samples[600:, 0] += 0.3  # the last chain sits elsewhere in T1
+    path = io.write_specimen_result(r, tmp_path / "rat.nc")
+    table = {row[0]: row for row in rows(path)[1:]}
+    idata = az.from_netcdf(str(path))
+    for name in ("T1", "sigma"):
+        # ArviZ's bulk (rank-normalised split) R-hat: the same definition, an independent implementation
+        ref = float(az.rhat(idata, method="z_scale")[name])
+        assert float(table[name][-1]) == pytest.approx(ref, abs=1e-4)
+    assert float(table["T1"][-1]) > 1.05 and float(table["sigma"][-1]) < 1.01
+    line = chains_line(io.read_specimen_result(path))
+    assert "4 TMCMC islands" in line and "disagree" in line
+    one = io.read_specimen_result(io.write_specimen_result(_specimen(POOLED), tmp_path / "one.nc"))
+    assert "no R-hat" in chains_line(one)
