@@ -133,7 +133,7 @@ def block_chains(block_log_evidence, block_sd: float, n: int, method: str, note:
     z = np.asarray(block_log_evidence, float)
     k = len(z)
     if k < 2:
-        return Chains(1, "pooled", "one island only (n_islands = 1, or fewer than 40 particles): no R-hat")
+        return Chains(1, "pooled", "one block only (n_islands = 1, or fewer than 40 particles or draws): no R-hat")
     if n % k:
         return Chains(1, "pooled", f"{n} draws do not split into {k} equal chains: pooled, no R-hat")
     if not np.isfinite(z).all():

@@ -5,7 +5,9 @@ The sampler is split blackjax-style into a pure core and a driver:
 * :func:`init` draws the stage-0 population from the uniform prior on a box and evaluates it;
 * :func:`step` performs one tempering stage (choose the next β by a bracketed root find on the
   coefficient of variation of the incremental weights, accumulate the log-evidence per island,
-  resample, move the population with a vectorised Metropolis–Hastings :class:`~.moves.Move`) and
+  resample each island from its own particles -- at β = 1 too, so the islands end as independent
+  chains (:mod:`.chains`) unless their evidences disagree --, move the population with a
+  vectorised Metropolis–Hastings :class:`~.moves.Move`) and
   returns ``(state, info)`` with ``info`` a :class:`~.types.StageInfo`;
 * :func:`tmcmc` loops over stages with a tqdm progress bar and an atomic checkpoint after every
   stage (:mod:`.checkpoint`), and returns a :class:`~.types.TMCMCResult`.
@@ -159,8 +161,8 @@ def _stage_indices(logw, island_prev, beta, rng, scheme, keep_islands: bool = Fa
     starts, sizes, isl = islands(n, k)
     m_k = np.maximum.reduceat(logw, starts)
     if (beta >= 1.0 and not keep_islands) or not np.isfinite(m_k).all():
-        # final stage (or a dead island): pool the islands, each weighted by its evidence so far;
-        # after this the islands are no longer independent, so it happens once at the end only
+        # final stage when the islands are not kept (their evidences disagree), or a dead island: pool
+        # the islands, each weighted by its evidence so far; after this they are no longer independent
         with np.errstate(invalid="ignore"):
             lw = np.where(np.isfinite(logw), island_prev[isl] - np.log(sizes)[isl] + logw, -np.inf)
         return resample(np.exp(lw - lw.max()), n, rng, scheme)
