@@ -231,3 +231,19 @@ def test_summary_rhat_column_matches_arviz(tmp_path):
     assert "4 TMCMC islands" in line and "disagree" in line
     one = io.read_specimen_result(io.write_specimen_result(_specimen(POOLED), tmp_path / "one.nc"))
     assert "no R-hat" in chains_line(one)
+
+
+def test_importance_batch_resting_on_few_draws_is_flagged_by_rhat():
+    # batch 4 has the others' total weight but carries it on three draws: its evidence agrees (the
+    # batches stay chains) and its chain repeats three points, which R-hat flags
+    rng = np.random.default_rng(2)
+    m = 4000
+    x = rng.normal(size=m)
+    lw = np.zeros(m)
+    lw[3000:] = -30.0
+    lw[[3100, 3400, 3700]] = math.log(1000 / 3)
+    idx, ch = importance_batches(lw, 800, 4, np.random.default_rng(1))
+    assert ch.n_chains == 4 and abs(ch.spread) < 0.1
+    y = x[idx]
+    assert len(np.unique(y[600:])) == 3
+    assert _rhat(y, 4) > 1.05
