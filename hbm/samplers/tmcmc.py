@@ -38,11 +38,11 @@ from scipy.optimize import brentq
 from scipy.special import logsumexp
 
 from ..errors import HbmError
+from .chains import ISLAND_NOTE, Chains, block_chains
 from .checkpoint import checkpoint_progress, fingerprint, load_checkpoint, save_checkpoint
 from .coordinates import Bijection, BoxCoordinates, LogitCoordinates, check_bounds, log_likelihood_of
 from .linalg import box_covariance, free_covariance, safe_cholesky
 from .moves import Manifold, Move, StageSetup, Tuning, Walkers
-from .chains import ISLAND_NOTE, Chains, block_chains
 from .resampling import islands, resample, resample_islands
 from .types import (DEFAULT_COV_TARGET, DEFAULT_N_SAMPLES, GradientFIM, LogLikelihood, StageInfo, TMCMCConfig,
                     TMCMCResult, TMCMCState)
