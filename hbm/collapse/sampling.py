@@ -15,7 +15,10 @@ accepted importance draws into the posterior population ``SeedSequence([s, 3])``
 Chains (:mod:`hbm.samplers.chains`): the posterior keeps the TMCMC run's islands as chains, or,
 after an accepted importance finish, K independent batches of the importance draws each resampled
 into its own chain (K = the run's ``n_islands``; pooled as one chain, with the reason, when the
-batches' evidences disagree).  The completion draws the amplitudes row by row, so every row stays
+batches' evidences disagree).  A TMCMC run that serves as the importance pilot pools its islands
+at β = 1 as before (``final_resampling="pooled"``): the proposal and the evidence are those of the
+code before chains; if such a run's population becomes the posterior (finish refused, single-run
+route), it is one chain.  The completion draws the amplitudes row by row, so every row stays
 in its chain.
 """
 
@@ -124,6 +127,11 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     CollapsedFit
     """
     start = cl.n_evaluations
+    if importance_draws:
+        # a pilot for the importance proposal: its final population pooled by evidence as before chains,
+        # so proposal and evidence are unchanged (with equal-weight islands here the posterior means came
+        # out 0.016 ± 0.008 gold sd worse over 30 seeds, the batch resampling's share of it 0.001)
+        tmcmc_options = {"final_resampling": "pooled", **tmcmc_options}
     tr = tmcmc(cl, cl.bounds, n_samples, seed=seed, progress=progress, checkpoint=checkpoint, **tmcmc_options)
     log_z, log_z_se, source = float(tr.log_evidence), float(tr.log_evidence_se), "tmcmc"
     imp = None
