@@ -211,6 +211,10 @@ def test_default_fit_file_gives_finite_rhat_for_every_parameter(tmp_path):
     assert set(s.index) == set(res.result.names)
     assert np.isfinite(s["r_hat"]).all() and (s["r_hat"] < 1.05).all(), s["r_hat"]
     assert idata.posterior.attrs["chains"] in ("importance_batches", "tmcmc_islands")
+    js = res.to_json()["chains"]
+    assert js["n_chains"] == 4 and js["max_rhat"] == pytest.approx(
+        max(float(az.rhat(idata, method="z_scale")[n]) for n in res.result.names), abs=1e-4)
+    assert "chains: 4" in res.report()
 
 
 def test_summary_rhat_column_matches_arviz(tmp_path):
