@@ -39,12 +39,12 @@ from .prior import Prior, PriorError, load_prior
 from .optimization import optimize as _cma
 from .samplers.tmcmc import tmcmc as _tmcmc
 from .validation import check_physical_bounds, check_seed
-from .quality import (EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, edges, fit_quality, format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
+from .quality import (EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, chain_rhat, chains_line, edges, fit_quality, format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
 
 __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
            "format_at_bounds", "map_prediction", "quality_lines", "tier_line", "EDGE_TOL", "EDGE_MASS",
-           "RIDGE_NOTE"]
+           "RIDGE_NOTE", "chain_rhat", "chains_line"]
 
 def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
     """``"VOLF:0.05"`` -> ("VOLF", 0.05)."""
@@ -230,7 +230,7 @@ class FitResult:
         if r.fixed:
             rows.append("fixed: " + ", ".join(f"{k}={v:g}" for k, v in r.fixed.items()))
         rows.append(_prior_line(r))
-        return "\n".join(head + quality_lines(self.quality(prob=prob)) + [tier_line(r)] + rows)
+        return "\n".join(head + quality_lines(self.quality(prob=prob)) + [tier_line(r), chains_line(r)] + rows)
 
     def to_json(self, prob: float = 0.9) -> dict[str, Any]:
         """One JSON-able dict: :func:`fit_quality` plus identification of the run.
@@ -247,6 +247,9 @@ class FitResult:
                   "input": r.config.get("input", ""),
                   "likelihood_tier": r.config.get("likelihood_tier", "full"),
                   "likelihood_note": r.config.get("likelihood_note", ""),
+                  "chains": {"n_chains": r.chains.n_chains, "method": r.chains.method, "note": r.chains.note,
+                             "max_rhat": max((chain_rhat(r, r.samples[:, j]) for j in range(len(r.names))),
+                                             default=float("nan"))},
                   "path": None if self.path is None else str(self.path)})
         return json.loads(json.dumps(q, default=json_default))
 
@@ -423,7 +426,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         cf = fit_collapsed(collapsed, int(samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
         y, log_lik, n_evaluations = cf.samples, cf.log_likelihood, cf.n_evaluations
         # FitResult.tmcmc: the φ run's stages and evidence, with the completed full rows as samples
-        tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik)
+        tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik, chains=cf.chains)
         log_z, log_z_se, collapsed_info = cf.log_evidence, cf.log_evidence_se, cf.info
     else:
         tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,
@@ -486,7 +489,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         model=model.name, effects=list(model.effect_names), config=config, seed=root_seed,
         fixed=dict(lik.fixed), version=__version__,
         prior={n: lik.prior[n].to_dict() for n in lik.names},
-        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())})
+        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())},
+        chains=tr.chains)
     res.at_bounds = at_bounds(res)
     path = None
     if out is not None:

@@ -14,6 +14,7 @@ from .errors import HbmError
 from .io import SpecimenResult
 from .model import COMBINATIONS, identifiable_combinations
 from .noise import get_noise
+from .samplers.hierarchical import rhat_ess
 
 #: a value lies "at" a box edge within this fraction of the box width (log width for loguniform)
 EDGE_TOL = 0.02
@@ -328,6 +329,28 @@ def tier_line(r: SpecimenResult) -> str:
         line += (f"; evidence by importance sampling (ESS {100 * imp['ess_fraction']:.0f}%, k̂ {imp['khat']:.2f})"
                  if imp["accepted"] else f"; importance finish refused ({imp['reason']}), TMCMC evidence kept")
     return line
+
+
+def chain_rhat(result: SpecimenResult, values: np.ndarray) -> float:
+    """Rank-normalised split R-hat of per-row ``values`` over the result's chains (NaN for one chain)."""
+    k = int(result.chains.n_chains)
+    v = np.asarray(values, float)
+    if k < 2 or v.size % k:
+        return float("nan")
+    return rhat_ess(v.reshape(k, -1))[0]
+
+
+def chains_line(r: SpecimenResult) -> str:
+    """One line: how many chains the posterior has and the largest R-hat, or why there is one chain."""
+    c = r.chains
+    if c.n_chains < 2:
+        return f"chains: one, no R-hat ({c.note})"
+    rh = max(chain_rhat(r, r.samples[:, j]) for j in range(r.samples.shape[1]))
+    what = {"tmcmc_islands": "TMCMC islands (independent up to the shared beta schedule and proposal)",
+            "importance_batches": "batches of the importance draws (independent given the shared proposal)"
+            }.get(c.method, c.method)
+    verdict = "they agree" if rh <= 1.01 else "above 1.01: the chains disagree, the posterior is not well mixed"
+    return f"chains: {c.n_chains} {what}; largest R-hat {rh:.3f} over the parameters ({verdict})"
 
 
 def _prior_line(r: SpecimenResult) -> str:

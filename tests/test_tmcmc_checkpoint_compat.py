@@ -5,6 +5,11 @@ by the code of commit 287c749 (33-field ``TMCMCConfig``; recipe in ``tmcmc_check
 refactored fingerprint folds the retired fields back in at their old defaults, so the stored
 fingerprint matches, the run resumes at stage 2 and ends on the very numbers the old code's
 uninterrupted run gave (log-evidence, SE, evaluations and a hash of the posterior samples).
+
+Since the islands became chains (issue 29) the default resampling at β = 1 keeps each island
+separate, where the old code pooled them: the old code's numbers are reproduced bitwise with
+``final_resampling="pooled"``; with the default the resumed run reaches the same log-evidence and SE
+(computed before the final resampling) and equals today's uninterrupted run bitwise.
 """
 
 import hashlib
@@ -36,21 +41,55 @@ def _gf(x):
     return -(r @ P), np.broadcast_to(P, (len(x), D, D)).copy()
 
 
-@pytest.mark.parametrize("name", sorted(META))
-def test_checkpoint_of_the_old_code_resumes_bitwise(name, tmp_path):
+def _resume_and_fresh(name, tmp_path, **kw):
+    """The old checkpoint ``name`` resumed, and today's uninterrupted run of the same settings."""
     m = META[name]
     ck = tmp_path / "ck.npz"
     shutil.copy(DATA / f"tmcmc_checkpoint_{name}.npz", ck)
     extra = {"gradient_fim": _gf} if m["options"].get("kernel") == "manifold" else {}
-    res = tmcmc(_ll, B, m["n_samples"], seed=m["seed"], progress=False, checkpoint=ck, **m["options"], **extra)
+    args = dict(seed=m["seed"], progress=False, **m["options"], **extra, **kw)
+    return m, tmcmc(_ll, B, m["n_samples"], checkpoint=ck, **args), tmcmc(_ll, B, m["n_samples"], **args)
+
+
+@pytest.mark.parametrize("name", sorted(META))
+def test_checkpoint_of_the_old_code_resumes_bitwise(name, tmp_path):
+    m, res, fresh = _resume_and_fresh(name, tmp_path, final_resampling="pooled")
     assert res.resumed_from_stage == m["stage"] == 2
     assert res.log_evidence == m["log_evidence"]
     assert res.log_evidence_se == m["log_evidence_se"]
     assert res.n_evaluations == m["n_evaluations"]
     assert hashlib.sha256(np.ascontiguousarray(res.samples).tobytes()).hexdigest() == m["samples_sha256"]
+    assert res.chains.n_chains == 1
     # and the fresh run of today's code agrees with the old one
-    fresh = tmcmc(_ll, B, m["n_samples"], seed=m["seed"], progress=False, **m["options"], **extra)
     assert np.array_equal(fresh.samples, res.samples) and fresh.log_evidence == res.log_evidence
+
+
+@pytest.mark.parametrize("name", sorted(META))
+def test_checkpoint_of_the_old_code_resumes_into_island_chains(name, tmp_path):
+    m, res, fresh = _resume_and_fresh(name, tmp_path)
+    assert res.resumed_from_stage == 2
+    # the evidence is computed before the final resampling: the old code's values, bitwise
+    assert res.log_evidence == m["log_evidence"] and res.log_evidence_se == m["log_evidence_se"]
+    assert np.array_equal(fresh.samples, res.samples) and fresh.n_evaluations == res.n_evaluations
+    assert res.chains == fresh.chains
+    assert res.chains.n_chains in (1, 4) and (res.chains.n_chains == 4) == (res.chains.spread <= res.chains.tolerance)
+
+
+def test_finished_checkpoint_of_the_old_code_reports_one_pooled_chain(tmp_path):
+    # a finished run checkpointed by the old code (3 counters, islands pooled at beta = 1): resuming
+    # it returns its population as one chain and says why, whatever final_resampling is now
+    m = META["rw"]
+    ck = tmp_path / "ck.npz"
+    res = tmcmc(_ll, B, m["n_samples"], seed=m["seed"], progress=False, checkpoint=ck, **m["options"],
+                final_resampling="pooled")
+    with np.load(ck) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["counters"] = arrays["counters"][:3]
+    with open(ck, "wb") as fh:
+        np.savez(fh, **arrays)
+    again = tmcmc(_ll, B, m["n_samples"], seed=m["seed"], progress=False, checkpoint=ck, **m["options"])
+    assert np.array_equal(again.samples, res.samples) and again.chains.n_chains == 1
+    assert again.chains.method == "pooled" and "always pooled" in again.chains.note
 
 
 def test_old_checkpoint_with_other_settings_is_refused(tmp_path):

@@ -6,14 +6,19 @@ import argparse
 import csv
 import sys
 
+import numpy as np
+
 from ..conventions import parameter_attrs
-from ..fit import summarize
+from ..fit import chain_rhat, chains_line, summarize
 from ..io import read_specimen_result
+from ..model import identifiable_combinations
 from ._common import format_table
 
 DESCRIPTION = """\
 The posterior of a fit as a table: per parameter (and identifiable combination) its unit
-(UDUNITS, "1" = dimensionless), mean, sd, 5 %, median and 95 % quantiles.  Marginal
+(UDUNITS, "1" = dimensionless), mean, sd, 5 %, median and 95 % quantiles, and R-hat over the
+posterior's chains (rank-normalised split R-hat; nan when the file holds one chain: the text
+table's last line says why).  Marginal
 summaries: a row of medians is not a parameter set the data support (use 'hbm export' for one).
 
 examples:
@@ -35,18 +40,27 @@ def register(subparsers) -> None:
 
 def rows(path) -> list[list[str]]:
     """Header + one row per parameter/combination."""
-    r = read_specimen_result(path)
-    out = [["parameter", "units", "mean", "sd", "q05", "median", "q95"]]
-    for name, s in summarize(r, prob=0.9).items():
+    return _rows(read_specimen_result(path))
+
+
+def _rows(r) -> list[list[str]]:
+    out = [["parameter", "units", "mean", "sd", "q05", "median", "q95", "r_hat"]]
+    cols = r.as_dict()
+    stats = summarize(r, prob=0.9)
+    combos = {} if set(stats) <= set(cols) else identifiable_combinations(list(cols), np.column_stack(list(cols.values())))
+    for name, s in stats.items():
         unit = COMBINATION_UNITS.get(name) or parameter_attrs(name).get("units", "")
-        out.append([name, unit] + [f"{s[k]:.6g}" for k in ("mean", "sd", "lower", "median", "upper")])
+        rh = chain_rhat(r, cols[name] if name in cols else combos[name])
+        out.append([name, unit] + [f"{s[k]:.6g}" for k in ("mean", "sd", "lower", "median", "upper")] + [f"{rh:.4f}"])
     return out
 
 
 def run(args: argparse.Namespace) -> int:
-    table = rows(args.result)
+    r = read_specimen_result(args.result)
+    table = _rows(r)
     if args.csv:
         csv.writer(sys.stdout, lineterminator="\n").writerows(table)
     else:
         print(format_table(table[0], table[1:]))
+        print(chains_line(r))
     return 0

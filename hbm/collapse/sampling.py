@@ -11,6 +11,15 @@ integrated exactly.
 Random streams (all from the caller's TMCMC seed ``s``): TMCMC ``s``; the amplitude draws
 ``SeedSequence([s, 1])``; the importance draws ``SeedSequence([s, 2])``; the resampling of the
 accepted importance draws into the posterior population ``SeedSequence([s, 3])``.
+
+Chains (:mod:`hbm.samplers.chains`): the posterior keeps the TMCMC run's islands as chains, or,
+after an accepted importance finish, K independent batches of the importance draws each resampled
+into its own chain (K = the run's ``n_islands``; pooled as one chain, with the reason, when the
+batches' evidences disagree).  A TMCMC run that serves as the importance pilot pools its islands
+at β = 1 as before (``final_resampling="pooled"``): the proposal and the evidence are those of the
+code before chains; if such a run's population becomes the posterior (finish refused, single-run
+route), it is one chain.  The completion draws the amplitudes row by row, so every row stays
+in its chain.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from ..samplers.chains import Chains, importance_batches
 from ..samplers.importance import (FINISH_MIXTURE, FINISH_RESERVE, MIN_ESS, ImportanceResult,
                                    importance_evidence)
 from ..samplers.tmcmc import tmcmc
@@ -56,6 +66,8 @@ class CollapsedFit:
         Largest |log L_c − log L_c'| (refined rule) over up to :data:`ERROR_ROWS` posterior rows.
     info : dict
         JSON-able summary (tier, sampled parameters, columns, the numbers above).
+    chains : Chains
+        How ``samples`` splits into chains (chain-major).
     """
 
     samples: np.ndarray
@@ -68,6 +80,7 @@ class CollapsedFit:
     n_evaluations: int
     quadrature_error: float
     info: dict = field(default_factory=dict)
+    chains: Chains = field(default_factory=lambda: Chains(1, "pooled", "not recorded"))
 
 
 def _systematic(x: np.ndarray, log_w: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -117,6 +130,11 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
     CollapsedFit
     """
     start = cl.n_evaluations
+    if importance_draws:
+        # a pilot for the importance proposal: its final population pooled by evidence as before chains,
+        # so proposal and evidence are unchanged (with equal-weight islands here the posterior means came
+        # out 0.016 ± 0.008 gold sd worse over 30 seeds, the batch resampling's share of it 0.001)
+        tmcmc_options = {"final_resampling": "pooled", **tmcmc_options}
     tr = tmcmc(cl, cl.bounds, n_samples, seed=seed, progress=progress, checkpoint=checkpoint, **tmcmc_options)
     log_z, log_z_se, source = float(tr.log_evidence), float(tr.log_evidence_se), "tmcmc"
     imp = None
@@ -126,11 +144,14 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
                                   adapt=importance_adapt, mixture=FINISH_MIXTURE, reserve=FINISH_RESERVE)
         if imp.accepted:
             log_z, log_z_se, source = imp.log_evidence, imp.log_evidence_se, "importance"
-    phi = np.asarray(tr.samples, float)
+    phi, chains = np.asarray(tr.samples, float), tr.chains
     if imp is not None and imp.accepted:
-        # the accepted importance draws are the better posterior sample (ESS ≫ N): resample N of them
-        phi = _systematic(imp.samples, imp.log_weights, int(n_out or phi.shape[0]),
-                          np.random.default_rng(np.random.SeedSequence([int(seed), 3])))
+        # the accepted importance draws are the better posterior sample (ESS ≫ N): resample N of them,
+        # batch by batch into chains (or pooled, as before, when the batches disagree)
+        n_post = int(n_out or phi.shape[0])
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 3]))
+        idx, chains = importance_batches(imp.log_weights, n_post, int(tr.config.n_islands), rng)
+        phi = imp.samples[idx] if idx is not None else _systematic(imp.samples, imp.log_weights, n_post, rng)
     full = cl.complete(phi, np.random.default_rng(np.random.SeedSequence([int(seed), 1])))
     ll = cl.lik(full)
     step = max(1, phi.shape[0] // ERROR_ROWS)
@@ -142,9 +163,10 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
             "tmcmc_evaluations": int(tr.n_evaluations)}
     if imp is not None:
         info["importance"] = imp.to_dict()
+    info["chains"] = {"n_chains": chains.n_chains, "method": chains.method}
     return CollapsedFit(samples=full, log_likelihood=np.asarray(ll, float), log_evidence=log_z,
                         log_evidence_se=log_z_se, evidence_source=source, tmcmc=tr, importance=imp,
-                        n_evaluations=int(n_eval), quadrature_error=qerr, info=info)
+                        n_evaluations=int(n_eval), quadrature_error=qerr, info=info, chains=chains)
 
 
 #: the default collapsed fit's first attempt: a small TMCMC run and an importance finish

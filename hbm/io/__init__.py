@@ -4,14 +4,20 @@ Per-specimen file ``<out>/specimens/<id>.nc`` (ArviZ ``InferenceData`` layout, o
 file with groups, written with :class:`xarray.DataTree`):
 
 ``posterior``             (chain, draw): one variable per free parameter, noise parameters
-                          (``sigma`` ...) included.  TMCMC's final population is resampled to
-                          equal weights, so it is stored as ONE chain of ``n`` draws.
+                          (``sigma`` ...) included.  The chains are TMCMC's islands (or the
+                          importance finish's batches), independent up to the shared adaptation
+                          (:mod:`hbm.samplers.chains`); one chain when they were pooled.  Attributes
+                          ``chains`` (tmcmc_islands, importance_batches or pooled), ``chains_note``
+                          (what they are, or why there is one: then R-hat is NaN),
+                          ``chains_spread_log_evidence``/``chains_tolerance_log_evidence`` (nats).
+                          Files of older versions hold one chain and no such attributes.
 ``sample_stats``          (chain, stage): one float64 variable per field of the sampler's
                           :class:`~hbm.samplers.tmcmc.StageInfo` (``beta``,
                           ``log_evidence_increment``, ``acceptance_rate``, ``cov_weights``,
                           ``ess``, ``evaluations``, ``n_steps``, ``proposal_scale``, ...;
                           NaN where a stage did not report it, ``capped`` as 0/1); (chain,):
-                          ``log_marginal_likelihood`` and ``log_marginal_likelihood_se``;
+                          ``log_marginal_likelihood`` and ``log_marginal_likelihood_se`` (the
+                          whole population's, the same for every chain; stage rows too);
                           (chain, draw): ``log_likelihood_sum`` (total log-likelihood per draw).
                           The stage axis never shares the ``draw`` dimension.
 ``log_likelihood``        (chain, draw, point): pointwise log-likelihood ``stress``.

@@ -14,6 +14,7 @@ import xarray as xr
 from .. import conventions
 from .._version import __version__
 from ..errors import HbmError
+from ..samplers.chains import POOLED, Chains
 from ..samplers.types import StageInfo
 
 from .common import G_CONST, G_LOGLIK, G_OBS, G_OPTIMA, G_POSTERIOR, G_PRED, G_PRIOR, G_SOBOL, G_STATS, STAGE_KEYS, _ds, _dumps, _open_tree, _write_tree
@@ -34,7 +35,8 @@ class SpecimenResult:
     names : list of str
         Free parameter names, columns of ``samples`` (model parameters then noise parameters).
     samples : ndarray (n, d)
-        Equal-weight posterior population.
+        Equal-weight posterior population; chain-major when ``chains`` has several chains (rows
+        of chain c are ``c·n/C … (c+1)·n/C − 1``; the per-row arrays below follow the same order).
     log_likelihood : ndarray (n,)
         Total log-likelihood of each sample.
     log_evidence, log_evidence_se : float
@@ -59,6 +61,9 @@ class SpecimenResult:
         on ``bounds`` (files written before priors were stored read back that way).
     at_bounds : list of dict or None
         Box-edge warnings (:func:`hbm.fit.at_bounds`); None when not computed.
+    chains : Chains
+        How the rows split into independent chains (:mod:`hbm.samplers.chains`); stored as the
+        ``chain`` dimension of every (chain, draw) group and the posterior's ``chains*`` attributes.
     """
 
     specimen_id: str
@@ -89,6 +94,7 @@ class SpecimenResult:
     prior: dict | None = None
     at_bounds: list[dict] | None = None
     parameter_info: dict = field(default_factory=dict)
+    chains: Chains = POOLED
 
     def prior_dict(self) -> dict[str, dict[str, Any]]:
         """``{name: {"lo", "hi", "form"}}`` per free parameter (uniform on ``bounds`` when not recorded)."""
@@ -124,11 +130,12 @@ def _stage_row(s: StageInfo | Mapping[str, Any]) -> Mapping[str, Any]:
 
 
 def _add_stage_stats(stats: dict[str, Any], coords: dict[str, Any],
-                     stages: Sequence[StageInfo | Mapping[str, Any]]) -> None:
+                     stages: Sequence[StageInfo | Mapping[str, Any]], n_chains: int = 1) -> None:
     """One (chain, stage) float64 variable per :class:`StageInfo` field into ``stats``.
 
     A field no stage reports (a mapping from a foreign sampler) is left out; a field some
-    stages lack is NaN there.  Booleans become 0/1.
+    stages lack is NaN there.  Booleans become 0/1.  The stages are the whole population's (the
+    chains share them), so every chain holds the same row.
     """
     if not stages:
         return
@@ -139,7 +146,7 @@ def _add_stage_stats(stats: dict[str, Any], coords: dict[str, Any],
         if all(v is None for v in vals):
             continue
         arr = np.array([np.nan if v is None else float(np.mean(v)) for v in vals], dtype=float)
-        stats[key] = (("chain", "stage"), arr[None, :])
+        stats[key] = (("chain", "stage"), np.repeat(arr[None, :], n_chains, axis=0))
 
 
 def _read_stage_stats(stats: xr.Dataset) -> list[StageInfo]:
@@ -155,26 +162,38 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
     n, d = r.samples.shape
     if len(r.names) != d:
         raise HbmError(f"specimen {r.specimen_id}: {d} sample columns but {len(r.names)} names")
-    draws = {"chain": [0], "draw": np.arange(n)}
+    chains = r.chains
+    if n % chains.n_chains:  # rows subset after sampling: they no longer form the chains
+        chains = Chains(1, "pooled", f"{n} rows do not split into the sampler's {chains.n_chains} chains: one chain")
+    nc = chains.n_chains
+
+    def cd(a) -> np.ndarray:  # rows (n, ...) -> (chain, draw, ...), chain-major
+        a = np.asarray(a)
+        return a.reshape(nc, n // nc, *a.shape[1:])
+
+    draws = {"chain": np.arange(nc), "draw": np.arange(n // nc)}
     info = r.parameter_info
-    post = xr.Dataset({nm: (("chain", "draw"), r.samples[None, :, i]) for i, nm in enumerate(r.names)},
+    post = xr.Dataset({nm: (("chain", "draw"), cd(r.samples[:, i])) for i, nm in enumerate(r.names)},
                       coords=draws)
-    groups: dict[str, xr.Dataset] = {G_POSTERIOR: conventions.annotate(post, "parameters", info)}
+    post = conventions.annotate(post, "parameters", info)
+    post.attrs.update(chains.to_attrs())
+    groups: dict[str, xr.Dataset] = {G_POSTERIOR: post}
     pd = r.prior_dict()
     if len(pd) == d:  # ArviZ's prior group: draws from the prior box, as many as the posterior's
         pdraws = conventions.prior_draws(r.names, pd, n, r.seed, r.config.get("seed_spawn_key", ()))
         groups[G_PRIOR] = conventions.annotate(xr.Dataset(
-            {nm: (("chain", "draw"), pdraws[None, :, i]) for i, nm in enumerate(r.names)}, coords=draws),
+            {nm: (("chain", "draw"), cd(pdraws[:, i])) for i, nm in enumerate(r.names)}, coords=draws),
             "parameters", info)
 
     ll_sum = np.asarray(r.log_likelihood, float)
-    stats = {"log_marginal_likelihood": (("chain",), [float(r.log_evidence)]),
-             "log_marginal_likelihood_se": (("chain",), [float(r.log_evidence_se)]),
-             "log_likelihood_sum": (("chain", "draw"), ll_sum[None, :]),
+    # the evidence is the whole population's (pooled over the chains): the same value for every chain
+    stats = {"log_marginal_likelihood": (("chain",), [float(r.log_evidence)] * nc),
+             "log_marginal_likelihood_se": (("chain",), [float(r.log_evidence_se)] * nc),
+             "log_likelihood_sum": (("chain", "draw"), cd(ll_sum)),
              # ArviZ's lp: log posterior density up to the evidence (log likelihood + log prior)
-             "lp": (("chain", "draw"), (ll_sum + conventions.log_prior(r.samples, r.names, pd))[None, :])}
+             "lp": (("chain", "draw"), cd(ll_sum + conventions.log_prior(r.samples, r.names, pd)))}
     coords = dict(draws)
-    _add_stage_stats(stats, coords, r.stages)
+    _add_stage_stats(stats, coords, r.stages, nc)
     groups[G_STATS] = conventions.annotate(xr.Dataset(stats, coords=coords), "stats")
 
     if r.stress is not None:
@@ -191,13 +210,13 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
         dcp = {**draws, **pc}
         if r.pointwise_log_likelihood is not None:
             groups[G_LOGLIK] = conventions.annotate(xr.Dataset(
-                {"stress": (("chain", "draw", "point"), r.pointwise_log_likelihood[None])}, coords=dcp),
+                {"stress": (("chain", "draw", "point"), cd(r.pointwise_log_likelihood))}, coords=dcp),
                 "log_likelihood")
         pred = {}
         if r.predictive is not None:
-            pred["stress"] = (("chain", "draw", "point"), r.predictive[None])
+            pred["stress"] = (("chain", "draw", "point"), cd(r.predictive))
         if r.predictive_model is not None:
-            pred["stress_model"] = (("chain", "draw", "point"), r.predictive_model[None])
+            pred["stress_model"] = (("chain", "draw", "point"), cd(r.predictive_model))
         if pred:
             groups[G_PRED] = conventions.annotate(xr.Dataset(pred, coords=dcp), "predictive")
 
@@ -268,6 +287,12 @@ def write_specimen_result(result: SpecimenResult, path: str | os.PathLike) -> Pa
 # ----------------------------------------------------------------------------- reading
 
 
+def _rows(var: xr.DataArray) -> np.ndarray:
+    """A (chain, draw, point) variable as rows (chain·draw, point), chain-major like ``samples``."""
+    v = var.values
+    return v.reshape(-1, v.shape[-1])
+
+
 def read_specimen_result(path: str | os.PathLike) -> SpecimenResult:
     """Read a per-specimen file written by :func:`write_specimen_result`.
 
@@ -308,7 +333,8 @@ def read_specimen_result(path: str | os.PathLike) -> SpecimenResult:
         timings=json.loads(attrs.get("timings", "{}")), fixed=json.loads(attrs.get("fixed", "{}")),
         complete=int(attrs.get("complete", 0)) == 1, version=str(attrs.get("hbm_version", "")),
         prior=json.loads(attrs["prior"]) if "prior" in attrs else None,
-        at_bounds=json.loads(attrs["at_bounds"]) if "at_bounds" in attrs else None)
+        at_bounds=json.loads(attrs["at_bounds"]) if "at_bounds" in attrs else None,
+        chains=Chains.from_attrs(dict(post.attrs), int(post.sizes.get("chain", 1))))
     obs = _ds(tree, G_OBS)
     if obs is not None:
         res.stress = obs["stress"].values
@@ -317,13 +343,13 @@ def read_specimen_result(path: str | os.PathLike) -> SpecimenResult:
                 setattr(res, key, obs.coords[key].values)
     ll = _ds(tree, G_LOGLIK)
     if ll is not None:
-        res.pointwise_log_likelihood = ll["stress"].values[0]
+        res.pointwise_log_likelihood = _rows(ll["stress"])
     pred = _ds(tree, G_PRED)
     if pred is not None:
         if "stress" in pred:
-            res.predictive = pred["stress"].values[0]
+            res.predictive = _rows(pred["stress"])
         if "stress_model" in pred:
-            res.predictive_model = pred["stress_model"].values[0]
+            res.predictive_model = _rows(pred["stress_model"])
     opt = _ds(tree, G_OPTIMA)
     if opt is not None:
         extra = {"objective", "window_lower", "window_upper", "kind"}

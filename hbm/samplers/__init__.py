@@ -2,7 +2,8 @@
 
 TMCMC: :mod:`.tmcmc` (pure ``init``/``step`` and the driver ``tmcmc``), :mod:`.types` (settings,
 state, stage info, result), :mod:`.moves` (the Move protocol and registry: random walk,
-manifold, local walk), :mod:`.coordinates`, :mod:`.resampling`, :mod:`.checkpoint`, :mod:`.linalg`.
+manifold, local walk), :mod:`.coordinates`, :mod:`.resampling`, :mod:`.checkpoint`, :mod:`.linalg`,
+:mod:`.chains` (the islands, or importance batches, as independent chains for R-hat).
 ``hbm.samplers.tmcmc`` is the module; the driver function is ``hbm.samplers.tmcmc.tmcmc`` (also
 ``hbm.tmcmc``).
 """

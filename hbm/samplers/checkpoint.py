@@ -38,13 +38,18 @@ LATE_FIELDS = {"max_evaluations": None, "recycle": False, "proposal": "rw", "mix
                "independence_fraction": 0.5, "mixture_df": 5.0, "local_neighbours": 30, "local_ridge": 0.01,
                "persistent": False, "persistent_ess": 2.0}
 
+#: fields never in the fingerprint: the final resampling changes nothing before β = 1, and the state
+#: records what the last stage did (``n_chains``), so a checkpoint resumes under either value
+UNFINGERPRINTED = {"final_resampling"}
+
 #: stage keys of checkpoints written before :class:`StageInfo` (renamed fields)
 LEGACY_STAGE_KEYS = {"cov": "cov_weights", "scale": "proposal_scale"}
 
 
 def fingerprint(config: TMCMCConfig, bounds: np.ndarray, seed, bijection: Optional[str] = None) -> str:
     """SHA-256 of the settings of a run (version-1 layout; see the module docstring)."""
-    cfg = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name != "move"}
+    cfg = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+           if f.name != "move" and f.name not in UNFINGERPRINTED}
     cfg.update(RETIRED_FIELDS)
     cfg.update(config.move.fingerprint())
     cfg = {k: v for k, v in cfg.items() if not (k in LATE_FIELDS and v == LATE_FIELDS[k])}
@@ -63,8 +68,8 @@ def save_checkpoint(path: Path, state: TMCMCState, stages: list[StageInfo], fing
                      island_log_evidence=state.island_log_evidence,
                      scalars=np.array([state.beta, state.log_evidence, state.log_evidence_var,
                                        state.scale, state.epsilon]),
-                     counters=np.array([state.stage, state.n_evaluations, int(state.budget_bound)],
-                                       dtype=np.int64),
+                     counters=np.array([state.stage, state.n_evaluations, int(state.budget_bound),
+                                        int(state.n_chains)], dtype=np.int64),
                      meta=np.array(json.dumps({"rng_state": state.rng_state,
                                                "stages": [s._asdict() for s in stages],
                                                "fingerprint": fingerprint, "settings": settings})))
@@ -79,7 +84,9 @@ def load_checkpoint(path: Path, fingerprint: str) -> tuple[TMCMCState, list[Stag
             state = TMCMCState(z["samples"].copy(), z["log_likelihood"].copy(), z["island_log_evidence"].copy(),
                                float(sc[0]), float(sc[1]), float(sc[2]), int(ct[0]), float(sc[3]),
                                float(sc[4]), int(ct[1]), meta["rng_state"],
-                               bool(ct[2]) if len(ct) > 2 else False)
+                               bool(ct[2]) if len(ct) > 2 else False,
+                               # before chains were recorded a finished run had always pooled its islands
+                               int(ct[3]) if len(ct) > 3 else int(float(sc[0]) >= 1.0))
     except Exception as exc:  # corrupt / foreign file
         raise HbmError(f"tmcmc: cannot read checkpoint {path}: {exc}") from None
     if meta.get("fingerprint") != fingerprint:

@@ -5,7 +5,9 @@ The sampler is split blackjax-style into a pure core and a driver:
 * :func:`init` draws the stage-0 population from the uniform prior on a box and evaluates it;
 * :func:`step` performs one tempering stage (choose the next β by a bracketed root find on the
   coefficient of variation of the incremental weights, accumulate the log-evidence per island,
-  resample, move the population with a vectorised Metropolis–Hastings :class:`~.moves.Move`) and
+  resample each island from its own particles -- at β = 1 too, so the islands end as independent
+  chains (:mod:`.chains`) unless their evidences disagree --, move the population with a
+  vectorised Metropolis–Hastings :class:`~.moves.Move`) and
   returns ``(state, info)`` with ``info`` a :class:`~.types.StageInfo`;
 * :func:`tmcmc` loops over stages with a tqdm progress bar and an atomic checkpoint after every
   stage (:mod:`.checkpoint`), and returns a :class:`~.types.TMCMCResult`.
@@ -36,6 +38,7 @@ from scipy.optimize import brentq
 from scipy.special import logsumexp
 
 from ..errors import HbmError
+from .chains import ISLAND_NOTE, Chains, block_chains
 from .checkpoint import checkpoint_progress, fingerprint, load_checkpoint, save_checkpoint
 from .coordinates import Bijection, BoxCoordinates, LogitCoordinates, check_bounds, log_likelihood_of
 from .linalg import box_covariance, free_covariance, safe_cholesky
@@ -136,16 +139,30 @@ def _coordinates(config: TMCMCConfig, bounds: np.ndarray, bijection: Optional[Bi
     return bijection if bijection is not None else LogitCoordinates(bounds)
 
 
-def _stage_indices(logw, island_prev, beta, rng, scheme) -> np.ndarray:
-    """Resampling indices: per island, or pooled (each island weighted by its evidence) at the end."""
+def _final_chains(island_log_evidence, log_evidence_var, n: int) -> Chains:
+    """Keep the islands as chains at β = 1? (:func:`~.chains.block_chains` on the islands' log Ẑ_k).
+
+    The noise of one island's log Ẑ_k is the per-stage delta method with N/K particles:
+    sd = √(K · Σ_j CoV_j²/N).
+    """
+    k = len(island_log_evidence)
+    return block_chains(island_log_evidence, math.sqrt(k * max(float(log_evidence_var), 0.0)), n,
+                        "tmcmc_islands", ISLAND_NOTE)
+
+
+def _stage_indices(logw, island_prev, beta, rng, scheme, keep_islands: bool = False) -> np.ndarray:
+    """Resampling indices: per island, or pooled (each island weighted by its evidence) at the end.
+
+    At β = 1 the islands are resampled separately when ``keep_islands`` (they become the chains).
+    """
     n, k = len(logw), len(island_prev)
     if k == 1:
         return resample(np.exp(logw - logw.max()), n, rng, scheme)
     starts, sizes, isl = islands(n, k)
     m_k = np.maximum.reduceat(logw, starts)
-    if beta >= 1.0 or not np.isfinite(m_k).all():
-        # final stage (or a dead island): pool the islands, each weighted by its evidence so far;
-        # after this the islands are no longer independent, so it happens once at the end only
+    if (beta >= 1.0 and not keep_islands) or not np.isfinite(m_k).all():
+        # final stage when the islands are not kept (their evidences disagree), or a dead island: pool
+        # the islands, each weighted by its evidence so far; after this they are no longer independent
         with np.errstate(invalid="ignore"):
             lw = np.where(np.isfinite(logw), island_prev[isl] - np.log(sizes)[isl] + logw, -np.inf)
         return resample(np.exp(lw - lw.max()), n, rng, scheme)
@@ -251,7 +268,12 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     u = coords.forward(x)
     sigma = box_covariance(u, w, bounds) if isinstance(coords, BoxCoordinates) else free_covariance(u, w)
     chol = safe_cholesky(sigma)
-    idx = _stage_indices(logw, state.island_log_evidence, beta, rng, config.resampling)
+    n_chains = 0
+    if beta >= 1.0:  # the islands stay separate (chains) unless their evidences disagree
+        keep = config.final_resampling == "islands" and \
+            _final_chains(island_new, state.log_evidence_var + var_inc, n).n_chains > 1
+        n_chains = len(island_new) if keep else 1
+    idx = _stage_indices(logw, state.island_log_evidence, beta, rng, config.resampling, n_chains > 1)
     u, ll = u[idx], ll[idx]
     sup = np.asarray(coords.support, float)
 
@@ -295,7 +317,7 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
 
     new = TMCMCState(coords.inverse(walkers.x)[0], walkers.ll, island_new, beta, log_z_new,
                      state.log_evidence_var + var_inc, state.stage + 1, tuning.scale, tuning.epsilon,
-                     state.n_evaluations + n_eval, rng.bit_generator.state, budget_hit)
+                     state.n_evaluations + n_eval, rng.bit_generator.state, budget_hit, n_chains)
     info = StageInfo(
         beta=float(beta), dbeta=float(dbeta), log_evidence_increment=float(log_z_new - state.log_evidence),
         log_evidence_increment_var=float(var_inc), cov_weights=float(cov), ess=float(n / (1.0 + cov * cov)),
@@ -325,6 +347,19 @@ def _evidence_se(state: TMCMCState) -> float:
         # does not produce an overconfident SE
         return float(math.sqrt(max(np.var(r, ddof=1) / len(z), var_delta)))
     return float(math.sqrt(var_delta))
+
+
+def _result_chains(state: TMCMCState, config: TMCMCConfig) -> Chains:
+    """The chains of a finished run's population, as its last stage made them."""
+    decision = _final_chains(state.island_log_evidence, state.log_evidence_var, len(state.samples))
+    if state.n_chains > 1:
+        return decision
+    if decision.n_chains > 1:  # the rule would have kept them: pooled by setting or by an older hbm
+        why = ("final_resampling='pooled'" if config.final_resampling == "pooled"
+               else "the run was resumed from a finished checkpoint of an hbm that always pooled them")
+        return Chains(1, "pooled", f"the islands were pooled at beta = 1 ({why}): one chain, no R-hat",
+                      decision.spread, decision.tolerance)
+    return decision
 
 
 def _resolve_move(kernel: str, proposal: Optional[str], move: "str | Move | None") -> "str | Move":
@@ -487,4 +522,4 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         samples=state.samples, log_likelihood=state.log_likelihood, log_evidence=float(state.log_evidence),
         log_evidence_se=_evidence_se(state), stages=stages, n_evaluations=int(state.n_evaluations),
         wall_time=time.perf_counter() - t0, likelihood_time=timer[0], config=config,
-        resumed_from_stage=resumed, budget_exhausted=bool(state.budget_bound))
+        resumed_from_stage=resumed, budget_exhausted=bool(state.budget_bound), chains=_result_chains(state, config))

@@ -15,6 +15,7 @@ from typing import Any, Callable, Mapping, NamedTuple, Optional, Union, get_type
 import numpy as np
 
 from ..errors import HbmError
+from .chains import POOLED, Chains
 from .moves import Move, get_move
 from .resampling import SCHEMES
 
@@ -87,14 +88,21 @@ class TMCMCConfig:
     n_islands : int
         K contiguous blocks of particles resampled separately (sharing β and proposal shape);
         the spread of their evidences gives ``log_evidence_se`` including the error of incomplete
-        mixing.  The final stage pools them (each weighted by its evidence).  K = 1 (or N < 80)
-        falls back to the per-stage delta-method SE.
+        mixing.  K = 1 (or N < 80) falls back to the per-stage delta-method SE.  At the final stage
+        see ``final_resampling``.
     max_evaluations : int or None
         Hard cap on log-likelihood evaluations (particles, including the N of the initial
         population).  A stage's MH loop stops before a step that could exceed it, and once fewer
         than N evaluations remain the next stage jumps to β = 1 without moves; the result is then
         flagged ``budget_exhausted``.  The SE then comes from the crude forced last stage and is
         only a lower bound.  None = no cap.
+    final_resampling : {"islands", "pooled"}
+        Resampling at β = 1.  "islands" (default): each island from its own particles, so the
+        final population is K chains of N/K draws (R-hat; :mod:`hbm.samplers.chains`) -- unless
+        the islands' log-evidences differ by more than their noise (or N is not a multiple of K),
+        when they are pooled as with "pooled": one resampling of all particles, each island
+        weighted by its evidence (the code before chains were stored).  Not part of the checkpoint
+        fingerprint: it changes nothing before β = 1 and the state records what the last stage did.
     """
 
     n_samples: int
@@ -113,6 +121,7 @@ class TMCMCConfig:
     transform: str = "logit"
     n_islands: int = 4
     max_evaluations: Optional[int] = None
+    final_resampling: str = "islands"
 
     def __post_init__(self) -> None:
         # frozen dataclass: defaults that need resolving are set once here
@@ -143,6 +152,8 @@ class TMCMCConfig:
         if self.max_evaluations is not None and int(self.max_evaluations) < int(self.n_samples):
             raise HbmError(f"tmcmc: max_evaluations ({self.max_evaluations}) must be >= n_samples "
                            f"({self.n_samples}): the initial population alone costs N evaluations")
+        if self.final_resampling not in ("islands", "pooled"):
+            raise HbmError(f"tmcmc: final_resampling must be 'islands' or 'pooled', got {self.final_resampling!r}")
         if self.move.unbounded and self.transform != "logit":
             raise HbmError(f"tmcmc: move {self.move.name!r} needs transform='logit' (its steps are unbounded)")
 
@@ -177,6 +188,9 @@ class TMCMCState(NamedTuple):
         ``Generator.bit_generator.state`` (PCG64).
     budget_bound : bool
         ``max_evaluations`` cut a stage's moves short or forced the jump to β = 1.
+    n_chains : int
+        0 before β = 1; then the islands kept as chains by the final resampling (K), or 1 when
+        it pooled them.
     """
 
     samples: np.ndarray
@@ -191,6 +205,7 @@ class TMCMCState(NamedTuple):
     n_evaluations: int
     rng_state: dict
     budget_bound: bool = False
+    n_chains: int = 0
 
 
 class StageInfo(NamedTuple):
@@ -296,6 +311,9 @@ class TMCMCResult:
     budget_exhausted : bool
         ``max_evaluations`` bound the run (moves cut short or the jump to β = 1 forced): the
         answer is what that budget buys, with its (larger) SE.
+    chains : Chains
+        How ``samples`` splits into chains (chain-major blocks): the islands, or one pooled
+        chain and why (:mod:`hbm.samplers.chains`).
     """
 
     samples: np.ndarray
@@ -309,6 +327,7 @@ class TMCMCResult:
     config: TMCMCConfig
     resumed_from_stage: int = 0
     budget_exhausted: bool = False
+    chains: Chains = POOLED
 
     @property
     def n_stages(self) -> int:
