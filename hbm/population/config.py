@@ -98,6 +98,10 @@ class PopulationConfig:
         off, real likelihoods 0.19, for +30 % CPU); False: only for the flagged ones.
     exact_chains, exact_burn, exact_keep, exact_thin : int
         Chains, adaptive burn-in sweeps, kept draws per chain and sweeps between kept draws.
+    exact_block_rounds : int
+        Cheap rounds per sweep of the amplitude block (:mod:`hbm.population.blocks`: a specimen's
+        linear amplitudes moved given its φ, with the population, at one basis evaluation per
+        sweep); 0: off (the amplitudes move only with the other parameters).
     """
 
     seed: int = 0
@@ -124,6 +128,7 @@ class PopulationConfig:
     exact_burn: int = 400
     exact_keep: int = 120
     exact_thin: int = 10
+    exact_block_rounds: int = 8
 
     def tmcmc_options(self) -> dict:
         """Keyword arguments of every TMCMC run of the layer: the MH step cap, then ``sampler_options``.
@@ -149,5 +154,7 @@ def check_config(cfg: PopulationConfig) -> None:
         return
     if cfg.exact != "gibbs":
         raise HbmError(f"exact must be 'gibbs' or None, got {cfg.exact!r}")
-    if min(int(cfg.exact_chains), int(cfg.exact_keep)) < 4 or int(cfg.exact_thin) < 1 or int(cfg.exact_burn) < 0:
-        raise HbmError("exact='gibbs' needs exact_chains >= 4, exact_keep >= 4, exact_thin >= 1, exact_burn >= 0")
+    if (min(int(cfg.exact_chains), int(cfg.exact_keep)) < 4 or int(cfg.exact_thin) < 1 or int(cfg.exact_burn) < 0
+            or int(cfg.exact_block_rounds) < 0):
+        raise HbmError("exact='gibbs' needs exact_chains >= 4, exact_keep >= 4, exact_thin >= 1, exact_burn >= 0, "
+                       "exact_block_rounds >= 0")

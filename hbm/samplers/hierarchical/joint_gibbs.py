@@ -23,6 +23,17 @@ caller):
   ``r``: exact for the target "empirical stage-1 posterior × r", i.e. the reuse layer's own
   approximation of that specimen, at no likelihood cost.
 
+Conditional blocks (issue 27): an exact specimen may carry a ``block`` -- columns of ``y`` whose
+log-likelihood, with the other columns fixed, the caller evaluates without the model once a
+per-chain ``prepare`` pass has run (a model whose stress is linear in some amplitudes: one
+basis evaluation, then any amplitudes at the cost of a matrix product).  After the other moves,
+every sweep prepares each block once and then runs ``block_rounds`` cheap rounds: an
+independence proposal of the caller (:class:`ConditionalBlock`), a random walk within the block,
+population moves and a non-centred move of a pooled column that every exact specimen has in
+its block.  Each is an exact MH step for the joint target (the block's log-likelihood *is* the
+likelihood there), so the chains mix along the block -- where the slow direction of the exact
+fallback lies, an amplitude whose likelihood is flat on one side -- at one evaluation per sweep.
+
 Population moves: random-walk Metropolis on the model's free sampler coordinates (mu, log sd
 [, CPC]) given all specimens' columns, several per sweep (cheap: one ``coefficients`` call and a
 row-wise dot product per specimen).  Plus non-centred moves against the funnel between (mu_k,
@@ -44,21 +55,48 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
-from scipy.special import ndtri
-from scipy.stats import rankdata
 
 from ...errors import HbmError
 from ..linalg import safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
+from .convergence import rhat_ess
+from .mixture import fit_mixture, pick
 from .model import HierarchicalModel, draw_population
 
-__all__ = ["ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
+__all__ = ["ConditionalBlock", "ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
 
 #: random-walk step multipliers (equal probability) of the specimen moves: a symmetric scale mixture
 _SCALES = np.array([0.3, 1.0, 3.0])
 _TARGET_ACCEPT = 0.25
+
+
+class ConditionalBlock(Protocol):
+    """Columns of an exact specimen's ``y`` whose conditional log-likelihood is cheap once prepared.
+
+    Attributes
+    ----------
+    columns : sequence of int
+        The block's columns of ``y``.
+    """
+
+    columns: Sequence[int]
+
+    def prepare(self, y: np.ndarray) -> Any:
+        """Per-chain state for rows ``y`` (n, dy): one model evaluation per row (counted as such)."""
+
+    def log_likelihood(self, prep: Any, y: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The specimen's exact ``log_likelihood`` at rows ``y`` (m, dy) that differ from the prepared
+        chains ``rows`` (m,) in the block columns only; −inf off the support."""
+
+    def propose(self, prep: Any, rng: np.random.Generator, population: Mapping[int, tuple]) -> np.ndarray | None:
+        """Independence proposal of the block columns (n, len(columns)) for every chain, or None (no
+        proposal).  ``population``: block position -> (mu, sd) per chain of the pooled columns (the
+        population given the chains' ψ, in ``y`` units)."""
+
+    def log_q(self, prep: Any, yb: np.ndarray, population: Mapping[int, tuple]) -> np.ndarray:
+        """log density of :meth:`propose` at block values ``yb`` (n, len(columns)) (NaN/−inf: never proposed)."""
 
 
 @dataclass
@@ -82,6 +120,8 @@ class ExactSpecimen:
     pooled_cols : mapping y column -> pooled index, optional
         Columns of ``y`` that *are* a pooled column with the identity transform: the non-centred
         population moves shift and scale them with (mu_k, sd_k).
+    block : ConditionalBlock, optional
+        Columns whose conditional likelihood is cheap once prepared (module docstring).
     """
 
     log_likelihood: Callable[[np.ndarray], np.ndarray]
@@ -90,6 +130,7 @@ class ExactSpecimen:
     init: np.ndarray
     scale_rows: np.ndarray
     pooled_cols: Mapping[int, int] | None = None
+    block: ConditionalBlock | None = None
 
 
 @dataclass
@@ -154,72 +195,6 @@ class JointGibbsResult:
         return s.reshape((-1,) + s.shape[2:])
 
 
-def rhat_ess(x: np.ndarray) -> tuple[float, float]:
-    """Rank-normalised split R-hat and bulk ESS of draws ``x`` (n_chains, n_draws) (Vehtari et al. 2021).
-
-    Each chain is split in halves; the draws are replaced by normal scores of their ranks; R-hat
-    compares between- and within-half-chain variances, the ESS sums the chain-averaged
-    autocorrelations with Geyer's initial monotone positive sequence.
-    """
-    x = np.asarray(x, float)
-    m, n = x.shape
-    half = n // 2
-    if half < 2:
-        return float("nan"), float("nan")
-    x = np.concatenate([x[:, :half], x[:, n - half:]], axis=0)
-    r = rankdata(x, axis=None).reshape(x.shape)
-    z = ndtri((r - 0.375) / (x.size + 0.25))
-    M, N = z.shape
-    w = z.var(axis=1, ddof=1).mean()
-    b = N * z.mean(axis=1).var(ddof=1)
-    if not w > 0:
-        return float("nan"), float("nan")
-    var_plus = (N - 1) / N * w + b / N
-    rhat = float(np.sqrt(var_plus / w))
-    zc = z - z.mean(axis=1, keepdims=True)
-    f = np.fft.rfft(zc, n=2 * N, axis=1)
-    acov = np.fft.irfft(f * np.conj(f), axis=1)[:, :N] / N  # biased autocovariance per chain
-    rho = 1.0 - (w - acov.mean(axis=0)) / var_plus
-    rho[0] = 1.0
-    pairs = rho[: 2 * (N // 2)].reshape(-1, 2).sum(axis=1)
-    neg = np.nonzero(pairs < 0)[0]
-    pairs = pairs[: neg[0]] if neg.size else pairs
-    pairs = np.minimum.accumulate(pairs) if pairs.size else pairs
-    tau = max(-1.0 + 2.0 * float(pairs.sum()), 1.0 / np.log10(M * N))
-    return rhat, float(M * N / tau)
-
-
-def _pick(logp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One index per row of ``logp`` (n, M), drawn with probabilities ∝ exp(logp) (inverse CDF)."""
-    w = np.exp(logp - logp.max(axis=1, keepdims=True))
-    cw = np.cumsum(w, axis=1)
-    return np.minimum((cw < (rng.random(logp.shape[0]) * cw[:, -1])[:, None]).sum(axis=1), logp.shape[1] - 1)
-
-
-def _fit_mixture(rows: np.ndarray, n_components: int, inflate: float, rng: np.random.Generator):
-    """Gaussian mixture of k-means clusters of ``rows`` (whitened Lloyd iterations), covariances × inflate².
-
-    Returns (log weights (M,), means (M, d), Cholesky factors (M, d, d), log determinants (M,)).
-    Clusters with fewer than 2(d + 1) rows are dropped (the proposal need only be a density).
-    """
-    n, d = rows.shape
-    Lg = safe_cholesky(np.cov(rows, rowvar=False).reshape(d, d))
-    w = np.linalg.solve(Lg, (rows - rows.mean(axis=0)).T).T
-    M = max(1, min(int(n_components), n // (4 * (d + 1))))
-    cent = w[rng.choice(n, M, replace=False)]
-    for _ in range(25):
-        lab = np.argmin(np.sum(w * w, axis=1)[:, None] - 2 * w @ cent.T + np.sum(cent * cent, axis=1)[None, :], axis=1)
-        cent = np.stack([w[lab == m].mean(axis=0) if np.any(lab == m) else cent[m] for m in range(M)])
-    keep = [m for m in range(M) if np.sum(lab == m) >= 2 * (d + 1)]
-    if not keep:
-        keep, lab = [0], np.zeros(n, int)
-    logw = np.log(np.array([np.sum(lab == m) for m in keep], float))
-    mu = np.stack([rows[lab == m].mean(axis=0) for m in keep])
-    L = np.stack([safe_cholesky(np.cov(rows[lab == m], rowvar=False).reshape(d, d)) * inflate for m in keep])
-    logdet = np.sum(np.log(np.diagonal(L, axis1=1, axis2=2)), axis=1)
-    return logw - np.log(np.exp(logw).sum()), mu, L, logdet
-
-
 def _log_r(coef: np.ndarray, cc: np.ndarray, F: np.ndarray, c: np.ndarray) -> np.ndarray:
     """log r row by row: chain k's ψ (coef_k, cc_k) at chain k's columns (F_k, c_k)."""
     return np.einsum("ij,ij->i", coef, F) + cc + c
@@ -256,8 +231,16 @@ class _Exact:
         self.L = safe_cholesky(np.cov(rows, rowvar=False).reshape(self.dy, self.dy))
         self.log_step = np.log(2.38 / np.sqrt(self.dy))
         self.coord_step = np.log(2.38 * np.sqrt(np.diag(self.L @ self.L.T)))
-        self.mix = _fit_mixture(rows, int(n_components), float(inflate), rng)
+        self.mix = fit_mixture(rows, int(n_components), float(inflate), rng)
         self.cond = {}  # coordinate k -> per-component (beta, Cholesky of the conditional covariance)
+        self.block = spec.block
+        self.prep = None  # the block's per-chain state, valid between block_prepare and block_release
+        if self.block is not None:
+            self.block_cols = np.asarray(self.block.columns, int)
+            self.block_step = np.log(2.38 / np.sqrt(self.block_cols.size))
+            # pooled identity columns in the block: block position -> pooled index
+            self.block_pooled = {int(np.nonzero(self.block_cols == j)[0][0]): k
+                                 for j, k in self.pooled_cols.items() if j in self.block_cols}
 
     def _log_q(self, y: np.ndarray) -> np.ndarray:
         """log density of the Gaussian-mixture proposal at ``y``."""
@@ -279,16 +262,23 @@ class _Exact:
             self.cond[k] = (o, beta, Lc, K[:, k, k])
         return self.cond[k]
 
-    def evaluate(self, y: np.ndarray):
-        """(ℓ, F, const) of rows ``y``; −inf ℓ outside the box, the support or the population's box."""
+    def evaluate(self, y: np.ndarray, cheap: bool = False):
+        """(ℓ, F, const) of rows ``y``; −inf ℓ outside the box, the support or the population's box.
+
+        ``cheap``: ``y`` differs from the chains' states in the block columns only and ℓ comes from
+        the prepared block (no model evaluation)."""
         n = y.shape[0]
         ll = np.full(n, -np.inf)
         F = np.zeros((n, 2 * self.model.d + self.model.q))
         c = np.zeros(n)
-        ok = np.all((y >= self.box[:, 0]) & (y <= self.box[:, 1]), axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = np.all((y >= self.box[:, 0]) & (y <= self.box[:, 1]), axis=1)
         if ok.any():
-            self.evals += int(ok.sum())
-            ll[ok] = np.asarray(self.spec.log_likelihood(y[ok]), float)
+            if cheap:
+                ll[ok] = np.asarray(self.block.log_likelihood(self.prep, y[ok], np.nonzero(ok)[0]), float)
+            else:
+                self.evals += int(ok.sum())
+                ll[ok] = np.asarray(self.spec.log_likelihood(y[ok]), float)
             cols, lp = self.spec.columns(y[ok])
             cols = np.asarray(cols, float)
             pooled = cols[:, self.model.cols]
@@ -302,13 +292,13 @@ class _Exact:
                 F[idx[fine]], c[idx[fine]] = self.model.features(cols[fine], None if lp is None else lp[fine])
         return ll, F, c
 
-    def _mh(self, prop, coef, cc, rng, log_q_ratio=0.0) -> np.ndarray:
+    def _mh(self, prop, coef, cc, rng, log_q_ratio=0.0, cheap: bool = False) -> np.ndarray:
         n = self.y.shape[0]
-        ll, F, c = self.evaluate(prop)
+        ll, F, c = self.evaluate(prop, cheap)
         with np.errstate(invalid="ignore"):
             new = np.where(np.isfinite(ll), ll + _log_r(coef, cc, F, c), -np.inf)
-        old = self.ll + _log_r(coef, cc, self.F, self.c)
-        acc = np.log(rng.random(n)) < new - old + log_q_ratio
+            old = self.ll + _log_r(coef, cc, self.F, self.c)
+            acc = np.log(rng.random(n)) < new - old + log_q_ratio  # NaN (never proposed): rejected
         self.y[acc], self.ll[acc], self.F[acc], self.c[acc] = prop[acc], ll[acc], F[acc], c[acc]
         return acc
 
@@ -317,10 +307,13 @@ class _Exact:
         chains' natural hyper-parameters, for the population draw of a pooled column)."""
         n = self.y.shape[0]
         out = {}
-        if self.pooled_cols and nat is not None:
+        # pooled columns of a block get their population draws in the block rounds (no evaluation)
+        outside = sorted((j, kk) for j, kk in self.pooled_cols.items()
+                         if self.block is None or j not in self.block_cols)
+        if outside and nat is not None:
             # independence proposal of one pooled column from the population N(mu_k, sd_k): where the
             # likelihood is flat in it (a one-sided tail) the ratio is ~1 and the chain jumps anywhere
-            j, kk = sorted(self.pooled_cols.items())[k % len(self.pooled_cols)]
+            j, kk = outside[k % len(outside)]
             mu, sd = nat[:, kk], nat[:, self.model.d + kk]
             prop = self.y.copy()
             prop[:, j] = mu + sd * rng.standard_normal(n)
@@ -328,7 +321,7 @@ class _Exact:
             out["population_draw"] = self._mh(prop, coef, cc, rng, lq)
         logw, mu, L, _ = self.mix
         # independence proposal from the mixture
-        m = _pick(np.broadcast_to(logw, (n, logw.size)), rng)
+        m = pick(np.broadcast_to(logw, (n, logw.size)), rng)
         prop = mu[m] + np.einsum("nab,nb->na", L[m], rng.standard_normal((n, self.dy)))
         with np.errstate(invalid="ignore"):
             out["mixture"] = self._mh(prop, coef, cc, rng, self._log_q(self.y) - self._log_q(prop))
@@ -349,12 +342,47 @@ class _Exact:
         logw, mu, _, _ = self.mix
         o, beta, Lc, vk = self._conditional(k)
         dk = self.y[:, k][:, None] - mu[None, :, k]
-        m = _pick(logw[None, :] - 0.5 * dk * dk / vk[None, :] - 0.5 * np.log(vk)[None, :], rng)
+        m = pick(logw[None, :] - 0.5 * dk * dk / vk[None, :] - 0.5 * np.log(vk)[None, :], rng)
         prop = self.y.copy()
         prop[:, o] = (mu[m][:, o] + beta[m] * dk[np.arange(n), m][:, None]
                       + np.einsum("nab,nb->na", Lc[m], rng.standard_normal((n, o.size))))
         with np.errstate(invalid="ignore"):
             return self._mh(prop, coef, cc, rng, self._log_q(self.y) - self._log_q(prop))
+
+    # -- the conditional block ------------------------------------------------------------------
+    def block_prepare(self) -> None:
+        """Prepare the block at the chains' states (one evaluation per chain) and check that its
+        likelihood is the specimen's there."""
+        self.prep = self.block.prepare(self.y)
+        self.evals += self.y.shape[0]
+        ll = np.asarray(self.block.log_likelihood(self.prep, self.y, np.arange(self.y.shape[0])), float)
+        if not np.allclose(ll, self.ll, rtol=1e-8, atol=1e-6):
+            bad = int(np.argmax(np.abs(ll - self.ll)))
+            raise HbmError(f"joint_gibbs: the conditional block of {self.name!r} gives log-likelihood {ll[bad]:.9g} "
+                           f"where the specimen's is {self.ll[bad]:.9g}; the block is not this likelihood")
+
+    def block_moves(self, coef, cc, rng, nat: np.ndarray) -> dict:
+        """One round of cheap moves of the block columns: the block's independence proposal (with the
+        population of its pooled columns at the chains' ψ) and a random walk (ensemble covariance)."""
+        n, cols, out = self.y.shape[0], self.block_cols, {}
+        pop = {p: (nat[:, kk], nat[:, self.model.d + kk]) for p, kk in self.block_pooled.items()}
+        yb = self.block.propose(self.prep, rng, pop)
+        if yb is not None:
+            prop = self.y.copy()
+            prop[:, cols] = yb
+            with np.errstate(invalid="ignore", divide="ignore"):
+                lq = self.block.log_q(self.prep, self.y[:, cols], pop) - self.block.log_q(self.prep, yb, pop)
+            out["block_independence"] = self._mh(prop, coef, cc, rng, lq, cheap=True)
+        K = self.L @ self.L.T
+        Lb = safe_cholesky(K[np.ix_(cols, cols)])
+        scale = np.exp(self.block_step) * _SCALES[rng.integers(0, _SCALES.size, n)]
+        prop = self.y.copy()
+        prop[:, cols] += scale[:, None] * (rng.standard_normal((n, cols.size)) @ Lb.T)
+        out["block_rw"] = self._mh(prop, coef, cc, rng, cheap=True)
+        return out
+
+    def block_release(self) -> None:
+        self.prep = None
 
     def adapt(self, rates: dict) -> None:
         """Burn-in only: covariance from the ensemble of chains, step scales toward the target acceptance."""
@@ -362,6 +390,8 @@ class _Exact:
             self.L = safe_cholesky(np.cov(self.y, rowvar=False).reshape(self.dy, self.dy))
         if "rw" in rates:
             self.log_step += float(np.clip(rates["rw"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
+        if "block_rw" in rates:
+            self.block_step += float(np.clip(rates["block_rw"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
         for k in range(self.dy):
             if f"coord{k}" in rates:
                 self.coord_step[k] += float(np.clip(rates[f"coord{k}"] - 0.35, -0.2, 0.2)) * 2.0
@@ -399,9 +429,10 @@ class _Reuse:
 
 
 def _noncentred(model: HierarchicalModel, states: dict, raw: np.ndarray, lp: np.ndarray, k: int,
-                scale: np.ndarray, rng: np.random.Generator):
+                scale: np.ndarray, rng: np.random.Generator, cheap: bool = False):
     """Non-centred move of pooled column k: (mu_k, raw sd_k) random walk, exact specimens' column along.
 
+    ``cheap``: every exact specimen has column k in its prepared block (no model evaluation).
     Returns (accepted mask, proposed raw, its population log target, coef, cconst) or None.
     """
     n, d = raw.shape[0], model.d
@@ -427,7 +458,7 @@ def _noncentred(model: HierarchicalModel, states: dict, raw: np.ndarray, lp: np.
             continue
         y = st.y.copy()
         y[:, cols[0]] = mup + (sdp / sd) * (st.y[:, cols[0]] - mu)
-        ll, F, c = st.evaluate(np.where(inside[:, None], y, st.y))
+        ll, F, c = st.evaluate(np.where(inside[:, None], y, st.y), cheap)
         with np.errstate(invalid="ignore"):
             tot = tot + np.where(np.isfinite(ll), ll + _log_r(coefp, ccp, F, c), -np.inf) - st.ll
         tot = tot + np.log(sdp / sd)  # Jacobian of y -> y'
@@ -468,6 +499,8 @@ def joint_gibbs(
     adapt_every: int = 20,
     n_components: int = 80,
     inflate: float = 1.15,
+    block_rounds: int = 8,
+    block_pop_steps: int = 2,
     seed=None,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
@@ -492,6 +525,10 @@ def joint_gibbs(
     n_components, inflate : int, float
         Gaussian mixture proposal of the exact specimens: k-means clusters of ``scale_rows``, each
         with its own covariance × ``inflate``².
+    block_rounds, block_pop_steps : int
+        With conditional blocks (:class:`ConditionalBlock`): cheap rounds per sweep (each: every
+        block's independence and random-walk moves, ``block_pop_steps`` population moves, a
+        non-centred move of one pooled column that every exact specimen has in its block, in turn).
     seed : int, SeedSequence or Generator
     progress : bool
         Progress lines through ``log``.
@@ -535,6 +572,12 @@ def joint_gibbs(
     d = model.d
     nc_ks = sorted({k for st in states.values() if isinstance(st, _Exact) for k in st.pooled_cols.values()
                     if k in model.free and d + k in model.free})
+    exact_states = [st for st in states.values() if isinstance(st, _Exact)]
+    blocked = [st for st in exact_states if st.block is not None] if block_rounds > 0 else []
+    # pooled columns that every exact specimen has in its block: their non-centred moves are cheap
+    nc_cheap = [k for k in nc_ks if blocked and len(blocked) == len(exact_states)
+                and all(k in st.block_pooled.values() for st in blocked)]
+    nc_full = [k for k in nc_ks if k not in nc_cheap]
     nc_scale = {k: np.array([raw[:, k].std(), raw[:, d + k].std()]) + 1e-12 for k in nc_ks}
     nc_step, nc_count = 0.0, 0
     acc_nc, win_nc = np.zeros(2), np.zeros(2)
@@ -546,35 +589,58 @@ def joint_gibbs(
     win_pop = np.zeros(2)
     win_spec: dict = {sid: {} for sid in names}
     n_total = n_burn + n_keep * thin
+
+    def population_move(burning: bool) -> None:
+        xp = x + np.exp(pop_step) * (rng.standard_normal(x.shape) @ Lpsi.T)
+        inside = np.all((xp >= box[:, 0]) & (xp <= box[:, 1]), axis=1)
+        xp = np.where(inside[:, None], xp, x)  # outside the box: rejected below
+        rawp = raw.copy()
+        rawp[:, free] = xp
+        lpp, coefp, ccp = pop_logp(rawp)
+        a = inside & (np.log(rng.random(n_chains)) < lpp - lp)
+        x[a], raw[a], lp[a], coef[a], cc[a] = xp[a], rawp[a], lpp[a], coefp[a], ccp[a]
+        (win_pop if burning else acc_pop)[:] += (a.sum(), n_chains)
+
+    def noncentred_move(k: int, burning: bool, cheap: bool) -> None:
+        a = _noncentred(model, states, raw, lp, k, np.exp(nc_step) * nc_scale[k], rng, cheap)
+        if a is not None:
+            acc, rawp, lpp, coefp, ccp = a
+            raw[acc], lp[acc], coef[acc], cc[acc] = rawp[acc], lpp[acc], coefp[acc], ccp[acc]
+            x[acc] = rawp[acc][:, free]
+            (win_nc if burning else acc_nc)[:] += (acc.sum(), n_chains)
+
+    def tally(sid: str, moves: dict, burning: bool) -> None:
+        for move, a in moves.items():
+            (win_spec if burning else acc_spec)[sid].setdefault(move, np.zeros(2))[:] += (a.sum(), n_chains)
+
     for sweep in range(n_total):
         burning = sweep < n_burn
         for _ in range(pop_steps):
-            xp = x + np.exp(pop_step) * (rng.standard_normal(x.shape) @ Lpsi.T)
-            inside = np.all((xp >= box[:, 0]) & (xp <= box[:, 1]), axis=1)
-            xp = np.where(inside[:, None], xp, x)  # outside the box: rejected below
-            rawp = raw.copy()
-            rawp[:, free] = xp
-            lpp, coefp, ccp = pop_logp(rawp)
-            a = inside & (np.log(rng.random(n_chains)) < lpp - lp)
-            x[a], raw[a], lp[a], coef[a], cc[a] = xp[a], rawp[a], lpp[a], coefp[a], ccp[a]
-            (win_pop if burning else acc_pop)[:] += (a.sum(), n_chains)
-        for _ in range(nc_steps if nc_ks else 0):
-            k = nc_ks[nc_count % len(nc_ks)]
+            population_move(burning)
+        for _ in range(nc_steps if nc_full else 0):
+            noncentred_move(nc_full[nc_count % len(nc_full)], burning, False)
             nc_count += 1
-            a = _noncentred(model, states, raw, lp, k, np.exp(nc_step) * nc_scale[k], rng)
-            if a is not None:
-                acc, rawp, lpp, coefp, ccp = a
-                raw[acc], lp[acc], coef[acc], cc[acc] = rawp[acc], lpp[acc], coefp[acc], ccp[acc]
-                x[acc] = rawp[acc][:, free]
-                (win_nc if burning else acc_nc)[:] += (acc.sum(), n_chains)
         nat = model.natural(raw)
         for sid, st in states.items():
             for step in range(spec_steps if isinstance(st, _Exact) else reuse_steps):
                 k = (sweep * spec_steps + step) % getattr(st, "dy", 1)
-                for move, a in st.move(coef, cc, rng, k, nat).items():
-                    tally = (win_spec if burning else acc_spec)[sid].setdefault(move, np.zeros(2))
-                    tally += (a.sum(), n_chains)
+                tally(sid, st.move(coef, cc, rng, k, nat), burning)
         lp = _population_target(model, states, raw, coef, cc)  # the specimens moved, ψ did not
+        if blocked:
+            for st in blocked:
+                st.block_prepare()
+            for _ in range(block_rounds):
+                nat = model.natural(raw)
+                for st in blocked:
+                    tally(st.name, st.block_moves(coef, cc, rng, nat), burning)
+                lp = _population_target(model, states, raw, coef, cc)
+                for _ in range(block_pop_steps):
+                    population_move(burning)
+                if nc_cheap:  # one per round, cycling over the pooled block columns
+                    noncentred_move(nc_cheap[nc_count % len(nc_cheap)], burning, True)
+                    nc_count += 1
+            for st in blocked:
+                st.block_release()
         if burning and (sweep + 1) % adapt_every == 0:
             if n_chains > 2 * len(free):
                 Lpsi = safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
@@ -615,6 +681,7 @@ def joint_gibbs(
         timings={"sampling": t1 - t0, "diagnostics": t2 - t1, "total": t2 - t0},
         options={"n_chains": int(n_chains), "n_keep": int(n_keep), "n_burn": int(n_burn), "thin": int(thin),
                  "pop_steps": int(pop_steps), "nc_steps": int(nc_steps), "spec_steps": int(spec_steps), "reuse_steps": int(reuse_steps),
+                 "block_rounds": int(block_rounds) if blocked else 0, "blocks": [st.name for st in blocked],
                  "exact": [s for s, st in states.items() if isinstance(st, _Exact)],
                  "reuse": [s for s, st in states.items() if isinstance(st, _Reuse)]},
     )
