@@ -16,7 +16,7 @@ import pytest
 from scipy.stats import norm
 
 from hbm.samplers.hierarchical import ExactSpecimen, joint_gibbs
-from test_joint_gibbs import HI, LO, P, S, Y, _model, truth  # noqa: F401 - the conjugate toy and its quadrature
+from test_joint_gibbs import HI, LO, P, S, Y, _model, exact_joint_draws, truth  # noqa: F401 - the conjugate toy
 
 
 class _ToyBlock:
@@ -92,15 +92,7 @@ def test_block_moves_alone_reach_the_conjugate_posterior(truth):
 def test_block_kernel_leaves_the_target_invariant_and_a_wrong_density_is_caught(truth):
     """Chains started from exact joint draws stay distributed as the posterior (no burn-in); the same
     run with a proposal density that does not match the draws drifts away (the check can fail)."""
-    rng = np.random.default_rng(13)
-    nc = 400
-    flat = truth["w"].ravel()
-    j = rng.choice(flat.size, nc, p=flat)
-    mu, sd = truth["M"].ravel()[j], truth["SD"].ravel()[j]
-    th = []
-    for y, s in zip(Y, S):
-        v = 1.0 / (1.0 / sd**2 + 1.0 / s**2)
-        th.append((v * (mu / sd**2 + y / s**2) + np.sqrt(v) * rng.standard_normal(nc))[:, None])
+    mu, sd, th = exact_joint_draws(truth, np.random.default_rng(13), 400)
     raw = np.column_stack([mu, np.log(sd)])
     good = _block_only(raw, th, 14, n_keep=10, n_burn=0, thin=3, block_rounds=4)
     bad = _block_only(raw, th, 14, n_keep=10, n_burn=0, thin=3, block_rounds=4, wrong=True)
