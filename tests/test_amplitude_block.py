@@ -47,6 +47,37 @@ class _ToyBlock:
         return np.logaddexp(norm.logpdf(yb[:, 0], self.y, k * self.s), norm.logpdf(yb[:, 0], mu, sd)) + np.log(0.5)
 
 
+class _ToyBlock2:
+    """The toy with a second, non-block column ν: ℓ = log N(Y; θ, s²) + log N(ν; θ/2, 1), so θ's marginal
+    is the toy's and ν | θ ~ N(θ/2, 1).  The block is θ given ν: proposal a mixture of its Gaussian
+    conditional (precision 1/s² + 1/4) and the population."""
+
+    columns = (0,)
+
+    def __init__(self, y, s):
+        self.y, self.s = y, s
+
+    def prepare(self, y):
+        prec = 1.0 / self.s**2 + 0.25
+        return {"nu": y[:, 1].copy(), "m": (self.y / self.s**2 + 0.5 * y[:, 1]) / prec, "sd": np.full(len(y), prec**-0.5)}
+
+    def log_likelihood(self, prep, y, rows):
+        return norm.logpdf(self.y, y[:, 0], self.s) + norm.logpdf(prep["nu"][rows], 0.5 * y[:, 0], 1.0)
+
+    def propose(self, prep, rng, population):
+        n = len(prep["m"])
+        mu, sd = population[0]
+        own = prep["m"] + 1.2 * prep["sd"] * rng.standard_normal(n)
+        return np.where(rng.random(n) < 0.5, own, mu + sd * rng.standard_normal(n))[:, None]
+
+    def log_q(self, prep, yb, population):
+        mu, sd = population[0]
+        return np.logaddexp(norm.logpdf(yb[:, 0], prep["m"], 1.2 * prep["sd"]), norm.logpdf(yb[:, 0], mu, sd)) + np.log(0.5)
+
+    def select(self, prep, other, mask):
+        return {k: np.where(mask, other[k], v) for k, v in prep.items()}
+
+
 def _specs(init, wrong=False):
     rows = [np.linspace(-3, 3, 50)[:, None] for _ in Y]
     return {f"s{i}": ExactSpecimen(log_likelihood=(lambda y, s: lambda t: norm.logpdf(y, t[:, 0], s))(y, s),
@@ -59,6 +90,31 @@ def _block_only(init_raw, init, seed, wrong=False, **kw):
     # spec_steps=0, nc_steps=0: the specimens move only through their blocks
     return joint_gibbs(_model(), init_raw, _specs(init, wrong), spec_steps=0, nc_steps=0, n_components=4,
                        seed=seed, **kw)
+
+
+def test_refresh_move_of_the_other_columns_keeps_the_posterior(truth):
+    """Block moves plus the refresh move (ν random walk with θ redrawn from the block's proposal) only:
+    mu, θ_i and ν_i | θ_i ~ N(θ_i/2, 1) come out as the quadrature says."""
+    rng = np.random.default_rng(21)
+    nc = 128
+    init_raw = np.column_stack([rng.uniform(-2, 3, nc), np.log(rng.uniform(0.5, 3, nc))])
+    specs = {f"s{i}": ExactSpecimen(
+        log_likelihood=(lambda y, s: lambda t: norm.logpdf(y, t[:, 0], s) + norm.logpdf(t[:, 1], 0.5 * t[:, 0], 1.0))(y, s),
+        columns=lambda t: (t[:, :1], None), box=np.array([[LO, HI], [LO, HI]]),
+        init=np.column_stack([rng.uniform(-3, 3, nc), rng.uniform(-3, 3, nc)]),
+        scale_rows=rng.normal(0, 1, (50, 2)), pooled_cols={0: 0}, block=_ToyBlock2(y, s)) for i, (y, s) in enumerate(zip(Y, S))}
+    r = joint_gibbs(_model(), init_raw, specs, spec_steps=0, nc_steps=0, n_components=4, seed=22, n_keep=30,
+                    n_burn=40, thin=2, block_rounds=4, block_refresh=2)
+    assert _ks_mu(r, truth)[0] < 0.05
+    assert max(_ks_theta(r, truth, i) for i in range(len(Y))) < 0.05
+    for i in range(len(Y)):
+        th, nu = r.flat_state(f"s{i}").T
+        resid = nu - 0.5 * th  # N(0, 1) independent of θ
+        assert abs(resid.mean()) < 0.1 and abs(resid.std() - 1.0) < 0.06
+        assert abs(np.corrcoef(resid, th)[0, 1]) < 0.08
+    assert 0.1 < r.acceptance["s0"]["block_refresh"] < 0.9
+    # the start, then per sweep the prepare and the two refresh moves' prepares (rows inside the box)
+    assert 128 * (1 + 2.9 * (40 + 30 * 2)) < r.evaluations["s0"] <= 128 * (1 + 3 * (40 + 30 * 2))
 
 
 def _ks_mu(r, truth):

@@ -34,6 +34,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..errors import HbmError
 from ..model.linear import structure_of
 
 __all__ = ["AmplitudeBlock", "amplitude_block"]
@@ -106,7 +107,8 @@ class AmplitudeBlock:
         self.structure = structure_of(lik.model) if structure is None else structure
         self.columns = tuple(sorted(int(j) for j in log_columns))
         self.amp = np.array([int(log_columns[j]) for j in self.columns])  # structure column of each
-        self.rest = np.array([c for c in range(self.structure.n_columns) if c not in set(self.amp)], int)
+        if sorted(self.amp.tolist()) != list(range(self.structure.n_columns)):
+            raise HbmError("AmplitudeBlock: every amplitude column of the model needs a log column in y")
 
     # -- the block's likelihood -------------------------------------------------------------------
     def _theta(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -121,14 +123,14 @@ class AmplitudeBlock:
         rows = self.lik.model_theta(theta)
         X = np.asarray(self.structure.basis(self.lik.loading, rows), float)
         q = self.lik.to_natural(theta)[:, self.lik.n_model:]
-        A = self.structure.amplitudes(rows)
         noise = self.lik.noise_model
-        stress = np.einsum("npk,nk->np", X, A)
-        sd = noise.sd(q, stress if noise.needs_model_stress else None)
-        data = self.lik.observed - np.einsum("npk,nk->np", X[:, :, self.rest], A[:, self.rest])
+        # the proposal must not depend on the block's current values: a stress-dependent sd is taken
+        # at the data, not at the current amplitudes
+        obs = np.broadcast_to(self.lik.observed, (X.shape[0], X.shape[1]))
+        sd = noise.sd(q, obs.copy() if noise.needs_model_stress else None)
         Xw = X[:, :, self.amp] / sd[:, :, None]
         H = np.einsum("npi,npj->nij", Xw, Xw)
-        b = np.einsum("npi,np->ni", Xw, data / sd)
+        b = np.einsum("npi,np->ni", Xw, obs / sd)
         L, logdet = _chol_inv(H / _INFLATE**2)
         Ahat = np.einsum("nij,nkj,nk->ni", L, L, b) / _INFLATE**2  # H⁻¹ b
         return _Prep(X, q, Ahat, H / _INFLATE**2, L, logdet)
@@ -145,6 +147,14 @@ class AmplitudeBlock:
                 v = self.lik.noise_model.loglik(prep.q[rows[ok]], stress, overwrite=True)
             out[ok] = np.where(np.isfinite(v), v, -np.inf)
         return out
+
+    def select(self, prep: _Prep, other: _Prep, mask: np.ndarray) -> _Prep:
+        """Rows of ``other`` where ``mask``, of ``prep`` elsewhere (a chain moved its φ)."""
+        m = np.asarray(mask, bool)
+        pick = [np.where(m.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+                for a, b in ((prep.X, other.X), (prep.q, other.q), (prep.Ahat, other.Ahat), (prep.H, other.H),
+                             (prep.L, other.L), (prep.logdet, other.logdet))]
+        return _Prep(*pick)
 
     # -- the independence proposal ----------------------------------------------------------------
     def _weights(self, population: Mapping[int, tuple]) -> list[tuple[int | None, float]]:
@@ -225,8 +235,8 @@ def amplitude_block(lik, coords, names_y: Sequence[str], probe_y: np.ndarray,
         return None, "the model has no linear amplitudes"
     cols = {j: structure.columns.index(n[4:]) for j, n in enumerate(names_y)
             if n.startswith("log_") and n[4:] in structure.columns}
-    if not cols:
-        return None, "no log-amplitude columns in the fallback's coordinates"
+    if sorted(cols.values()) != list(range(structure.n_columns)):
+        return None, "not every amplitude column has a log column in the fallback's coordinates"
     block = AmplitudeBlock(lik, coords, cols, structure)
     probe = np.asarray(probe_y, float)
     swapped = probe.copy()

@@ -98,6 +98,9 @@ class ConditionalBlock(Protocol):
     def log_q(self, prep: Any, yb: np.ndarray, population: Mapping[int, tuple]) -> np.ndarray:
         """log density of :meth:`propose` at block values ``yb`` (n, len(columns)) (NaN/−inf: never proposed)."""
 
+    def select(self, prep: Any, other: Any, mask: np.ndarray) -> Any:
+        """The per-chain state of ``other`` where ``mask`` (n,), of ``prep`` elsewhere."""
+
 
 @dataclass
 class ExactSpecimen:
@@ -241,6 +244,8 @@ class _Exact:
             # pooled identity columns in the block: block position -> pooled index
             self.block_pooled = {int(np.nonzero(self.block_cols == j)[0][0]): k
                                  for j, k in self.pooled_cols.items() if j in self.block_cols}
+            self.other_cols = np.array([j for j in range(self.dy) if j not in self.block_cols], int)
+            self.refresh_step = np.log(2.38 / np.sqrt(max(self.other_cols.size, 1)))
 
     def _log_q(self, y: np.ndarray) -> np.ndarray:
         """log density of the Gaussian-mixture proposal at ``y``."""
@@ -262,11 +267,12 @@ class _Exact:
             self.cond[k] = (o, beta, Lc, K[:, k, k])
         return self.cond[k]
 
-    def evaluate(self, y: np.ndarray, cheap: bool = False):
+    def evaluate(self, y: np.ndarray, cheap: bool = False, prep: Any = None):
         """(ℓ, F, const) of rows ``y``; −inf ℓ outside the box, the support or the population's box.
 
         ``cheap``: ``y`` differs from the chains' states in the block columns only and ℓ comes from
-        the prepared block (no model evaluation)."""
+        the prepared block (no model evaluation); ``prep``: a block state prepared at ``y``'s other
+        columns instead of the chains'."""
         n = y.shape[0]
         ll = np.full(n, -np.inf)
         F = np.zeros((n, 2 * self.model.d + self.model.q))
@@ -275,7 +281,8 @@ class _Exact:
             ok = np.all((y >= self.box[:, 0]) & (y <= self.box[:, 1]), axis=1)
         if ok.any():
             if cheap:
-                ll[ok] = np.asarray(self.block.log_likelihood(self.prep, y[ok], np.nonzero(ok)[0]), float)
+                ll[ok] = np.asarray(self.block.log_likelihood(self.prep if prep is None else prep, y[ok],
+                                                              np.nonzero(ok)[0]), float)
             else:
                 self.evals += int(ok.sum())
                 ll[ok] = np.asarray(self.spec.log_likelihood(y[ok]), float)
@@ -292,9 +299,9 @@ class _Exact:
                 F[idx[fine]], c[idx[fine]] = self.model.features(cols[fine], None if lp is None else lp[fine])
         return ll, F, c
 
-    def _mh(self, prop, coef, cc, rng, log_q_ratio=0.0, cheap: bool = False) -> np.ndarray:
+    def _mh(self, prop, coef, cc, rng, log_q_ratio=0.0, cheap: bool = False, prep: Any = None) -> np.ndarray:
         n = self.y.shape[0]
-        ll, F, c = self.evaluate(prop, cheap)
+        ll, F, c = self.evaluate(prop, cheap, prep)
         with np.errstate(invalid="ignore"):
             new = np.where(np.isfinite(ll), ll + _log_r(coef, cc, F, c), -np.inf)
             old = self.ll + _log_r(coef, cc, self.F, self.c)
@@ -381,6 +388,35 @@ class _Exact:
         out["block_rw"] = self._mh(prop, coef, cc, rng, cheap=True)
         return out
 
+    def block_refresh(self, coef, cc, rng, nat: np.ndarray) -> np.ndarray:
+        """Random walk of the other columns with the block redrawn from its proposal there.
+
+        Proposes y'_other = y_other + step, prepares the block at y' (one evaluation per chain) and
+        draws y'_block from its proposal q(·|y'_other); the MH ratio carries q(y_block|y_other) /
+        q(y'_block|y'_other), so the move follows the other columns' marginal as the block's
+        proposal approximates its conditional -- the ridge between the nonlinear parameters and
+        the amplitudes no longer limits the step.  Returns the accepted mask.
+        """
+        n, cols, other = self.y.shape[0], self.block_cols, self.other_cols
+        pop = {p: (nat[:, kk], nat[:, self.model.d + kk]) for p, kk in self.block_pooled.items()}
+        K = self.L @ self.L.T
+        Lo = safe_cholesky(K[np.ix_(other, other)])
+        scale = np.exp(self.refresh_step) * _SCALES[rng.integers(0, _SCALES.size, n)]
+        prop = self.y.copy()
+        prop[:, other] += scale[:, None] * (rng.standard_normal((n, other.size)) @ Lo.T)
+        inside = np.all((prop >= self.box[:, 0]) & (prop <= self.box[:, 1]), axis=1)
+        prop[~inside] = self.y[~inside]  # rejected below; the block is prepared at valid rows only
+        new = self.block.prepare(prop)
+        self.evals += int(inside.sum())
+        yb = self.block.propose(new, rng, pop)
+        prop[:, cols] = yb
+        with np.errstate(invalid="ignore", divide="ignore"):
+            lq = self.block.log_q(self.prep, self.y[:, cols], pop) - self.block.log_q(new, yb, pop)
+        lq = np.where(inside, lq, -np.inf)
+        acc = self._mh(prop, coef, cc, rng, lq, cheap=True, prep=new)
+        self.prep = self.block.select(self.prep, new, acc)
+        return acc
+
     def block_release(self) -> None:
         self.prep = None
 
@@ -392,6 +428,8 @@ class _Exact:
             self.log_step += float(np.clip(rates["rw"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
         if "block_rw" in rates:
             self.block_step += float(np.clip(rates["block_rw"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
+        if "block_refresh" in rates:
+            self.refresh_step += float(np.clip(rates["block_refresh"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
         for k in range(self.dy):
             if f"coord{k}" in rates:
                 self.coord_step[k] += float(np.clip(rates[f"coord{k}"] - 0.35, -0.2, 0.2)) * 2.0
@@ -501,6 +539,7 @@ def joint_gibbs(
     inflate: float = 1.15,
     block_rounds: int = 8,
     block_pop_steps: int = 2,
+    block_refresh: int = 2,
     seed=None,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
@@ -529,6 +568,9 @@ def joint_gibbs(
         With conditional blocks (:class:`ConditionalBlock`): cheap rounds per sweep (each: every
         block's independence and random-walk moves, ``block_pop_steps`` population moves, a
         non-centred move of one pooled column that every exact specimen has in its block, in turn).
+    block_refresh : int
+        Moves per sweep of the other columns with the block redrawn (``_Exact.block_refresh``; one
+        evaluation each), spread over the rounds.
     seed : int, SeedSequence or Generator
     progress : bool
         Progress lines through ``log``.
@@ -629,9 +671,11 @@ def joint_gibbs(
         if blocked:
             for st in blocked:
                 st.block_prepare()
-            for _ in range(block_rounds):
+            for r_ in range(block_rounds):
                 nat = model.natural(raw)
                 for st in blocked:
+                    if st.other_cols.size and (r_ * block_refresh) // block_rounds != ((r_ + 1) * block_refresh) // block_rounds:
+                        tally(st.name, {"block_refresh": st.block_refresh(coef, cc, rng, nat)}, burning)
                     tally(st.name, st.block_moves(coef, cc, rng, nat), burning)
                 lp = _population_target(model, states, raw, coef, cc)
                 for _ in range(block_pop_steps):
@@ -681,7 +725,8 @@ def joint_gibbs(
         timings={"sampling": t1 - t0, "diagnostics": t2 - t1, "total": t2 - t0},
         options={"n_chains": int(n_chains), "n_keep": int(n_keep), "n_burn": int(n_burn), "thin": int(thin),
                  "pop_steps": int(pop_steps), "nc_steps": int(nc_steps), "spec_steps": int(spec_steps), "reuse_steps": int(reuse_steps),
-                 "block_rounds": int(block_rounds) if blocked else 0, "blocks": [st.name for st in blocked],
+                 "block_rounds": int(block_rounds) if blocked else 0, "block_refresh": int(block_refresh) if blocked else 0,
+                 "blocks": [st.name for st in blocked],
                  "exact": [s for s, st in states.items() if isinstance(st, _Exact)],
                  "reuse": [s for s, st in states.items() if isinstance(st, _Reuse)]},
     )
