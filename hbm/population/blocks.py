@@ -14,9 +14,10 @@ and noise parameters q from one basis evaluation,
 and an independence proposal for log A: a mixture of
 
 * the Gaussian conditional of A given φ, N(Â, H⁻¹) with H = XᵀWᵀWX, Â = H⁻¹XᵀWᵀW·data (W the
-  noise model's marginal whitening; exact for iid and weighted noise, an approximation for
-  correlated or stress-dependent noise, which only changes the acceptance rate), mapped to
-  log A (Jacobian Π A_j), A ≤ 0 never proposed (those draws are rejected);
+  noise model's marginal whitening, for a stress-dependent sd taken at the data: exact for iid
+  and weighted noise, an approximation for correlated or stress-dependent noise, which only
+  changes the acceptance rate), widened by 1.2, mapped to log A (Jacobian Π A_j); a draw with
+  some A ≤ 0 is rejected;
 * for each pooled log column j: log A_j from the population N(mu_j, sd_j) at the chain's ψ and
   the other amplitudes from the Gaussian conditional given A_j (precision H_oo).
 

@@ -30,7 +30,9 @@ basis evaluation, then any amplitudes at the cost of a matrix product).  After t
 every sweep prepares each block once and then runs ``block_rounds`` cheap rounds: an
 independence proposal of the caller (:class:`ConditionalBlock`), a random walk within the block,
 population moves and a non-centred move of a pooled column that every exact specimen has in
-its block.  Each is an exact MH step for the joint target (the block's log-likelihood *is* the
+its block; ``block_refresh`` times per sweep a random walk of the other columns redraws the
+block from its proposal there (one evaluation: the ridge between the block and the rest no
+longer limits the step).  Each is an exact MH step for the joint target (the block's log-likelihood *is* the
 likelihood there), so the chains mix along the block -- where the slow direction of the exact
 fallback lies, an amplitude whose likelihood is flat on one side -- at one evaluation per sweep.
 
@@ -84,7 +86,9 @@ class ConditionalBlock(Protocol):
     columns: Sequence[int]
 
     def prepare(self, y: np.ndarray) -> Any:
-        """Per-chain state for rows ``y`` (n, dy): one model evaluation per row (counted as such)."""
+        """Per-chain state for rows ``y`` (n, dy): one model evaluation per row (counted as such).  It
+        may depend on the non-block columns of ``y`` only (the proposal given it must not depend on
+        the block's current values, or the independence moves would not be exact)."""
 
     def log_likelihood(self, prep: Any, y: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """The specimen's exact ``log_likelihood`` at rows ``y`` (m, dy) that differ from the prepared
@@ -246,16 +250,21 @@ class _Exact:
                                  for j, k in self.pooled_cols.items() if j in self.block_cols}
             self.other_cols = np.array([j for j in range(self.dy) if j not in self.block_cols], int)
             self.refresh_step = np.log(2.38 / np.sqrt(max(self.other_cols.size, 1)))
+            if self.other_cols.size:  # the mixture's marginal over the other columns (refresh proposals)
+                logw, mu, L, _ = self.mix
+                o = self.other_cols
+                Lo = np.stack([safe_cholesky((Lm @ Lm.T)[np.ix_(o, o)]) for Lm in L])
+                self.mix_other = (logw, mu[:, o], Lo, np.sum(np.log(np.diagonal(Lo, axis1=1, axis2=2)), axis=1))
 
-    def _log_q(self, y: np.ndarray) -> np.ndarray:
-        """log density of the Gaussian-mixture proposal at ``y``."""
-        logw, mu, L, logdet = self.mix
+    def _log_q(self, y: np.ndarray, mix=None) -> np.ndarray:
+        """log density of the Gaussian-mixture proposal (default ``self.mix``) at ``y``."""
+        logw, mu, L, logdet = self.mix if mix is None else mix
         terms = np.empty((y.shape[0], logw.size))
         for m in range(logw.size):  # few components; vectorised over chains
             a = np.linalg.solve(L[m], (y - mu[m]).T)
             terms[:, m] = logw[m] - 0.5 * np.sum(a * a, axis=0) - logdet[m]
         mx = terms.max(axis=1)
-        return mx + np.log(np.exp(terms - mx[:, None]).sum(axis=1)) - 0.5 * self.dy * np.log(2 * np.pi)
+        return mx + np.log(np.exp(terms - mx[:, None]).sum(axis=1)) - 0.5 * y.shape[1] * np.log(2 * np.pi)
 
     def _conditional(self, k: int):
         if k not in self.cond:
@@ -326,6 +335,13 @@ class _Exact:
             prop[:, j] = mu + sd * rng.standard_normal(n)
             lq = 0.5 * (((prop[:, j] - mu) / sd) ** 2 - ((self.y[:, j] - mu) / sd) ** 2)
             out["population_draw"] = self._mh(prop, coef, cc, rng, lq)
+        if self.block is not None:
+            # with a block, the joint jumps and walks of the other columns are the refresh moves (the
+            # block redrawn, far higher acceptance); one coordinate walk of a non-block column stays
+            if self.other_cols.size:
+                k = int(self.other_cols[k % self.other_cols.size])
+                out[f"coord{k}"] = self._coord_walk(coef, cc, rng, k)
+            return out
         logw, mu, L, _ = self.mix
         # independence proposal from the mixture
         m = pick(np.broadcast_to(logw, (n, logw.size)), rng)
@@ -336,12 +352,17 @@ class _Exact:
         # the rest from the component's Gaussian given y_k; the MH ratio needs only the joint q
         if self.dy > 1:
             out["mixture_given_one"] = self._given_one(coef, cc, rng, k)
-        prop = self.y.copy()
-        prop[:, k] += np.exp(self.coord_step[k]) * _SCALES[rng.integers(0, _SCALES.size, n)] * rng.standard_normal(n)
-        out[f"coord{k}"] = self._mh(prop, coef, cc, rng)
+        out[f"coord{k}"] = self._coord_walk(coef, cc, rng, k)
         scale = np.exp(self.log_step) * _SCALES[rng.integers(0, _SCALES.size, n)]
         out["rw"] = self._mh(self.y + scale[:, None] * (rng.standard_normal((n, self.dy)) @ self.L.T), coef, cc, rng)
         return out
+
+    def _coord_walk(self, coef, cc, rng, k: int) -> np.ndarray:
+        """Random walk of coordinate k alone (scale mixture); returns the accepted mask."""
+        n = self.y.shape[0]
+        prop = self.y.copy()
+        prop[:, k] += np.exp(self.coord_step[k]) * _SCALES[rng.integers(0, _SCALES.size, n)] * rng.standard_normal(n)
+        return self._mh(prop, coef, cc, rng)
 
     def _given_one(self, coef, cc, rng, k: int) -> np.ndarray:
         """Proposal from the mixture conditioned on coordinate k (kept); returns the accepted mask."""
@@ -388,22 +409,31 @@ class _Exact:
         out["block_rw"] = self._mh(prop, coef, cc, rng, cheap=True)
         return out
 
-    def block_refresh(self, coef, cc, rng, nat: np.ndarray) -> np.ndarray:
-        """Random walk of the other columns with the block redrawn from its proposal there.
+    def block_refresh(self, coef, cc, rng, nat: np.ndarray, independent: bool = False) -> np.ndarray:
+        """Move the other columns with the block redrawn from its proposal there.
 
-        Proposes y'_other = y_other + step, prepares the block at y' (one evaluation per chain) and
-        draws y'_block from its proposal q(·|y'_other); the MH ratio carries q(y_block|y_other) /
-        q(y'_block|y'_other), so the move follows the other columns' marginal as the block's
-        proposal approximates its conditional -- the ridge between the nonlinear parameters and
-        the amplitudes no longer limits the step.  Returns the accepted mask.
+        Proposes y'_other -- a random walk step, or (``independent``) a draw from the Gaussian
+        mixture's marginal over the other columns (a jump between modes of the nonlinear
+        parameters) -- prepares the block at y' (one evaluation per chain) and draws y'_block from
+        its proposal q(·|y'_other); the MH ratio carries q(y_block|y_other) / q(y'_block|y'_other)
+        (and the mixture's densities), so the move follows the other columns' marginal as the
+        block's proposal approximates its conditional -- the ridge between the nonlinear
+        parameters and the amplitudes no longer limits the step.  Returns the accepted mask.
         """
         n, cols, other = self.y.shape[0], self.block_cols, self.other_cols
         pop = {p: (nat[:, kk], nat[:, self.model.d + kk]) for p, kk in self.block_pooled.items()}
-        K = self.L @ self.L.T
-        Lo = safe_cholesky(K[np.ix_(other, other)])
-        scale = np.exp(self.refresh_step) * _SCALES[rng.integers(0, _SCALES.size, n)]
         prop = self.y.copy()
-        prop[:, other] += scale[:, None] * (rng.standard_normal((n, other.size)) @ Lo.T)
+        lq_other = 0.0
+        if independent:
+            logw, mu, Lo, _ = self.mix_other
+            m = pick(np.broadcast_to(logw, (n, logw.size)), rng)
+            prop[:, other] = mu[m] + np.einsum("nab,nb->na", Lo[m], rng.standard_normal((n, other.size)))
+            lq_other = self._log_q(self.y[:, other], self.mix_other) - self._log_q(prop[:, other], self.mix_other)
+        else:
+            K = self.L @ self.L.T
+            Lo = safe_cholesky(K[np.ix_(other, other)])
+            scale = np.exp(self.refresh_step) * _SCALES[rng.integers(0, _SCALES.size, n)]
+            prop[:, other] += scale[:, None] * (rng.standard_normal((n, other.size)) @ Lo.T)
         inside = np.all((prop >= self.box[:, 0]) & (prop <= self.box[:, 1]), axis=1)
         prop[~inside] = self.y[~inside]  # rejected below; the block is prepared at valid rows only
         new = self.block.prepare(prop)
@@ -412,7 +442,7 @@ class _Exact:
         prop[:, cols] = yb
         with np.errstate(invalid="ignore", divide="ignore"):
             lq = self.block.log_q(self.prep, self.y[:, cols], pop) - self.block.log_q(new, yb, pop)
-        lq = np.where(inside, lq, -np.inf)
+        lq = np.where(inside, lq + lq_other, -np.inf)
         acc = self._mh(prop, coef, cc, rng, lq, cheap=True, prep=new)
         self.prep = self.block.select(self.prep, new, acc)
         return acc
@@ -655,6 +685,7 @@ def joint_gibbs(
         for move, a in moves.items():
             (win_spec if burning else acc_spec)[sid].setdefault(move, np.zeros(2))[:] += (a.sum(), n_chains)
 
+    refresh_count = 0
     for sweep in range(n_total):
         burning = sweep < n_burn
         for _ in range(pop_steps):
@@ -673,10 +704,14 @@ def joint_gibbs(
                 st.block_prepare()
             for r_ in range(block_rounds):
                 nat = model.natural(raw)
+                due = (r_ * block_refresh) // block_rounds != ((r_ + 1) * block_refresh) // block_rounds
                 for st in blocked:
-                    if st.other_cols.size and (r_ * block_refresh) // block_rounds != ((r_ + 1) * block_refresh) // block_rounds:
-                        tally(st.name, {"block_refresh": st.block_refresh(coef, cc, rng, nat)}, burning)
+                    if st.other_cols.size and due:  # alternately a walk and a mixture jump
+                        jump = bool(refresh_count % 2)
+                        tally(st.name, {"block_jump" if jump else "block_refresh":
+                                        st.block_refresh(coef, cc, rng, nat, jump)}, burning)
                     tally(st.name, st.block_moves(coef, cc, rng, nat), burning)
+                refresh_count += int(due)
                 lp = _population_target(model, states, raw, coef, cc)
                 for _ in range(block_pop_steps):
                     population_move(burning)
