@@ -128,7 +128,7 @@ class PopulationConfig:
     exact_burn: int = 400
     exact_keep: int = 120
     exact_thin: int = 10
-    exact_block_rounds: int = 8
+    exact_block_rounds: int = 4
 
     def tmcmc_options(self) -> dict:
         """Keyword arguments of every TMCMC run of the layer: the MH step cap, then ``sampler_options``.

@@ -178,8 +178,11 @@ def exact_gibbs(cfg: PopulationConfig, h, exact_ids: Sequence[str], results: Map
     if reasons:
         _log(f"exact fallback: no amplitude block for {', '.join(s for s, w in no_block.items() if w)} "
              f"({'; '.join(reasons)}): their amplitudes move with the other parameters", cfg.progress)
-    g = joint_gibbs(h.model, raw0, specs, n_keep=n_keep, n_burn=int(cfg.exact_burn),
-                    thin=int(cfg.exact_thin), block_rounds=int(cfg.exact_block_rounds), seed=seeds.child(root, 1),
+    # with amplitude blocks the non-centred moves of log amplitudes are cheap (block rounds); one full
+    # one per sweep for the other pooled columns (THETA) instead of two
+    blocks = any(sp.block is not None for sp in specs.values() if isinstance(sp, ExactSpecimen))
+    g = joint_gibbs(h.model, raw0, specs, n_keep=n_keep, n_burn=int(cfg.exact_burn), thin=int(cfg.exact_thin),
+                    nc_steps=1 if blocks else 2, block_rounds=int(cfg.exact_block_rounds), seed=seeds.child(root, 1),
                     progress=cfg.progress, log=lambda m: _log(m, cfg.progress))
     cpu = time.process_time() - c0
     rng_out = np.random.default_rng(seeds.child(root, 2))
