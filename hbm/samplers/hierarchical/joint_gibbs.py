@@ -438,7 +438,7 @@ class _Exact:
         inside = np.all((prop >= self.box[:, 0]) & (prop <= self.box[:, 1]), axis=1)
         prop[~inside] = self.y[~inside]  # rejected below; the block is prepared at valid rows only
         new = self.block.prepare(prop)
-        self.evals += int(inside.sum())
+        self.evals += n  # the basis is evaluated at every row (those outside the box are rejected)
         yb = self.block.propose(new, rng, pop)
         prop[:, cols] = yb
         with np.errstate(invalid="ignore", divide="ignore"):
