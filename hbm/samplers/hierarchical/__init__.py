@@ -17,7 +17,8 @@ sum of their logs.  By concept:
 * :mod:`.refine` -- fresh TMCMC of one specimen's updated posterior (:func:`refine_individual`);
 * :mod:`.joint_gibbs` -- the exact fallback, Metropolis-within-Gibbs on the joint posterior
   (conditional blocks: columns whose likelihood is cheap given the rest, :class:`ConditionalBlock`),
-  with its Gaussian-mixture proposal (:mod:`.mixture`) and R-hat/ESS (:mod:`.convergence`);
+  with the specimens' lock-step states and moves (:mod:`.chain_states`), its Gaussian-mixture
+  proposal (:mod:`.mixture`) and R-hat/ESS (:mod:`.convergence`);
 * :mod:`.psis` -- Pareto-smoothed importance sampling k̂;
 * :mod:`.result` -- :class:`HierarchicalResult`.
 
