@@ -88,9 +88,8 @@ class PopulationConfig:
         likelihoods, the others by their reweighted stage-1 samples; its hyper-posterior and
         updated individuals replace the reuse ones (:func:`hbm.population.fallbacks.exact_gibbs`;
         needs the datasets; two-level layer only).  On the gold benchmark it brings every
-        hyper-parameter median within 0.14 and every 5/95 % quantile within 0.40 NUTS sd (reuse:
-        0.41 / 1.21) for ~1.8x the layer's CPU on the shipped six
-        (results/benchmarks/hierarchical_gold.md).
+        hyper-parameter median within 0.05 and every 5/95 % quantile within 0.21 NUTS sd (reuse:
+        0.41 / 1.21) at max R-hat <= 1.048 (results/benchmarks/hierarchical_gold.md).
         None: reuse (+ fresh TMCMC refinement of flagged specimens).
     exact_all : bool
         With ``exact="gibbs"``, once some specimen is flagged: real likelihoods for every specimen
@@ -123,8 +122,8 @@ class PopulationConfig:
     exact: str | None = "gibbs"
     exact_all: bool = True
     exact_chains: int = 128
-    # gold benchmark: 400 + 120 x 10 sweeps gave worst median 0.14 / tail 0.40 NUTS sd (R-hat <= 1.39),
-    # 600 + 60 x 10 gave 0.19 / 0.34 (R-hat <= 1.57) for 25 % less CPU
+    # gold benchmark with the amplitude block: 400 + 120 x 10 sweeps gave worst median 0.05 / tail 0.21 NUTS sd
+    # (R-hat <= 1.048); 200 + 60 x 10 did not converge (R-hat 1.08-1.10)
     exact_burn: int = 400
     exact_keep: int = 120
     exact_thin: int = 10
