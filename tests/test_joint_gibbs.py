@@ -79,10 +79,9 @@ def test_exact_specimens_match_the_conjugate_posterior(truth):
     assert 0.1 < r.acceptance["population"] < 0.5
 
 
-def test_exact_target_is_left_invariant(truth):
-    """Chains started from exact draws of the joint posterior stay distributed as it (no burn-in, no adaptation)."""
-    rng = np.random.default_rng(3)
-    nc = 400
+def exact_joint_draws(truth, rng, nc):
+    """``nc`` exact draws of the toy's joint posterior: (mu, sd) from the quadrature grid, each θ_i from its
+    normal conditional."""
     flat = truth["w"].ravel()
     j = rng.choice(flat.size, nc, p=flat)
     mu, sd = truth["M"].ravel()[j], truth["SD"].ravel()[j]
@@ -90,6 +89,13 @@ def test_exact_target_is_left_invariant(truth):
     for y, s in zip(Y, S):
         v = 1.0 / (1.0 / sd**2 + 1.0 / s**2)
         th.append((v * (mu / sd**2 + y / s**2) + np.sqrt(v) * rng.standard_normal(nc))[:, None])
+    return mu, sd, th
+
+
+def test_exact_target_is_left_invariant(truth):
+    """Chains started from exact draws of the joint posterior stay distributed as it (no burn-in, no adaptation)."""
+    rng = np.random.default_rng(3)
+    mu, sd, th = exact_joint_draws(truth, rng, 400)
     rows = [y + s * rng.standard_normal((2000, 1)) for y, s in zip(Y, S)]
     r = joint_gibbs(_model(), np.column_stack([mu, np.log(sd)]), _exact(rows, th), n_keep=8, n_burn=0, thin=3,
                     seed=4, n_components=12)

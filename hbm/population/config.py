@@ -88,9 +88,8 @@ class PopulationConfig:
         likelihoods, the others by their reweighted stage-1 samples; its hyper-posterior and
         updated individuals replace the reuse ones (:func:`hbm.population.fallbacks.exact_gibbs`;
         needs the datasets; two-level layer only).  On the gold benchmark it brings every
-        hyper-parameter median within 0.14 and every 5/95 % quantile within 0.40 NUTS sd (reuse:
-        0.41 / 1.21) for ~1.8x the layer's CPU on the shipped six
-        (results/benchmarks/hierarchical_gold.md).
+        hyper-parameter median within 0.05 and every 5/95 % quantile within 0.21 NUTS sd (reuse:
+        0.41 / 1.21) at max R-hat <= 1.048 (results/benchmarks/hierarchical_gold.md).
         None: reuse (+ fresh TMCMC refinement of flagged specimens).
     exact_all : bool
         With ``exact="gibbs"``, once some specimen is flagged: real likelihoods for every specimen
@@ -98,6 +97,10 @@ class PopulationConfig:
         off, real likelihoods 0.19, for +30 % CPU); False: only for the flagged ones.
     exact_chains, exact_burn, exact_keep, exact_thin : int
         Chains, adaptive burn-in sweeps, kept draws per chain and sweeps between kept draws.
+    exact_block_rounds : int
+        Cheap rounds per sweep of the amplitude block (:mod:`hbm.population.blocks`: a specimen's
+        linear amplitudes moved given its φ, with the population, at one basis evaluation per
+        sweep); 0: off (the amplitudes move only with the other parameters).
     """
 
     seed: int = 0
@@ -119,11 +122,12 @@ class PopulationConfig:
     exact: str | None = "gibbs"
     exact_all: bool = True
     exact_chains: int = 128
-    # gold benchmark: 400 + 120 x 10 sweeps gave worst median 0.14 / tail 0.40 NUTS sd (R-hat <= 1.39),
-    # 600 + 60 x 10 gave 0.19 / 0.34 (R-hat <= 1.57) for 25 % less CPU
+    # gold benchmark with the amplitude block: 400 + 120 x 10 sweeps gave worst median 0.05 / tail 0.21 NUTS sd
+    # (R-hat <= 1.048); 200 + 60 x 10 did not converge (R-hat 1.08-1.10)
     exact_burn: int = 400
     exact_keep: int = 120
     exact_thin: int = 10
+    exact_block_rounds: int = 4
 
     def tmcmc_options(self) -> dict:
         """Keyword arguments of every TMCMC run of the layer: the MH step cap, then ``sampler_options``.
@@ -149,5 +153,7 @@ def check_config(cfg: PopulationConfig) -> None:
         return
     if cfg.exact != "gibbs":
         raise HbmError(f"exact must be 'gibbs' or None, got {cfg.exact!r}")
-    if min(int(cfg.exact_chains), int(cfg.exact_keep)) < 4 or int(cfg.exact_thin) < 1 or int(cfg.exact_burn) < 0:
-        raise HbmError("exact='gibbs' needs exact_chains >= 4, exact_keep >= 4, exact_thin >= 1, exact_burn >= 0")
+    if (min(int(cfg.exact_chains), int(cfg.exact_keep)) < 4 or int(cfg.exact_thin) < 1 or int(cfg.exact_burn) < 0
+            or int(cfg.exact_block_rounds) < 0):
+        raise HbmError("exact='gibbs' needs exact_chains >= 4, exact_keep >= 4, exact_thin >= 1, exact_burn >= 0, "
+                       "exact_block_rounds >= 0")

@@ -23,6 +23,7 @@ from ..likelihood import make_likelihood
 from ..samplers.hierarchical import ExactSpecimen, GroupedResult, ReuseSpecimen, joint_gibbs, refine_individual
 from ..samplers.resampling import resample
 from ..utils import log_progress as _log
+from .blocks import amplitude_block
 from .config import PopulationConfig
 
 __all__ = ["to_refine", "refine_collapsed", "exact_applies", "exact_gibbs", "specimen_likelihood"]
@@ -153,15 +154,18 @@ def exact_gibbs(cfg: PopulationConfig, h, exact_ids: Sequence[str], results: Map
     raw0 = h.raw_samples[rng.choice(n_h, nc, replace=n_h < nc)]
     # y columns that are pooled columns (the sampler uses those with the identity transform)
     pooled_cols = {j: h.model.names.index(n) for j, n in enumerate(coords.names_y) if n in h.model.names}
-    specs = {}
+    specs, no_block = {}, {}
     for sid in h.specimens:
         idx = resample(np.asarray(h.updated_weights[sid], float), nc, rng)
         idx = rng.permutation(idx)  # systematic resampling sorts: pair rows with hyper draws at random
         if sid in exact_ids:
             y = coords.y_of(results[sid].samples)
             lik = specimen_likelihood(cfg, results, sid, datasets, model)
+            block = None
+            if cfg.exact_block_rounds > 0:  # the amplitudes moved given φ at one evaluation per sweep
+                block, no_block[sid] = amplitude_block(lik, coords, coords.names_y, y[:16], rng)
             specs[sid] = ExactSpecimen(log_likelihood=_OnFibre(lik, coords), columns=coords.columns, box=coords.box,
-                                       init=y[idx], scale_rows=y, pooled_cols=pooled_cols)
+                                       init=y[idx], scale_rows=y, pooled_cols=pooled_cols, block=block)
         else:
             specs[sid] = ReuseSpecimen(rows=rows[sid], log_prior=None if log_prior is None else log_prior[sid],
                                        init=idx)
@@ -170,9 +174,16 @@ def exact_gibbs(cfg: PopulationConfig, h, exact_ids: Sequence[str], results: Map
     c0 = time.process_time()
     # every kept draw is output (a subsample would only add Monte Carlo error); at least cfg.samples
     n_keep = max(int(cfg.exact_keep), -(-int(cfg.samples) // nc))
-    g = joint_gibbs(h.model, raw0, specs, n_keep=n_keep, n_burn=int(cfg.exact_burn),
-                    thin=int(cfg.exact_thin), seed=seeds.child(root, 1), progress=cfg.progress,
-                    log=lambda m: _log(m, cfg.progress))
+    reasons = sorted({why for why in no_block.values() if why})
+    if reasons:
+        _log(f"exact fallback: no amplitude block for {', '.join(s for s, w in no_block.items() if w)} "
+             f"({'; '.join(reasons)}): their amplitudes move with the other parameters", cfg.progress)
+    # with amplitude blocks the non-centred moves of log amplitudes are cheap (block rounds); one full
+    # one per sweep for the other pooled columns (THETA) instead of two
+    blocks = any(sp.block is not None for sp in specs.values() if isinstance(sp, ExactSpecimen))
+    g = joint_gibbs(h.model, raw0, specs, n_keep=n_keep, n_burn=int(cfg.exact_burn), thin=int(cfg.exact_thin),
+                    nc_steps=1 if blocks else 2, block_rounds=int(cfg.exact_block_rounds), seed=seeds.child(root, 1),
+                    progress=cfg.progress, log=lambda m: _log(m, cfg.progress))
     cpu = time.process_time() - c0
     rng_out = np.random.default_rng(seeds.child(root, 2))
     # all chains x kept draws, joint (row k of ψ goes with row k of every specimen); on the gold a
@@ -187,13 +198,14 @@ def exact_gibbs(cfg: PopulationConfig, h, exact_ids: Sequence[str], results: Map
             **g.options, "rhat_max": float(worst_rhat), "ess_min": float(min_ess),
             "rhat": {k: float(v) for k, v in g.rhat.items()}, "ess": {k: float(v) for k, v in g.ess.items()},
             "acceptance": g.acceptance, "evaluations": g.evaluations, "wall_s": float(g.timings["total"]),
-            "cpu_s": float(cpu)}
+            "cpu_s": float(cpu), "columns": list(coords.names_y)}  # the y columns behind "<specimen>:<k>"
     _log(f"exact fallback: {sum(g.evaluations.values())} likelihood evaluations, {g.timings['total']:.1f} s; "
          f"max R-hat {worst_rhat:.3f}, min bulk ESS {min_ess:.0f}", cfg.progress)
     if worst_rhat > 1.05:
-        # measured on the shipped six (600 kept sweeps): R-hat 1.22 after 600 burn-in sweeps, 1.27 after
-        # 2000 -- slow mixing along the one-sided tails, not a short burn-in; so no "raise the burn-in"
-        # advice (more kept sweeps do help: 400 + 1200 gave 1.16)
-        _log(f"WARNING: exact fallback not converged (max R-hat {worst_rhat:.3f} > 1.05): its chains mix slowly "
-             "along one-sided tails; read the population's tails with the report's gold-benchmark accuracy", True)
+        key = max(g.rhat, key=g.rhat.get)
+        sid, _, col = key.rpartition(":")
+        where = key if sid == "hyper" or not col.isdigit() else f"{sid} {coords.names_y[int(col)]}"
+        _log(f"WARNING: exact fallback not converged (max R-hat {worst_rhat:.3f} > 1.05, at {where}): its chains "
+             f"have not mixed in every direction; longer chains help (--hier-samples {2 * nc * n_keep} doubles the "
+             "kept sweeps); read the population's tails with the report's gold-benchmark accuracy", True)
     return h, updated, info

@@ -246,6 +246,24 @@ def compare(hfs: list, nuts: dict, names: list, specimen_ids: list) -> dict:
     return {"hyper": rows, "individuals": indiv}
 
 
+def compare_stored(hfs: list, gold: dict, names: list, specimen_ids: list) -> dict:
+    """:func:`compare` against the NUTS quantiles stored in a record of ``hierarchical_gold.json`` (the
+    same population seed: its datasets are the generator's, so its joint posterior is the same)."""
+    out = {"hyper": {}, "individuals": {}}
+    for key, rows in (("hyper", gold["hyper"]), ("individuals", gold["individuals"])):
+        for name, r in rows.items():
+            if key == "hyper":
+                lay = [np.quantile(hf.hyper(name), Q) for hf, _ in hfs]
+            else:
+                sid, col = name.split(":", 1)
+                i = specimen_ids.index(sid)
+                lay = [np.quantile(_phi_cols(names, hf.updated[:, i, :])[col], Q) for hf, _ in hfs]
+            gq, gsd = np.asarray(r["nuts"]), float(r["nuts_sd"])
+            out[key][name] = {"nuts": gq.tolist(), "nuts_sd": gsd, "layer": [q.tolist() for q in lay],
+                              "diff_sd": [((q - gq) / gsd).tolist() for q in lay]}
+    return out
+
+
 def _worst(rows: dict) -> tuple[float, float]:
     """Largest |median diff| and largest |5 %/95 % diff| (in NUTS sd) over rows and seeds."""
     d = np.array([r["diff_sd"] for r in rows.values()])  # (rows, seeds, 3)
@@ -278,6 +296,12 @@ def main(argv=None) -> int:
                     help="PopulationConfig.exact_all (1: real likelihoods for all specimens, 0: flagged ones only)")
     ap.add_argument("--exact-keep", type=int, default=None, help="PopulationConfig.exact_keep (kept draws per chain)")
     ap.add_argument("--exact-burn", type=int, default=None, help="PopulationConfig.exact_burn (burn-in sweeps)")
+    ap.add_argument("--exact-thin", type=int, default=None, help="PopulationConfig.exact_thin (sweeps per kept draw)")
+    ap.add_argument("--exact-block-rounds", type=int, default=None,
+                    help="PopulationConfig.exact_block_rounds (0: no amplitude block, the fallback before issue 27)")
+    ap.add_argument("--nuts-from", default=None, metavar="VARIANT",
+                    help="compare with the NUTS quantiles stored under VARIANT in hierarchical_gold.json (same "
+                         "population seed) instead of running the peer (no PyMC needed)")
     ap.add_argument("--variant", default="default", help="label of the layer settings in the output")
     ap.add_argument("--stage1-only", action="store_true")
     a = ap.parse_args(argv)
@@ -296,23 +320,32 @@ def main(argv=None) -> int:
         cfg["exact"] = None if a.exact == "none" else a.exact
         if a.exact_all is not None:
             cfg["exact_all"] = bool(a.exact_all)
-    for key in ("exact_keep", "exact_burn"):
+    for key in ("exact_keep", "exact_burn", "exact_thin", "exact_block_rounds"):
         if getattr(a, key) is not None:
             cfg[key] = int(getattr(a, key))
     hfs = [layer(results, datasets, model, s, **cfg)[0:3:2] for s in seeds]  # (hf, cpu seconds)
+    names = list(next(iter(results.values())).names)
+    if a.nuts_from:
+        gold = json.loads((Path(a.out) / "hierarchical_gold.json").read_text())[a.nuts_from]
+        if int(gold["pop_seed"]) != a.pop_seed:
+            raise SystemExit(f"--nuts-from {a.nuts_from}: population seed {gold['pop_seed']}, not {a.pop_seed}")
+        cmp = compare_stored(hfs, gold, names, hfs[0][0].specimen_ids)
+        write_variant(a.variant, a.pop_seed, seeds, hfs, gold["nuts"], None, tuple(gold["p0_check_max_abs"]),
+                      thetas, names, Path(a.out), cmp=cmp)
+        return 0
     spec = peer_spec(results, datasets, hfs[0][0])
     p0_err = check_p0(spec, results, cache)
     info, nuts = run_peer(spec, cache, a.draws, a.tune, seed=a.pop_seed)
-    names = list(next(iter(results.values())).names)
     write_variant(a.variant, a.pop_seed, seeds, hfs, info, nuts, p0_err, thetas, names, Path(a.out))
     return 0
 
 
-def write_variant(variant: str, pop_seed: int, seeds: list, hfs: list, info: dict, nuts: dict, p0_err, thetas,
-                  names: list, out: Path) -> str:
-    """Compare one layer variant (``hfs``: (HierarchicalFile, CPU s) per seed) with the NUTS draws and
-    write its record into ``hierarchical_gold.json`` and its section into ``hierarchical_gold_<variant>.md.part``."""
-    cmp = compare(hfs, nuts, names, hfs[0][0].specimen_ids)
+def write_variant(variant: str, pop_seed: int, seeds: list, hfs: list, info: dict, nuts: dict | None, p0_err, thetas,
+                  names: list, out: Path, cmp: dict | None = None) -> str:
+    """Compare one layer variant (``hfs``: (HierarchicalFile, CPU s) per seed) with the NUTS draws (or the
+    precomputed comparison ``cmp``) and write its record into ``hierarchical_gold.json`` and its section into
+    ``hierarchical_gold_<variant>.md.part``."""
+    cmp = compare(hfs, nuts, names, hfs[0][0].specimen_ids) if cmp is None else cmp
     wh, wt = _worst(cmp["hyper"])
     rec = {"variant": variant, "pop_seed": pop_seed, "layer_seeds": seeds, "truth": {k: list(v) for k, v in TRUTH.items()},
            "thetas": np.asarray(thetas).tolist(), "p0_check_max_abs": p0_err, "nuts": info,

@@ -15,7 +15,10 @@ sum of their logs.  By concept:
   population → group → specimen) -- the drivers;
 * :mod:`.pooling` -- which parameters to pool (:func:`auto_pool`);
 * :mod:`.refine` -- fresh TMCMC of one specimen's updated posterior (:func:`refine_individual`);
-* :mod:`.joint_gibbs` -- the exact fallback, Metropolis-within-Gibbs on the joint posterior;
+* :mod:`.joint_gibbs` -- the exact fallback, Metropolis-within-Gibbs on the joint posterior
+  (conditional blocks: columns whose likelihood is cheap given the rest, :class:`ConditionalBlock`),
+  with the specimens' lock-step states and moves (:mod:`.chain_states`), its Gaussian-mixture
+  proposal (:mod:`.mixture`) and R-hat/ESS (:mod:`.convergence`);
 * :mod:`.psis` -- Pareto-smoothed importance sampling k̂;
 * :mod:`.result` -- :class:`HierarchicalResult`.
 
@@ -24,7 +27,8 @@ This package is sampler-layer code: it knows nothing about muscles.
 
 from .diagnostics import reuse_diagnostics, reuse_unreliable
 from .grouped import GroupedModel, GroupedResult, group_differences, grouped_hierarchical, truncnorm_ppf, variance_split
-from .joint_gibbs import ExactSpecimen, JointGibbsResult, ReuseSpecimen, joint_gibbs, rhat_ess
+from .convergence import rhat_ess
+from .joint_gibbs import ConditionalBlock, ExactSpecimen, JointGibbsResult, ReuseSpecimen, joint_gibbs
 from .model import TRANSFORMS, HierarchicalModel, draw_population, kernel_bandwidth
 from .pooling import PoolChoice, auto_pool, prior_sd_transformed
 from ..psis import K_HAT_THRESHOLD, pareto_khat
@@ -38,6 +42,6 @@ __all__ = [
     "kernel_bandwidth", "auto_pool", "PoolChoice", "prior_sd_transformed", "TRANSFORMS", "ESTIMATORS",
     "reuse_diagnostics", "reuse_unreliable", "defensive_log_weights", "mixture_log_weights", "draw_population",
     "GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences", "variance_split", "truncnorm_ppf",
-    "ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess", "K_HAT_THRESHOLD",
+    "ConditionalBlock", "ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess", "K_HAT_THRESHOLD",
     "pareto_khat",
 ]

@@ -23,6 +23,19 @@ caller):
   ``r``: exact for the target "empirical stage-1 posterior × r", i.e. the reuse layer's own
   approximation of that specimen, at no likelihood cost.
 
+Conditional blocks (issue 27): an exact specimen may carry a ``block`` -- columns of ``y`` whose
+log-likelihood, with the other columns fixed, the caller evaluates without the model once a
+per-chain ``prepare`` pass has run (a model whose stress is linear in some amplitudes: one
+basis evaluation, then any amplitudes at the cost of a matrix product).  After the other moves,
+every sweep prepares each block once and then runs ``block_rounds`` cheap rounds: an
+independence proposal of the caller (:class:`ConditionalBlock`), a random walk within the block,
+population moves and a non-centred move of a pooled column that every exact specimen has in
+its block; ``block_refresh`` times per sweep a random walk of the other columns redraws the
+block from its proposal there (one evaluation: the ridge between the block and the rest no
+longer limits the step).  Each is an exact MH step for the joint target (the block's log-likelihood *is* the
+likelihood there), so the chains mix along the block -- where the slow direction of the exact
+fallback lies, an amplitude whose likelihood is flat on one side -- at one evaluation per sweep.
+
 Population moves: random-walk Metropolis on the model's free sampler coordinates (mu, log sd
 [, CPC]) given all specimens' columns, several per sweep (cheap: one ``coefficients`` call and a
 row-wise dot product per specimen).  Plus non-centred moves against the funnel between (mu_k,
@@ -47,69 +60,14 @@ from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
 import numpy as np
-from scipy.special import ndtri
-from scipy.stats import rankdata
 
 from ...errors import HbmError
 from ..linalg import safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
+from .chain_states import TARGET_ACCEPT, ConditionalBlock, ExactSpecimen, ExactState, ReuseSpecimen, ReuseState, log_r
+from .convergence import rhat_ess
 from .model import HierarchicalModel, draw_population
 
-__all__ = ["ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
-
-#: random-walk step multipliers (equal probability) of the specimen moves: a symmetric scale mixture
-_SCALES = np.array([0.3, 1.0, 3.0])
-_TARGET_ACCEPT = 0.25
-
-
-@dataclass
-class ExactSpecimen:
-    """A specimen sampled with its real likelihood.
-
-    Attributes
-    ----------
-    log_likelihood : callable y (n, dy) -> (n,)
-        Log-likelihood plus log stage-1 prior density in the ``y`` coordinates (up to a constant);
-        −inf where the stage-1 prior has no mass.  Called once per move with all chains' proposals.
-    columns : callable y (n, dy) -> (columns (n, len(model.all_names)), log_prior (n,) or None)
-        The model's columns of ``y`` and the log stage-1 prior density of their pooled columns
-        (None: the model's uniform box), as :meth:`HierarchicalModel.features` takes them.
-    box : array (dy, 2)
-        Box of ``y`` (proposals outside it are rejected).
-    init : array (n_chains, dy)
-        Starting points (finite target).
-    scale_rows : array (m, dy)
-        Rows whose covariance starts the random walk (e.g. the stage-1 samples in ``y``).
-    pooled_cols : mapping y column -> pooled index, optional
-        Columns of ``y`` that *are* a pooled column with the identity transform: the non-centred
-        population moves shift and scale them with (mu_k, sd_k).
-    """
-
-    log_likelihood: Callable[[np.ndarray], np.ndarray]
-    columns: Callable[[np.ndarray], tuple]
-    box: np.ndarray
-    init: np.ndarray
-    scale_rows: np.ndarray
-    pooled_cols: Mapping[int, int] | None = None
-
-
-@dataclass
-class ReuseSpecimen:
-    """A specimen represented by its stage-1 samples (empirical posterior).
-
-    Attributes
-    ----------
-    rows : array (N, len(model.all_names))
-        Stage-1 samples in the model's columns.
-    log_prior : array (N,) or None
-        Log stage-1 prior density of their pooled columns (None: the model's uniform box).
-    init : array (n_chains,) of int
-        Starting row of every chain.
-    """
-
-    rows: np.ndarray
-    log_prior: np.ndarray | None
-    init: np.ndarray
-
+__all__ = ["ConditionalBlock", "ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
 
 @dataclass
 class JointGibbsResult:
@@ -154,254 +112,11 @@ class JointGibbsResult:
         return s.reshape((-1,) + s.shape[2:])
 
 
-def rhat_ess(x: np.ndarray) -> tuple[float, float]:
-    """Rank-normalised split R-hat and bulk ESS of draws ``x`` (n_chains, n_draws) (Vehtari et al. 2021).
-
-    Each chain is split in halves; the draws are replaced by normal scores of their ranks; R-hat
-    compares between- and within-half-chain variances, the ESS sums the chain-averaged
-    autocorrelations with Geyer's initial monotone positive sequence.
-    """
-    x = np.asarray(x, float)
-    m, n = x.shape
-    half = n // 2
-    if half < 2:
-        return float("nan"), float("nan")
-    x = np.concatenate([x[:, :half], x[:, n - half:]], axis=0)
-    r = rankdata(x, axis=None).reshape(x.shape)
-    z = ndtri((r - 0.375) / (x.size + 0.25))
-    M, N = z.shape
-    w = z.var(axis=1, ddof=1).mean()
-    b = N * z.mean(axis=1).var(ddof=1)
-    if not w > 0:
-        return float("nan"), float("nan")
-    var_plus = (N - 1) / N * w + b / N
-    rhat = float(np.sqrt(var_plus / w))
-    zc = z - z.mean(axis=1, keepdims=True)
-    f = np.fft.rfft(zc, n=2 * N, axis=1)
-    acov = np.fft.irfft(f * np.conj(f), axis=1)[:, :N] / N  # biased autocovariance per chain
-    rho = 1.0 - (w - acov.mean(axis=0)) / var_plus
-    rho[0] = 1.0
-    pairs = rho[: 2 * (N // 2)].reshape(-1, 2).sum(axis=1)
-    neg = np.nonzero(pairs < 0)[0]
-    pairs = pairs[: neg[0]] if neg.size else pairs
-    pairs = np.minimum.accumulate(pairs) if pairs.size else pairs
-    tau = max(-1.0 + 2.0 * float(pairs.sum()), 1.0 / np.log10(M * N))
-    return rhat, float(M * N / tau)
-
-
-def _pick(logp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One index per row of ``logp`` (n, M), drawn with probabilities ∝ exp(logp) (inverse CDF)."""
-    w = np.exp(logp - logp.max(axis=1, keepdims=True))
-    cw = np.cumsum(w, axis=1)
-    return np.minimum((cw < (rng.random(logp.shape[0]) * cw[:, -1])[:, None]).sum(axis=1), logp.shape[1] - 1)
-
-
-def _fit_mixture(rows: np.ndarray, n_components: int, inflate: float, rng: np.random.Generator):
-    """Gaussian mixture of k-means clusters of ``rows`` (whitened Lloyd iterations), covariances × inflate².
-
-    Returns (log weights (M,), means (M, d), Cholesky factors (M, d, d), log determinants (M,)).
-    Clusters with fewer than 2(d + 1) rows are dropped (the proposal need only be a density).
-    """
-    n, d = rows.shape
-    Lg = safe_cholesky(np.cov(rows, rowvar=False).reshape(d, d))
-    w = np.linalg.solve(Lg, (rows - rows.mean(axis=0)).T).T
-    M = max(1, min(int(n_components), n // (4 * (d + 1))))
-    cent = w[rng.choice(n, M, replace=False)]
-    for _ in range(25):
-        lab = np.argmin(np.sum(w * w, axis=1)[:, None] - 2 * w @ cent.T + np.sum(cent * cent, axis=1)[None, :], axis=1)
-        cent = np.stack([w[lab == m].mean(axis=0) if np.any(lab == m) else cent[m] for m in range(M)])
-    keep = [m for m in range(M) if np.sum(lab == m) >= 2 * (d + 1)]
-    if not keep:
-        keep, lab = [0], np.zeros(n, int)
-    logw = np.log(np.array([np.sum(lab == m) for m in keep], float))
-    mu = np.stack([rows[lab == m].mean(axis=0) for m in keep])
-    L = np.stack([safe_cholesky(np.cov(rows[lab == m], rowvar=False).reshape(d, d)) * inflate for m in keep])
-    logdet = np.sum(np.log(np.diagonal(L, axis1=1, axis2=2)), axis=1)
-    return logw - np.log(np.exp(logw).sum()), mu, L, logdet
-
-
-def _log_r(coef: np.ndarray, cc: np.ndarray, F: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """log r row by row: chain k's ψ (coef_k, cc_k) at chain k's columns (F_k, c_k)."""
-    return np.einsum("ij,ij->i", coef, F) + cc + c
-
-
-class _Exact:
-    """Lock-step state of one exact specimen over all chains.
-
-    Four moves per cycle (each exact MH for the conditional of the specimen given ψ): an
-    independence proposal from a Gaussian mixture fitted to ``scale_rows`` (k-means clusters with
-    their own covariances: it follows the thin curved ridges that the posteriors of several
-    parameters form, where a random walk needs tiny steps -- on the gold a step of 0.2 global sd
-    across the ridge of log (1−c)·T1 and T2 costs 65 nats), the same mixture conditioned on one
-    coordinate k (kept: the rest jumps also where k lies in a tail the rows do not cover), a random
-    walk of that coordinate alone, and a random walk of all coordinates (ensemble covariance).
-    """
-
-    def __init__(self, spec: ExactSpecimen, model: HierarchicalModel, n_chains: int, name: str,
-                 rng: np.random.Generator, n_components: int, inflate: float) -> None:
-        self.spec, self.model, self.name = spec, model, name
-        self.box = np.asarray(spec.box, float)
-        self.y = np.array(spec.init, float)
-        if self.y.shape != (n_chains, self.box.shape[0]):
-            raise HbmError(f"joint_gibbs: init of {name!r} must have shape ({n_chains}, {self.box.shape[0]}), "
-                           f"got {self.y.shape}")
-        self.dy = self.y.shape[1]
-        self.pooled_cols = {int(j): int(k) for j, k in dict(spec.pooled_cols or {}).items()
-                            if model.kinds[int(k)] == "identity"}
-        self.evals = 0
-        self.ll, self.F, self.c = self.evaluate(self.y)
-        if not np.all(np.isfinite(self.ll + self.c)):
-            raise HbmError(f"joint_gibbs: a starting point of {name!r} has no finite target")
-        rows = np.asarray(spec.scale_rows, float)
-        self.L = safe_cholesky(np.cov(rows, rowvar=False).reshape(self.dy, self.dy))
-        self.log_step = np.log(2.38 / np.sqrt(self.dy))
-        self.coord_step = np.log(2.38 * np.sqrt(np.diag(self.L @ self.L.T)))
-        self.mix = _fit_mixture(rows, int(n_components), float(inflate), rng)
-        self.cond = {}  # coordinate k -> per-component (beta, Cholesky of the conditional covariance)
-
-    def _log_q(self, y: np.ndarray) -> np.ndarray:
-        """log density of the Gaussian-mixture proposal at ``y``."""
-        logw, mu, L, logdet = self.mix
-        terms = np.empty((y.shape[0], logw.size))
-        for m in range(logw.size):  # few components; vectorised over chains
-            a = np.linalg.solve(L[m], (y - mu[m]).T)
-            terms[:, m] = logw[m] - 0.5 * np.sum(a * a, axis=0) - logdet[m]
-        mx = terms.max(axis=1)
-        return mx + np.log(np.exp(terms - mx[:, None]).sum(axis=1)) - 0.5 * self.dy * np.log(2 * np.pi)
-
-    def _conditional(self, k: int):
-        if k not in self.cond:
-            _, _, L, _ = self.mix
-            K = L @ np.swapaxes(L, 1, 2)
-            o = np.array([j for j in range(self.dy) if j != k])
-            beta = K[:, o, k] / K[:, k, k][:, None]
-            Lc = np.stack([safe_cholesky(K[m][np.ix_(o, o)] - np.outer(beta[m], K[m, k, o])) for m in range(K.shape[0])])
-            self.cond[k] = (o, beta, Lc, K[:, k, k])
-        return self.cond[k]
-
-    def evaluate(self, y: np.ndarray):
-        """(ℓ, F, const) of rows ``y``; −inf ℓ outside the box, the support or the population's box."""
-        n = y.shape[0]
-        ll = np.full(n, -np.inf)
-        F = np.zeros((n, 2 * self.model.d + self.model.q))
-        c = np.zeros(n)
-        ok = np.all((y >= self.box[:, 0]) & (y <= self.box[:, 1]), axis=1)
-        if ok.any():
-            self.evals += int(ok.sum())
-            ll[ok] = np.asarray(self.spec.log_likelihood(y[ok]), float)
-            cols, lp = self.spec.columns(y[ok])
-            cols = np.asarray(cols, float)
-            pooled = cols[:, self.model.cols]
-            fine = np.isfinite(ll[ok]) & np.all((pooled >= self.model.lo) & (pooled <= self.model.hi), axis=1)
-            if lp is not None:
-                lp = np.asarray(lp, float)
-                fine &= np.isfinite(lp)
-            idx = np.nonzero(ok)[0]
-            ll[idx[~fine]] = -np.inf
-            if fine.any():
-                F[idx[fine]], c[idx[fine]] = self.model.features(cols[fine], None if lp is None else lp[fine])
-        return ll, F, c
-
-    def _mh(self, prop, coef, cc, rng, log_q_ratio=0.0) -> np.ndarray:
-        n = self.y.shape[0]
-        ll, F, c = self.evaluate(prop)
-        with np.errstate(invalid="ignore"):
-            new = np.where(np.isfinite(ll), ll + _log_r(coef, cc, F, c), -np.inf)
-        old = self.ll + _log_r(coef, cc, self.F, self.c)
-        acc = np.log(rng.random(n)) < new - old + log_q_ratio
-        self.y[acc], self.ll[acc], self.F[acc], self.c[acc] = prop[acc], ll[acc], F[acc], c[acc]
-        return acc
-
-    def move(self, coef, cc, rng, k: int, nat: np.ndarray | None = None) -> dict:
-        """One cycle of the moves of every chain (``k``: the coordinate kept / walked alone; ``nat``: the
-        chains' natural hyper-parameters, for the population draw of a pooled column)."""
-        n = self.y.shape[0]
-        out = {}
-        if self.pooled_cols and nat is not None:
-            # independence proposal of one pooled column from the population N(mu_k, sd_k): where the
-            # likelihood is flat in it (a one-sided tail) the ratio is ~1 and the chain jumps anywhere
-            j, kk = sorted(self.pooled_cols.items())[k % len(self.pooled_cols)]
-            mu, sd = nat[:, kk], nat[:, self.model.d + kk]
-            prop = self.y.copy()
-            prop[:, j] = mu + sd * rng.standard_normal(n)
-            lq = 0.5 * (((prop[:, j] - mu) / sd) ** 2 - ((self.y[:, j] - mu) / sd) ** 2)
-            out["population_draw"] = self._mh(prop, coef, cc, rng, lq)
-        logw, mu, L, _ = self.mix
-        # independence proposal from the mixture
-        m = _pick(np.broadcast_to(logw, (n, logw.size)), rng)
-        prop = mu[m] + np.einsum("nab,nb->na", L[m], rng.standard_normal((n, self.dy)))
-        with np.errstate(invalid="ignore"):
-            out["mixture"] = self._mh(prop, coef, cc, rng, self._log_q(self.y) - self._log_q(prop))
-        # the mixture conditioned on coordinate k (kept): components weighted by their density at y_k,
-        # the rest from the component's Gaussian given y_k; the MH ratio needs only the joint q
-        if self.dy > 1:
-            out["mixture_given_one"] = self._given_one(coef, cc, rng, k)
-        prop = self.y.copy()
-        prop[:, k] += np.exp(self.coord_step[k]) * _SCALES[rng.integers(0, _SCALES.size, n)] * rng.standard_normal(n)
-        out[f"coord{k}"] = self._mh(prop, coef, cc, rng)
-        scale = np.exp(self.log_step) * _SCALES[rng.integers(0, _SCALES.size, n)]
-        out["rw"] = self._mh(self.y + scale[:, None] * (rng.standard_normal((n, self.dy)) @ self.L.T), coef, cc, rng)
-        return out
-
-    def _given_one(self, coef, cc, rng, k: int) -> np.ndarray:
-        """Proposal from the mixture conditioned on coordinate k (kept); returns the accepted mask."""
-        n = self.y.shape[0]
-        logw, mu, _, _ = self.mix
-        o, beta, Lc, vk = self._conditional(k)
-        dk = self.y[:, k][:, None] - mu[None, :, k]
-        m = _pick(logw[None, :] - 0.5 * dk * dk / vk[None, :] - 0.5 * np.log(vk)[None, :], rng)
-        prop = self.y.copy()
-        prop[:, o] = (mu[m][:, o] + beta[m] * dk[np.arange(n), m][:, None]
-                      + np.einsum("nab,nb->na", Lc[m], rng.standard_normal((n, o.size))))
-        with np.errstate(invalid="ignore"):
-            return self._mh(prop, coef, cc, rng, self._log_q(self.y) - self._log_q(prop))
-
-    def adapt(self, rates: dict) -> None:
-        """Burn-in only: covariance from the ensemble of chains, step scales toward the target acceptance."""
-        if self.y.shape[0] > 2 * self.dy:
-            self.L = safe_cholesky(np.cov(self.y, rowvar=False).reshape(self.dy, self.dy))
-        if "rw" in rates:
-            self.log_step += float(np.clip(rates["rw"] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
-        for k in range(self.dy):
-            if f"coord{k}" in rates:
-                self.coord_step[k] += float(np.clip(rates[f"coord{k}"] - 0.35, -0.2, 0.2)) * 2.0
-
-    def terms(self):
-        return self.F, self.c
-
-
-class _Reuse:
-    """Lock-step state of one reuse specimen: a row index per chain."""
-
-    def __init__(self, spec: ReuseSpecimen, model: HierarchicalModel, n_chains: int, name: str) -> None:
-        self.name = name
-        rows = np.asarray(spec.rows, float)
-        self.Fall, self.call = model.features(rows, spec.log_prior)
-        self.idx = np.asarray(spec.init, int).copy()
-        if self.idx.shape != (n_chains,) or self.idx.min() < 0 or self.idx.max() >= rows.shape[0]:
-            raise HbmError(f"joint_gibbs: init of {name!r} must be {n_chains} row indices of its samples")
-        self.evals = 0
-
-    def move(self, coef, cc, rng, k: int = 0, nat: np.ndarray | None = None) -> dict:
-        n = self.idx.shape[0]
-        prop = rng.integers(0, self.Fall.shape[0], n)
-        new = _log_r(coef, cc, self.Fall[prop], self.call[prop])
-        old = _log_r(coef, cc, self.Fall[self.idx], self.call[self.idx])
-        acc = np.log(rng.random(n)) < new - old
-        self.idx[acc] = prop[acc]
-        return {"reuse": acc}
-
-    def adapt(self, rates: dict) -> None:
-        pass
-
-    def terms(self):
-        return self.Fall[self.idx], self.call[self.idx]
-
-
 def _noncentred(model: HierarchicalModel, states: dict, raw: np.ndarray, lp: np.ndarray, k: int,
-                scale: np.ndarray, rng: np.random.Generator):
+                scale: np.ndarray, rng: np.random.Generator, cheap: bool = False):
     """Non-centred move of pooled column k: (mu_k, raw sd_k) random walk, exact specimens' column along.
 
+    ``cheap``: every exact specimen has column k in its prepared block (no model evaluation).
     Returns (accepted mask, proposed raw, its population log target, coef, cconst) or None.
     """
     n, d = raw.shape[0], model.d
@@ -423,13 +138,13 @@ def _noncentred(model: HierarchicalModel, states: dict, raw: np.ndarray, lp: np.
         cols = [j for j, kk in getattr(st, "pooled_cols", {}).items() if kk == k]
         if not cols:
             F, c = st.terms()
-            tot = tot + _log_r(coefp, ccp, F, c)
+            tot = tot + log_r(coefp, ccp, F, c)
             continue
         y = st.y.copy()
         y[:, cols[0]] = mup + (sdp / sd) * (st.y[:, cols[0]] - mu)
-        ll, F, c = st.evaluate(np.where(inside[:, None], y, st.y))
+        ll, F, c = st.evaluate(np.where(inside[:, None], y, st.y), cheap)
         with np.errstate(invalid="ignore"):
-            tot = tot + np.where(np.isfinite(ll), ll + _log_r(coefp, ccp, F, c), -np.inf) - st.ll
+            tot = tot + np.where(np.isfinite(ll), ll + log_r(coefp, ccp, F, c), -np.inf) - st.ll
         tot = tot + np.log(sdp / sd)  # Jacobian of y -> y'
         moved.append((st, y, ll, F, c))
     acc = inside & (np.log(rng.random(n)) < tot)
@@ -443,7 +158,7 @@ def _population_terms(states: dict, coef: np.ndarray, cc: np.ndarray, tot: np.nd
     """``tot`` + Σ_i log r(x_i, ψ) over the specimens' current states, chain by chain."""
     for st in states.values():
         F, c = st.terms()
-        tot = tot + _log_r(coef, cc, F, c)
+        tot = tot + log_r(coef, cc, F, c)
     return tot
 
 
@@ -468,6 +183,9 @@ def joint_gibbs(
     adapt_every: int = 20,
     n_components: int = 80,
     inflate: float = 1.15,
+    block_rounds: int = 4,
+    block_pop_steps: int = 2,
+    block_refresh: int = 4,
     seed=None,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
@@ -486,12 +204,19 @@ def joint_gibbs(
         ``thin``-th state of every chain.
     pop_steps, nc_steps, spec_steps, reuse_steps : int
         Population moves, non-centred population moves, exact-specimen move cycles (four likelihood batches each, class
-        ``_Exact``) and reuse-specimen moves per sweep.
+        ``ExactState``) and reuse-specimen moves per sweep.
     adapt_every : int
         Burn-in sweeps between two adaptations of the proposals.
     n_components, inflate : int, float
         Gaussian mixture proposal of the exact specimens: k-means clusters of ``scale_rows``, each
         with its own covariance × ``inflate``².
+    block_rounds, block_pop_steps : int
+        With conditional blocks (:class:`ConditionalBlock`): cheap rounds per sweep (each: every
+        block's independence and random-walk moves, ``block_pop_steps`` population moves, a
+        non-centred move of one pooled column that every exact specimen has in its block, in turn).
+    block_refresh : int
+        Moves per sweep of the other columns with the block redrawn (``ExactState.block_refresh``; one
+        evaluation each), spread over the rounds.
     seed : int, SeedSequence or Generator
     progress : bool
         Progress lines through ``log``.
@@ -519,8 +244,8 @@ def joint_gibbs(
     states = {}
     for sid in names:
         s = specimens[sid]
-        states[sid] = (_Exact(s, model, n_chains, sid, rng, int(n_components), float(inflate)) if isinstance(s, ExactSpecimen)
-                       else _Reuse(s, model, n_chains, sid))
+        states[sid] = (ExactState(s, model, n_chains, sid, rng, int(n_components), float(inflate)) if isinstance(s, ExactSpecimen)
+                       else ReuseState(s, model, n_chains, sid))
 
     def pop_logp(raw_: np.ndarray):
         coef, cc = model.coefficients(raw_)
@@ -533,54 +258,90 @@ def joint_gibbs(
     pop_step = 0.0
     # non-centred moves: pooled columns k with free mu_k and sd_k that some exact specimen maps
     d = model.d
-    nc_ks = sorted({k for st in states.values() if isinstance(st, _Exact) for k in st.pooled_cols.values()
+    nc_ks = sorted({k for st in states.values() if isinstance(st, ExactState) for k in st.pooled_cols.values()
                     if k in model.free and d + k in model.free})
+    exact_states = [st for st in states.values() if isinstance(st, ExactState)]
+    blocked = [st for st in exact_states if st.block is not None] if block_rounds > 0 else []
+    # pooled columns that every exact specimen has in its block: their non-centred moves are cheap
+    nc_cheap = [k for k in nc_ks if blocked and len(blocked) == len(exact_states)
+                and all(k in st.block_pooled.values() for st in blocked)]
+    nc_full = [k for k in nc_ks if k not in nc_cheap]
     nc_scale = {k: np.array([raw[:, k].std(), raw[:, d + k].std()]) + 1e-12 for k in nc_ks}
     nc_step, nc_count = 0.0, 0
     acc_nc, win_nc = np.zeros(2), np.zeros(2)
     kept_raw = np.empty((n_chains, n_keep, raw.shape[1]))
-    kept = {sid: (np.empty((n_chains, n_keep, st.dy)) if isinstance(st, _Exact) else np.empty((n_chains, n_keep), int))
+    kept = {sid: (np.empty((n_chains, n_keep, st.dy)) if isinstance(st, ExactState) else np.empty((n_chains, n_keep), int))
             for sid, st in states.items()}
     acc_pop = np.zeros(2)  # accepted, tried (after burn-in)
     acc_spec: dict = {sid: {} for sid in names}  # move -> [accepted, tried] after burn-in
     win_pop = np.zeros(2)
     win_spec: dict = {sid: {} for sid in names}
     n_total = n_burn + n_keep * thin
+
+    def population_move(burning: bool) -> None:
+        xp = x + np.exp(pop_step) * (rng.standard_normal(x.shape) @ Lpsi.T)
+        inside = np.all((xp >= box[:, 0]) & (xp <= box[:, 1]), axis=1)
+        xp = np.where(inside[:, None], xp, x)  # outside the box: rejected below
+        rawp = raw.copy()
+        rawp[:, free] = xp
+        lpp, coefp, ccp = pop_logp(rawp)
+        a = inside & (np.log(rng.random(n_chains)) < lpp - lp)
+        x[a], raw[a], lp[a], coef[a], cc[a] = xp[a], rawp[a], lpp[a], coefp[a], ccp[a]
+        (win_pop if burning else acc_pop)[:] += (a.sum(), n_chains)
+
+    def noncentred_move(k: int, burning: bool, cheap: bool) -> None:
+        a = _noncentred(model, states, raw, lp, k, np.exp(nc_step) * nc_scale[k], rng, cheap)
+        if a is not None:
+            acc, rawp, lpp, coefp, ccp = a
+            raw[acc], lp[acc], coef[acc], cc[acc] = rawp[acc], lpp[acc], coefp[acc], ccp[acc]
+            x[acc] = rawp[acc][:, free]
+            (win_nc if burning else acc_nc)[:] += (acc.sum(), n_chains)
+
+    def tally(sid: str, moves: dict, burning: bool) -> None:
+        for move, a in moves.items():
+            (win_spec if burning else acc_spec)[sid].setdefault(move, np.zeros(2))[:] += (a.sum(), n_chains)
+
+    refresh_count = 0
     for sweep in range(n_total):
         burning = sweep < n_burn
         for _ in range(pop_steps):
-            xp = x + np.exp(pop_step) * (rng.standard_normal(x.shape) @ Lpsi.T)
-            inside = np.all((xp >= box[:, 0]) & (xp <= box[:, 1]), axis=1)
-            xp = np.where(inside[:, None], xp, x)  # outside the box: rejected below
-            rawp = raw.copy()
-            rawp[:, free] = xp
-            lpp, coefp, ccp = pop_logp(rawp)
-            a = inside & (np.log(rng.random(n_chains)) < lpp - lp)
-            x[a], raw[a], lp[a], coef[a], cc[a] = xp[a], rawp[a], lpp[a], coefp[a], ccp[a]
-            (win_pop if burning else acc_pop)[:] += (a.sum(), n_chains)
-        for _ in range(nc_steps if nc_ks else 0):
-            k = nc_ks[nc_count % len(nc_ks)]
+            population_move(burning)
+        for _ in range(nc_steps if nc_full else 0):
+            noncentred_move(nc_full[nc_count % len(nc_full)], burning, False)
             nc_count += 1
-            a = _noncentred(model, states, raw, lp, k, np.exp(nc_step) * nc_scale[k], rng)
-            if a is not None:
-                acc, rawp, lpp, coefp, ccp = a
-                raw[acc], lp[acc], coef[acc], cc[acc] = rawp[acc], lpp[acc], coefp[acc], ccp[acc]
-                x[acc] = rawp[acc][:, free]
-                (win_nc if burning else acc_nc)[:] += (acc.sum(), n_chains)
         nat = model.natural(raw)
         for sid, st in states.items():
-            for step in range(spec_steps if isinstance(st, _Exact) else reuse_steps):
+            for step in range(spec_steps if isinstance(st, ExactState) else reuse_steps):
                 k = (sweep * spec_steps + step) % getattr(st, "dy", 1)
-                for move, a in st.move(coef, cc, rng, k, nat).items():
-                    tally = (win_spec if burning else acc_spec)[sid].setdefault(move, np.zeros(2))
-                    tally += (a.sum(), n_chains)
+                tally(sid, st.move(coef, cc, rng, k, nat), burning)
         lp = _population_target(model, states, raw, coef, cc)  # the specimens moved, ψ did not
+        if blocked:
+            for st in blocked:
+                st.block_prepare()
+            for r_ in range(block_rounds):
+                nat = model.natural(raw)
+                due = (r_ * block_refresh) // block_rounds != ((r_ + 1) * block_refresh) // block_rounds
+                for st in blocked:
+                    if st.other_cols.size and due:  # alternately a walk and a mixture jump
+                        jump = bool(refresh_count % 2)
+                        tally(st.name, {"block_jump" if jump else "block_refresh":
+                                        st.block_refresh(coef, cc, rng, nat, jump)}, burning)
+                    tally(st.name, st.block_moves(coef, cc, rng, nat), burning)
+                refresh_count += int(due)
+                lp = _population_target(model, states, raw, coef, cc)
+                for _ in range(block_pop_steps):
+                    population_move(burning)
+                if nc_cheap:  # one per round, cycling over the pooled block columns
+                    noncentred_move(nc_cheap[nc_count % len(nc_cheap)], burning, True)
+                    nc_count += 1
+            for st in blocked:
+                st.block_release()
         if burning and (sweep + 1) % adapt_every == 0:
             if n_chains > 2 * len(free):
                 Lpsi = safe_cholesky(np.cov(x, rowvar=False).reshape(len(free), len(free))) * (2.38 / np.sqrt(len(free)))
-            pop_step += float(np.clip(win_pop[0] / max(win_pop[1], 1) - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
+            pop_step += float(np.clip(win_pop[0] / max(win_pop[1], 1) - TARGET_ACCEPT, -0.2, 0.2)) * 2.0
             if win_nc[1]:
-                nc_step += float(np.clip(win_nc[0] / win_nc[1] - _TARGET_ACCEPT, -0.2, 0.2)) * 2.0
+                nc_step += float(np.clip(win_nc[0] / win_nc[1] - TARGET_ACCEPT, -0.2, 0.2)) * 2.0
             nc_scale = {k: np.array([raw[:, k].std(), raw[:, d + k].std()]) + 1e-12 for k in nc_ks}
             win_nc[:] = 0
             for sid, st in states.items():
@@ -593,13 +354,13 @@ def joint_gibbs(
             k = (sweep - n_burn + 1) // thin - 1
             kept_raw[:, k] = raw
             for sid, st in states.items():
-                kept[sid][:, k] = st.y if isinstance(st, _Exact) else st.idx
+                kept[sid][:, k] = st.y if isinstance(st, ExactState) else st.idx
     t1 = time.perf_counter()
     rhat, ess = {}, {}
     for j, i in enumerate(free):
         rhat[f"hyper:{model.hyper_names[i]}"], ess[f"hyper:{model.hyper_names[i]}"] = rhat_ess(kept_raw[:, :, i])
     for sid, st in states.items():
-        if isinstance(st, _Exact):
+        if isinstance(st, ExactState):
             for k in range(st.dy):
                 rhat[f"{sid}:{k}"], ess[f"{sid}:{k}"] = rhat_ess(kept[sid][:, :, k])
     flat = kept_raw.reshape(-1, raw.shape[1])
@@ -611,10 +372,12 @@ def joint_gibbs(
                     "non_centred": float(acc_nc[0] / max(acc_nc[1], 1)),
                     **{sid: {m: float(v[0] / max(v[1], 1)) for m, v in moves.items()}
                        for sid, moves in acc_spec.items()}},
-        evaluations={sid: int(st.evals) for sid, st in states.items() if isinstance(st, _Exact)},
+        evaluations={sid: int(st.evals) for sid, st in states.items() if isinstance(st, ExactState)},
         timings={"sampling": t1 - t0, "diagnostics": t2 - t1, "total": t2 - t0},
         options={"n_chains": int(n_chains), "n_keep": int(n_keep), "n_burn": int(n_burn), "thin": int(thin),
                  "pop_steps": int(pop_steps), "nc_steps": int(nc_steps), "spec_steps": int(spec_steps), "reuse_steps": int(reuse_steps),
-                 "exact": [s for s, st in states.items() if isinstance(st, _Exact)],
-                 "reuse": [s for s, st in states.items() if isinstance(st, _Reuse)]},
+                 "block_rounds": int(block_rounds) if blocked else 0, "block_refresh": int(block_refresh) if blocked else 0,
+                 "blocks": [st.name for st in blocked],
+                 "exact": [s for s, st in states.items() if isinstance(st, ExactState)],
+                 "reuse": [s for s, st in states.items() if isinstance(st, ReuseState)]},
     )
