@@ -198,6 +198,16 @@ def _load(log: Path) -> tuple[list[dict], list[str]]:
     return rows, notes
 
 
+def peer_versions(py: Path) -> dict[str, str]:
+    """Versions of the peer packages in the bench environment (a capped run reports none)."""
+    code = ("import json, importlib.metadata as m; print(json.dumps({k: m.version(v) for k, v in "
+            "{'pymc': 'pymc', 'pocomc': 'pocomc', 'nautilus': 'nautilus-sampler', 'dynesty': 'dynesty'}.items()}))")
+    try:
+        return json.loads(subprocess.run([str(py), "-c", code], capture_output=True, text=True, timeout=120).stdout)
+    except (OSError, ValueError, subprocess.SubprocessError):
+        return {}
+
+
 def table(rows: list[dict]) -> str:
     head = ["setting", "version", "seeds", "completed", "evaluations (median)", "CPU s (median)",
             "child-process CPU s (median)",
@@ -215,8 +225,12 @@ def table(rows: list[dict]) -> str:
         err = f"{statistics.median(r['abs_error'] for r in done):.2f} / {max(r['abs_error'] for r in done):.2f}" if done else "—"
         worst = (f"{statistics.median(r['max_mean_err_sd'] for r in done):.2f} / "
                  f"{max(r['max_mean_err_sd'] for r in done):.2f}") if done else "—"
-        se = "n/a (none reported)" if done and all(r["log_evidence_se"] != r["log_evidence_se"] for r in done) \
-            else f"{sum(r.get('covered_2se', False) for r in rs)}/{len(rs)}"
+        if not done:
+            se = "—"
+        elif all(r["log_evidence_se"] != r["log_evidence_se"] for r in done):
+            se = "n/a (none reported)"
+        else:
+            se = f"{sum(r.get('covered_2se', False) for r in rs)}/{len(rs)}"
         cpu_process = f"{med('cpu_process'):.1f}" if all("cpu_process" in r for r in rs) else "(in-process)"
         out.append(f"| {name} | {rs[0].get('version', '?')} | {len(rs)} | "
                    f"{sum(r['status'] == 'completed' for r in rs)}/{len(rs)} | {med('evaluations'):.3g} | "
@@ -226,6 +240,10 @@ def table(rows: list[dict]) -> str:
 
 def cmd_report(a) -> int:
     rows, notes = _load(Path(a.log))
+    versions = peer_versions(peer_python())
+    for r in rows:
+        if r.get("version", "?") == "?":
+            r["version"] = next((v for k, v in versions.items() if k in r["setting"].lower()), "?")
     gold = json.loads((mp.BENCH / "muscle_benchmark_gold.json").read_text())
     first, last = min(r["finished"] for r in rows), max(r["finished"] for r in rows)
     lines = [f"## Round {first[:16]} – {last[11:16]} UTC: hbm's collapsed tier and full default against the peers",
@@ -242,7 +260,7 @@ def cmd_report(a) -> int:
             lines.append(f"- {r['setting']} seed {r['seed']}: {r['status']} (wall {r.get('wall_total', 0):.0f} s; "
                          f"{r['evaluations']} evaluations, {r['cpu']:.0f} s CPU by then, so its time with 1 ms/row "
                          f"is ≥ {r['virtual_1ms']:.0f} s)")
-    section = "\n".join(lines) + "\n"
+    section = "\n".join(lines) + "\n\n"
     out = Path(a.out)
     prev = out.read_text() if out.exists() else "# hbm against evidence peers on the muscle benchmark\n"
     title, _, rest = prev.partition("\n")
