@@ -74,6 +74,25 @@ def test_evidence_peers_likelihood_equals_hbms():
     assert ours(outside)[0] == -np.inf
 
 
+def test_peers_round_rows_and_table():
+    """A capped peer run never counts as reaching the target; time to accuracy needs half the runs."""
+    pr = _load("peers_round")
+    gold = {"log_evidence": 164.03}
+    ok = pr.finish_row({"setting": "a", "seed": 0, "status": "completed", "evaluations": 30000, "cpu": 2.0,
+                        "log_evidence": 164.1, "log_evidence_se": 0.03, "max_mean_err_sd": 0.2}, gold)
+    assert ok["reached"] and not ok["covered_2se"] and ok["virtual_1ms"] == 32.0
+    stopped = pr.finish_row({"setting": "b", "seed": 0, "status": "stopped at its own timeout", "evaluations": 5,
+                             "cpu": 1.0, "log_evidence": 164.03, "log_evidence_se": float("nan"),
+                             "max_mean_err_sd": 0.0}, gold)
+    capped = pr.finish_row({"setting": "b", "seed": 1, "status": "capped", "evaluations": 10, "cpu": 1.0}, gold)
+    assert not stopped["reached"] and not capped["reached"]
+    miss = pr.finish_row({"setting": "a", "seed": 1, "status": "completed", "evaluations": 30000, "cpu": 3.0,
+                          "log_evidence": 163.5, "log_evidence_se": 0.3, "max_mean_err_sd": 0.1}, gold)
+    lines = pr.table([ok, miss, stopped, capped]).splitlines()
+    assert lines[2].startswith("| a |") and lines[2].rstrip().endswith("| 1/2 | **32 s** |")
+    assert lines[3].startswith("| b |") and lines[3].rstrip().endswith("| 0/2 | not reached |")
+
+
 def test_hierarchical_scaling_quick(tmp_path):
     mod = _load("hierarchical_scaling")
     assert mod.main(["--quick", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path), "--repeats", "1"]) == 0
