@@ -76,7 +76,7 @@ SETTINGS = {
 # at their defaults (pocoMC n_effective 512, nautilus n_live 2000, dynesty nlive 500); the caps keep
 # a round within ~15 min on the shared machine (a capped run is reported with what it had spent)
 PEERS = {
-    "pocoMC n_effective=512": ("evidence_peers.py", ["--peer", "pocomc", "--size", "512"], 780),
+    "pocoMC n_effective=512": ("evidence_peers.py", ["--peer", "pocomc", "--size", "512", "--total", "2048"], 780),
     "dynesty nlive=500": ("evidence_peers.py", ["--peer", "dynesty", "--size", "500"], 780),
     "nautilus n_live=2000 (own timeout 300 s)": ("evidence_peers.py", ["--peer", "nautilus", "--size", "2000",
                                                                        "--timeout", "300"], 500),

@@ -88,33 +88,40 @@ class Likelihood:
         return {k: float(abs(w @ comb[k] - g[k][0]) / g[k][1]) for k in g}
 
 
-def run_pocomc(lik: Likelihood, seed: int, size: int, timeout: float):
+def run_pocomc(lik: Likelihood, seed: int, size: int, timeout: float, total: int | None = None):
     import pocomc
     from scipy.stats import uniform
 
     prior = pocomc.Prior([uniform(lo, hi - lo) for lo, hi in zip(lik.lo, lik.hi)])
     sampler = pocomc.Sampler(prior=prior, likelihood=lik, vectorize=True, random_state=seed,
                              n_effective=size, n_active=size // 2)
-    sampler.run(n_total=4 * size, n_evidence=4 * size, progress=False)
+    # n_total / n_evidence: pocoMC's own defaults (4096) unless given; the flow's importance-sampling
+    # evidence (n_evidence draws) is what sampler.evidence() returns
+    kw = {} if total is None else {"n_total": total, "n_evidence": total}
+    sampler.run(progress=False, **kw)
     x, w, _, _ = sampler.posterior()
     logz, logz_err = sampler.evidence()
-    return x, np.asarray(w, float), float(logz), float(logz_err)
+    return x, np.asarray(w, float), float(logz), float(logz_err), {"completed": True}
 
 
-def run_nautilus(lik: Likelihood, seed: int, size: int, timeout: float):
+def run_nautilus(lik: Likelihood, seed: int, size: int, timeout: float, total: int | None = None):
     from nautilus import Prior, Sampler
 
     prior = Prior()
     for k, lo, hi in zip(NAMES, lik.lo, lik.hi):
         prior.add_parameter(k, dist=(lo, hi))
     sampler = Sampler(prior, lik, n_live=size, vectorized=True, pass_dict=False, seed=seed)
-    sampler.run(verbose=False, timeout=timeout)
+    # discard_exploration=True: nautilus's documented setting for an unbiased posterior and evidence
+    t = time.perf_counter()
+    sampler.run(verbose=False, timeout=timeout, discard_exploration=True)
+    completed = time.perf_counter() - t < timeout  # run() returns silently when the timeout is hit
     x, log_w, _ = sampler.posterior()
     # nautilus reports no error bar of log Z; its documentation states ~0.01–0.1 for n_eff 10⁴
-    return x, np.exp(log_w - log_w.max()), float(sampler.log_z), float("nan")
+    return x, np.exp(log_w - log_w.max()), float(sampler.log_z), float("nan"), {
+        "completed": bool(completed), "n_eff": float(sampler.n_eff)}
 
 
-def run_dynesty(lik: Likelihood, seed: int, size: int, timeout: float):
+def run_dynesty(lik: Likelihood, seed: int, size: int, timeout: float, total: int | None = None):
     import dynesty
 
     width = lik.hi - lik.lo
@@ -129,22 +136,23 @@ def run_dynesty(lik: Likelihood, seed: int, size: int, timeout: float):
     s.run_nested(dlogz=0.1, print_progress=False)
     r = s.results
     w = np.exp(r.logwt - r.logz[-1])
-    return r.samples, w, float(r.logz[-1]), float(r.logzerr[-1])
+    return r.samples, w, float(r.logz[-1]), float(r.logzerr[-1]), {"completed": True, "iterations": int(r.niter)}
 
 
 PEERS = {"pocomc": run_pocomc, "nautilus": run_nautilus, "dynesty": run_dynesty}
 
 
-def run(bench: Path, peer: str, seed: int, size: int, timeout: float, progress: Path | None = None) -> dict:
+def run(bench: Path, peer: str, seed: int, size: int, timeout: float, progress: Path | None = None,
+        total: int | None = None) -> dict:
     lik = Likelihood(bench, progress)
     mod = __import__(peer)
     t, c = time.perf_counter(), time.process_time()
-    x, w, logz, logz_err = PEERS[peer](lik, seed, size, timeout)
+    x, w, logz, logz_err, info = PEERS[peer](lik, seed, size, timeout, total)
     wall, cpu = time.perf_counter() - t, time.process_time() - c
     errs = lik.mean_errors(np.asarray(x, float), np.asarray(w, float))
     return {"peer": peer, "version": getattr(mod, "__version__", "?"), "size": size, "seed": seed,
             "wall": wall, "cpu": cpu, "evaluations": int(lik.rows), "log_evidence": logz,
-            "log_evidence_se": logz_err, "max_mean_err_sd": max(errs.values()), "mean_err_sd": errs}
+            "log_evidence_se": logz_err, "max_mean_err_sd": max(errs.values()), "mean_err_sd": errs, **info}
 
 
 def main(argv=None) -> int:
@@ -157,6 +165,7 @@ def main(argv=None) -> int:
     r.add_argument("--size", type=int, default=None, help="n_effective / n_live / nlive (peer default)")
     r.add_argument("--timeout", type=float, default=600.0, help="nautilus: stop after this many seconds")
     r.add_argument("--progress-file", default=None, help="JSON {evaluations, cpu} updated every ~2 s")
+    r.add_argument("--total", type=int, default=None, help="pocoMC n_total and n_evidence (default: pocoMC's, 4096)")
     k = sub.add_parser("check", help="log-likelihood at given parameter rows")
     k.add_argument("--bench", required=True)
     k.add_argument("--theta", required=True)
@@ -164,7 +173,7 @@ def main(argv=None) -> int:
     if a.mode == "run":
         size = a.size or {"pocomc": 512, "nautilus": 2000, "dynesty": 500}[a.peer]
         out = run(Path(a.bench), a.peer, a.seed, size, a.timeout,
-                  Path(a.progress_file) if a.progress_file else None)
+                  Path(a.progress_file) if a.progress_file else None, a.total)
     else:
         lik = Likelihood(Path(a.bench))
         rows = json.loads(Path(a.theta).read_text())
