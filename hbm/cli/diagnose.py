@@ -85,12 +85,13 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "(default): model error on curves marked digitised or group mean ('# digitised: yes', "
                         "'# kind: group mean', or those words in the provenance) or without noise at the "
                         "model-free scale, noise otherwise")
-    p.add_argument("--likelihood", choices=list(TIERS), default="auto",
-                   help="tier of every evidence run: auto (default) integrates the linear amplitudes exactly and "
+    p.add_argument("--likelihood", choices=list(TIERS), default="full",
+                   help="tier of every evidence run: full (default) samples every parameter; auto integrates the "
+                        "linear amplitudes exactly and "
                         "samples only the nonlinear and noise parameters where the model and noise allow it "
                         "and it is cheap (at most 3 amplitude columns); collapsed: wherever it applies, however "
-                        "dear; full: sample every parameter (the path before the collapsed tier, for "
-                        "comparison). Models without linear amplitudes (damage, series compliance) and "
+                        "dear (auto is not the default yet: it tilts comparisons between a collapsible and a full-space "
+                        "candidate, see results/detective_validation.md). Models without linear amplitudes (damage, series compliance) and "
                         "proportional noise always use the full likelihood; the tier of each fit is in the "
                         "output")
 

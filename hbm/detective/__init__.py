@@ -169,7 +169,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
-             correlated: str = "auto", max_time: float | None = None, likelihood: str = "auto") -> Diagnosis:
+             correlated: str = "auto", max_time: float | None = None, likelihood: str = "full") -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
@@ -220,8 +220,12 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Wall seconds after which no new fit is started (a fit under way finishes): the verdict
         so far is returned with ``stopped`` saying what was left undecided and why.  ``None``:
         no limit (the command line's default is 300 s).
-    likelihood : {"auto", "collapsed", "full"}
-        Tier of every evidence run (:meth:`.fitting.Fitter.collapsed`).  "auto": where the
+    likelihood : {"full", "auto", "collapsed"}
+        Tier of every evidence run (:meth:`.fitting.Fitter.collapsed`); default "full" (every
+        fit in full space).  Not yet "auto": a collapsible candidate's converged evidence against
+        a non-collapsible competitor's under-mixed full-space one tilts their comparison (library
+        case mullins_3: damage 13.0 vs viscoelastic 12.2 gave "group" where "full" names damage;
+        results/detective_validation.md).  "auto": where the
         model's stress is linear in at most ``COLLAPSED_MAX_COLUMNS`` amplitude columns and the
         noise keeps their integral Gaussian (iid, AR(1)), the amplitudes are integrated exactly
         and TMCMC samples only the nonlinear and noise parameters (its evidence estimates the
@@ -489,7 +493,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            top: int = 3, progress: bool = False, max_steps: int = 4,
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
            max_evaluations: int | None = None, correlated: str = "auto",
-           max_time: float | None = None, likelihood: str = "auto") -> Extension:
+           max_time: float | None = None, likelihood: str = "full") -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     One noise-model choice for the whole table, so that its Δlog Z are those of

@@ -274,7 +274,7 @@ class Fitter:
     """Shared settings of all fits in one diagnosis (same data, same noise prior)."""
 
     def __init__(self, data: SpecimenData, fix, seed: int, n_samples: int, sigma_bounds, progress: bool,
-                 max_evaluations: int | None = None, likelihood: str = "auto"):
+                 max_evaluations: int | None = None, likelihood: str = "full"):
         if likelihood not in TIERS:
             raise SettingError(f"likelihood must be one of {', '.join(TIERS)}, got {likelihood!r}")
         self.data, self.fix, self.seed = data, fix, seed
