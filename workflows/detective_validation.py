@@ -305,6 +305,12 @@ def run_case(c: dict, seed: int, diagnose, **kw) -> dict:
            # wall time of the refined evidence reruns of decisive comparisons (part of "seconds")
            "refine_seconds": round(float((dg.get("timings") or {}).get("refine", 0.0)), 1)}
     row.update(judge(c, dg))
+    # the likelihood tier and Δlog Z of each refit (tier comparisons: the same quantity estimated twice)
+    base = dg.get("base") or {}
+    row["base_tier"] = (base.get("likelihood_tier") or {}).get("tier")
+    row["refits"] = {c["effect"]: {"dlogz": c.get("delta_log_evidence"), "se": c.get("delta_log_evidence_se"),
+                                   "tier": (c.get("likelihood_tier") or {}).get("tier")}
+                     for c in dg.get("candidates") or [] if c.get("refit")}
     return row
 
 
@@ -351,6 +357,10 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", default=None, help="JSON rows of a 'before' run to put next to these")
     ap.add_argument("--compare-label", default="the code before issue 17", help="what the 'before' run was")
     ap.add_argument("--power-seeds", type=int, default=10)
+    ap.add_argument("--likelihood", default=None,
+                    help="likelihood tier(s) of diagnose, comma-separated (e.g. 'full,auto': each case is "
+                         "diagnosed with each tier in turn, interleaved, and the first tier's rows are the "
+                         "'before' column); default: diagnose's own default")
     args = ap.parse_args(argv)
     if args.hbm:
         sys.path.insert(0, args.hbm)
@@ -360,11 +370,17 @@ def main(argv=None) -> int:
     seeded = [(args.seed + k, c) for k, c in enumerate(cases(args.groups))]
     run = args.run_groups if args.run_groups is not None else args.groups
     todo = [sc for g in run for sc in seeded if sc[1]["group"] == g]
+    tiers = args.likelihood.split(",") if args.likelihood else [None]
+    by_tier: dict = {t: [] for t in tiers}
     for seed, c in todo:
-        rows.append(run_case(c, seed, diagnose))
-        r = rows[-1]
-        print(f"{r['case']:<16} expect {r['expect']:<12} got {r['verdict']:<13} {','.join(r['selected']):<26}"
-              f" {'ok' if r['ok'] else 'WRONG'}  [{r['seconds']} s]", flush=True)
+        for tier in tiers:     # interleaved: both tiers see the same machine load
+            r = run_case(c, seed, diagnose, **({} if tier is None else {"likelihood": tier}))
+            r["likelihood"] = tier or "default"
+            by_tier[tier].append(r)
+            rows.append(r)
+            print(f"{r['case']:<16} expect {r['expect']:<12} got {r['verdict']:<13} {','.join(r['selected']):<26}"
+                  f" {'ok' if r['ok'] else 'WRONG'}  [{r['seconds']} s, cpu {r['cpu_seconds']} s, {r['likelihood']}]",
+                  flush=True)
         if args.json:       # after every case: a long run stopped early keeps what it did
             Path(args.json).write_text(json.dumps({"rows": rows, "power": None}, indent=1, default=str))
     power = power_check(args.seed, args.power_seeds, diagnose) if "power" in run else None
@@ -372,6 +388,9 @@ def main(argv=None) -> int:
         Path(args.json).write_text(json.dumps({"rows": rows, "power": power}, indent=1, default=str))
     if args.hbm is None:
         before = json.loads(Path(args.compare).read_text())["rows"] if args.compare else None
+        if len(tiers) > 1:   # the first tier is the baseline of the last
+            before, rows = by_tier[tiers[0]], by_tier[tiers[-1]]
+            args.compare_label = f"--likelihood {tiers[0]} (same code, interleaved)"
         Path(args.out).write_text(report(rows, power, before, args.compare_label))
         print(f"wrote {args.out}")
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..collapse import TIERS
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
 from ..detective.caveats import CORRELATED_CHOICES
@@ -84,6 +85,15 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "(default): model error on curves marked digitised or group mean ('# digitised: yes', "
                         "'# kind: group mean', or those words in the provenance) or without noise at the "
                         "model-free scale, noise otherwise")
+    p.add_argument("--likelihood", choices=list(TIERS), default="full",
+                   help="tier of every evidence run: full (default) samples every parameter; auto integrates the "
+                        "linear amplitudes exactly and "
+                        "samples only the nonlinear and noise parameters where the model and noise allow it "
+                        "and it is cheap (at most 3 amplitude columns); collapsed: wherever it applies, however "
+                        "dear (auto is not the default yet: it tilts comparisons between a collapsible and a full-space "
+                        "candidate, see results/detective_validation.md). Models without linear amplitudes (damage, series compliance) and "
+                        "proportional noise always use the full likelihood; the tier of each fit is in the "
+                        "output")
 
 
 def register(subparsers) -> None:
@@ -142,7 +152,8 @@ def _prepare(args, extra: list[str]):
     if args.plot is not None:
         prepare_output_file(args.plot, "--plot")
     kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,
-          "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time}
+          "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
+          "likelihood": args.likelihood}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:

@@ -169,7 +169,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
-             correlated: str = "auto", max_time: float | None = None) -> Diagnosis:
+             correlated: str = "auto", max_time: float | None = None, likelihood: str = "full") -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
@@ -220,6 +220,19 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Wall seconds after which no new fit is started (a fit under way finishes): the verdict
         so far is returned with ``stopped`` saying what was left undecided and why.  ``None``:
         no limit (the command line's default is 300 s).
+    likelihood : {"full", "auto", "collapsed"}
+        Tier of every evidence run (:meth:`.fitting.Fitter.collapsed`); default "full" (every
+        fit in full space).  Not yet "auto": a collapsible candidate's converged evidence against
+        a non-collapsible competitor's under-mixed full-space one tilts their comparison (library
+        case mullins_3: damage 13.0 vs viscoelastic 12.2 gave "group" where "full" names damage;
+        results/detective_validation.md).  "auto": where the
+        model's stress is linear in at most ``COLLAPSED_MAX_COLUMNS`` amplitude columns and the
+        noise keeps their integral Gaussian (iid, AR(1)), the amplitudes are integrated exactly
+        and TMCMC samples only the nonlinear and noise parameters (its evidence estimates the
+        same full-model evidence under the same prior, with a far smaller scatter); elsewhere
+        (damage, series compliance, proportional noise, more columns) the full-space run.
+        "collapsed": wherever it applies; "full": every fit in full space.  Each fit's tier is
+        in the JSON (``likelihood_tier`` of the base and of every candidate).
 
     Returns
     -------
@@ -237,7 +250,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     noises = correlated_noises(noises, noise, correlated, digitised)
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
-    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations)
+    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, likelihood)
     if max_time is not None:
         fitter.deadline = t_start + float(max_time)
     timings["estimate"] = cost_estimate(base_model, cands, fitter, noises, top, max_effects)
@@ -480,7 +493,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            top: int = 3, progress: bool = False, max_steps: int = 4,
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
            max_evaluations: int | None = None, correlated: str = "auto",
-           max_time: float | None = None) -> Extension:
+           max_time: float | None = None, likelihood: str = "full") -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     One noise-model choice for the whole table, so that its Δlog Z are those of
@@ -500,7 +513,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, likelihood
         As in :func:`diagnose`.
 
     Returns
@@ -520,7 +533,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     mf = model_free_noise(d.stress, d.segment)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
-    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations)
+    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, likelihood)
     steps: list[FitSummary] = []
     decisions: list = []
     if adds:
@@ -541,7 +554,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         dg = diagnose(d.ds, model=current, candidates=candidates, fix=fix, seed=seed + 17,
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
                       noise=noise, max_effects=max_steps - len(adds), removal=False,
-                      max_evaluations=max_evaluations, correlated=correlated, max_time=max_time)
+                      max_evaluations=max_evaluations, correlated=correlated, max_time=max_time,
+                      likelihood=likelihood)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         # the diagnosis's own fits: the same model as the last given step, fitted (and its noise

@@ -19,9 +19,10 @@ import numpy as np
 
 from ..model.core import Effect, Model
 from .fitting import Fitter
-from .rules import N_CONTROL_REFITS, TMCMC_MAX_STEPS
+from .rules import (COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES, N_CONTROL_REFITS,
+                    TMCMC_MAX_STEPS)
 
-__all__ = ["cost_estimate", "revised_estimate", "stop_record", "fit_evaluations"]
+__all__ = ["cost_estimate", "revised_estimate", "stop_record", "fit_evaluations", "collapsed_evaluations"]
 
 #: TMCMC stages of a typical evidence run (β from 0 to 1; measured 10-16 on the validation)
 _STAGES = 13
@@ -40,10 +41,22 @@ def fit_evaluations(n_samples: int, n_noises: int) -> int:
     return int(_CMA_CALLS * _CMA_POP * n_noises + n_samples * TMCMC_MAX_STEPS * _STAGES)
 
 
+#: TMCMC stages of a collapsed evidence run (measured 6-10 on the validation and the 150-point record)
+_COLLAPSED_STAGES = 8
+
+
+def collapsed_evaluations(n_samples: int) -> int:
+    """Evaluations (rows of the collapsed likelihood) of one collapsed evidence run whose
+    importance finish is accepted: the small TMCMC run, the finish, the completion."""
+    return int(COLLAPSED_SAMPLES * COLLAPSED_MAX_STEPS * _COLLAPSED_STAGES + COLLAPSED_IMPORTANCE_DRAWS + n_samples)
+
+
 def _fit_seconds(fitter: Fitter, model: Model, noise: str, n_noises: int) -> float:
     """Expected wall seconds of one fit of ``model``: one timed batch of CMA-ES size and one of
     the TMCMC population (after an untimed call, so set-up costs are not counted), times the
-    calls a fit makes (per-call overheads included, which dominate for the cheap base model)."""
+    calls a fit makes (per-call overheads included, which dominate for the cheap base model).
+    Where the evidence run takes the collapsed tier (:meth:`Fitter.collapsed`) its batch is timed
+    on the collapsed likelihood and counted as :func:`collapsed_evaluations` rows."""
     lik = fitter.likelihood(model, noise)
     b = np.asarray(lik.bounds, float)
     n = max(int(fitter.n_samples), _CMA_POP)
@@ -54,7 +67,16 @@ def _fit_seconds(fitter: Fitter, model: Model, noise: str, n_noises: int) -> flo
     t1 = _time.perf_counter()
     lik(x)
     t2 = _time.perf_counter()
-    return _FIT_OVERHEAD + n_noises * _CMA_CALLS * (t1 - t0) + TMCMC_MAX_STEPS * _STAGES * (t2 - t1)
+    cma = n_noises * _CMA_CALLS * (t1 - t0)
+    cl, _ = fitter.collapsed(lik)
+    if cl is None:
+        return _FIT_OVERHEAD + cma + TMCMC_MAX_STEPS * _STAGES * (t2 - t1)
+    phi = x[:, cl.phi_index]
+    cl(phi[:2])
+    t3 = _time.perf_counter()
+    cl(phi)
+    per_row = (_time.perf_counter() - t3) / phi.shape[0]
+    return _FIT_OVERHEAD + cma + collapsed_evaluations(fitter.n_samples) * per_row
 
 
 def cost_estimate(base_model: Model, candidates: Sequence[Effect], fitter: Fitter, noises: Sequence[str],
@@ -89,7 +111,8 @@ def cost_estimate(base_model: Model, candidates: Sequence[Effect], fitter: Fitte
             f"and the decisive comparisons are rerun (rough; a fit of the base model ~{base_s:.1f} s, of a "
             f"candidate ~{med:.1f} s median" + (", dearest " + ", ".join(f"{n} {v:.1f} s" for n, v in dear) if dear else "")
             + f"; base fit + {refits} refits per round × {rounds} rounds + removal test; {fit_evaluations(fitter.n_samples, k)} "
-            "likelihood evaluations per fit; refits run one after the other)")
+            f"likelihood evaluations per full-space fit, ~{collapsed_evaluations(fitter.n_samples)} collapsed ones per "
+            f"collapsed fit ({fitter.tier} tier); refits run one after the other)")
     if fitter.deadline is not None:
         budget = fitter.deadline - _time.perf_counter()
         if seconds > budget:

@@ -13,16 +13,18 @@ from typing import Mapping, Sequence
 import cma
 import numpy as np
 
-from ..errors import HbmError
+from ..collapse import TIERS, CollapsedLikelihood, choose_tier, fit_collapsed, sample_collapsed
+from ..errors import HbmError, SettingError
 from ..likelihood import make_likelihood
 from ..model.core import Model
 from ..optimization import optimize
 from ..samplers.tmcmc import tmcmc
 from .inputs import SpecimenData, added_effects
 from .results import FitSummary
-from .rules import BAND, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL, TMCMC_REFINE_STEPS
+from .rules import (BAND, COLLAPSED_FALLBACK_SAMPLES, COLLAPSED_FALLBACK_STEPS, COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_COLUMNS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES,
+                    TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL, TMCMC_REFINE_STEPS)
 
-__all__ = ["Fitter", "coverage", "laplace_occam", "noise_evidence"]
+__all__ = ["Fitter", "coverage", "laplace_occam", "noise_evidence", "sample_tier"]
 
 
 def cma_maximise(lik, x0s: Sequence[np.ndarray], sigma0: float, seed: int, maxfevals: int,
@@ -91,6 +93,42 @@ def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None,
                      max_steps=int(max_steps), proposal=proposal, max_evaluations=max(int(max_evaluations), n))
     return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
                  max_steps=int(max_steps), proposal=proposal)
+
+
+def sample_tier(cl: CollapsedLikelihood, n_samples: int, seed: int, max_evaluations: int | None = None):
+    """The evidence run of the collapsed tier: TMCMC over φ only (the amplitudes integrated out
+    exactly, :class:`hbm.collapse.CollapsedLikelihood`), an importance finish in the same space,
+    then the full posterior by conditional draws of the amplitudes
+    (:func:`hbm.collapse.sample_collapsed`).
+
+    ``COLLAPSED_SAMPLES`` particles, ≤ ``COLLAPSED_MAX_STEPS`` MH steps per stage, an importance
+    finish of ``COLLAPSED_IMPORTANCE_DRAWS`` draws whose resampled draws give ``n_samples``
+    posterior rows.  When the finish is refused (k̂ > 0.7 or a low ESS, e.g. a relaxation time
+    the protocol hardly identifies) TMCMC runs again over φ with ``COLLAPSED_FALLBACK_SAMPLES``
+    particles (at most ``n_samples``) and ≤ ``COLLAPSED_FALLBACK_STEPS`` steps per stage, and its
+    evidence is used (both runs' evaluations counted).  With ``max_evaluations``: one TMCMC run of
+    ``n_samples`` particles under the cap.
+
+    Returns
+    -------
+    CollapsedFit
+        ``info["route"]`` says which route produced it.
+    """
+    if max_evaluations:
+        return fit_collapsed(cl, int(n_samples), seed=int(seed), max_evaluations=int(max_evaluations),
+                             max_steps=COLLAPSED_FALLBACK_STEPS)
+    out = sample_collapsed(cl, COLLAPSED_SAMPLES, seed=int(seed), max_steps=COLLAPSED_MAX_STEPS,
+                           importance_draws=COLLAPSED_IMPORTANCE_DRAWS, n_out=int(n_samples))
+    if out.evidence_source == "importance":
+        out.info["route"] = (f"TMCMC N={COLLAPSED_SAMPLES} (≤ {COLLAPSED_MAX_STEPS} steps/stage) + importance "
+                             f"finish ({COLLAPSED_IMPORTANCE_DRAWS} draws)")
+        return out
+    n2 = min(int(n_samples), COLLAPSED_FALLBACK_SAMPLES)
+    second = sample_collapsed(cl, n2, seed=int(seed) + 1, max_steps=COLLAPSED_FALLBACK_STEPS)
+    second.n_evaluations += out.n_evaluations
+    second.info["route"] = (f"importance finish of the small run refused ({out.importance.reason}); TMCMC "
+                            f"N={n2} (≤ {COLLAPSED_FALLBACK_STEPS} steps/stage)")
+    return second
 
 
 def laplace_occam(lik, x, all_names: Sequence[str], names: Sequence[str], samples: np.ndarray | None = None) -> float:
@@ -236,8 +274,13 @@ class Fitter:
     """Shared settings of all fits in one diagnosis (same data, same noise prior)."""
 
     def __init__(self, data: SpecimenData, fix, seed: int, n_samples: int, sigma_bounds, progress: bool,
-                 max_evaluations: int | None = None):
+                 max_evaluations: int | None = None, likelihood: str = "full"):
+        if likelihood not in TIERS:
+            raise SettingError(f"likelihood must be one of {', '.join(TIERS)}, got {likelihood!r}")
         self.data, self.fix, self.seed = data, fix, seed
+        #: the likelihood tier asked for (``--likelihood``): "auto", "collapsed" or "full"
+        self.tier = likelihood
+        self._tiers: dict[int, tuple] = {}        # id(lik) -> (lik, collapsed or None, note)
         self.n_samples, self.sigma_bounds, self.progress = n_samples, sigma_bounds, progress
         self.max_evaluations = max_evaluations   # per TMCMC evidence run (``--max-evaluations``)
         self.n = data.stress.size
@@ -272,6 +315,30 @@ class Fitter:
         """
         fix = dict(self.fix) if fix is None and self.fix else fix
         return make_likelihood(model, self.data.ds, noise=noise, fix=fix or None, sigma_bounds=self.sigma_bounds)
+
+    def collapsed(self, lik) -> tuple[CollapsedLikelihood | None, str]:
+        """The collapsed likelihood of ``lik`` for the evidence run (None: the full tier) and
+        one line saying which tier and why (:func:`hbm.collapse.choose_tier`).
+
+        Under ``"auto"`` a model with more than ``COLLAPSED_MAX_COLUMNS`` integrated amplitude
+        columns keeps the full tier: its nested quadrature costs ~2 ms per evaluation (an offset
+        or an exponential fibre term beside the base's three columns) against ~0.07 ms with
+        three, so its collapsed run would take minutes where the full one takes seconds.  The
+        choice depends only on the model, the noise model and the setting, never on a clock.
+        Each likelihood is examined once (the structure's numerical check is not free).
+        """
+        hit = self._tiers.get(id(lik))
+        if hit is not None and hit[0] is lik:
+            return hit[1], hit[2]
+        # "collapsed" in a diagnosis: wherever the tier exists, however dear (no error where it
+        # does not: damage, series compliance and proportional noise keep the full tier)
+        cl, note = choose_tier(lik, "auto" if self.tier == "collapsed" else self.tier)
+        if cl is not None and self.tier == "auto" and len(cl.free_columns) > COLLAPSED_MAX_COLUMNS:
+            note = (f"full likelihood (a collapsed tier exists, but its {len(cl.free_columns)} amplitude columns "
+                    f"({', '.join(cl.free_columns)}) make the quadrature dear; --likelihood collapsed forces it)")
+            cl = None
+        self._tiers[id(lik)] = (lik, cl, note)
+        return cl, note
 
     def warm_starts(self, prev: FitSummary, model: Model, noises: Sequence[str],
                     effect_starts: Sequence[Mapping[str, float]]) -> dict[str, list[np.ndarray]]:
@@ -314,7 +381,7 @@ class Fitter:
         fs.wall_time = _time.perf_counter() - t0
         self.log(f"fit {'+'.join(fs.effects) or 'base'} [{best}]: max logL {fs.max_log_likelihood:.2f}, "
                  f"log Z {fs.log_evidence:.2f} ± {fs.log_evidence_se:.2f}, RMSE {fs.rmse:.4g} "
-                 f"({fs.wall_time:.1f} s, CMA-ES {t_cma:.1f} s, TMCMC N={fs.samples.shape[0] if fs.samples is not None else 0}, "
+                 f"({fs.wall_time:.1f} s, CMA-ES {t_cma:.1f} s, {fs.tier} tier, {fs.n_evaluations} evaluations, "
                  f"{n_stages} stages)")
         return fs
 
@@ -400,22 +467,36 @@ class Fitter:
                     table[noise].update(x=x, max_log_likelihood=f, bic=self.bic(lik, f))
 
     def _sample(self, fs: FitSummary, seed: int, expected_log_z) -> int:
-        """TMCMC at the chosen noise model: evidence, samples, coverage; returns the stages run."""
+        """The evidence run at the chosen noise model (collapsed tier where :meth:`collapsed`
+        allows, else full-space TMCMC): evidence, samples, coverage; returns the TMCMC stages run."""
         lik = fs.likelihood
-        res = sample(lik, self.n_samples, seed, self.max_evaluations)
-        expected = None if expected_log_z is None else expected_log_z(fs.max_log_likelihood, len(lik.names))
-        if expected is not None and res.log_evidence < expected - 25.0:
-            res2 = sample(lik, self.n_samples, seed + 99991, self.max_evaluations)
-            self.log(f"  TMCMC rerun (log Z {res.log_evidence:.1f} far below the BIC-type "
-                     f"expectation {expected:.1f}) -> {res2.log_evidence:.1f}")
-            if res2.log_evidence > res.log_evidence:
-                res = res2
-        fs.samples = np.asarray(res.samples)
-        fs.log_evidence = float(res.log_evidence)
-        fs.log_evidence_se = float(res.log_evidence_se)
+        cl, note = self.collapsed(lik)
+        fs.tier, fs.tier_note = ("full", note) if cl is None else ("collapsed", note)
+        if cl is not None:
+            cf = sample_tier(cl, self.n_samples, seed, self.max_evaluations)
+            samples, log_z, log_z_se = cf.samples, cf.log_evidence, cf.log_evidence_se
+            ll, stages, evals = cf.log_likelihood, len(cf.tmcmc.stages), cf.n_evaluations
+            fs.tier_info = {k: v for k, v in cf.info.items() if k in (
+                "sampled", "integrated_columns", "evidence_source", "quadrature_error", "route")}
+        else:
+            res = sample(lik, self.n_samples, seed, self.max_evaluations)
+            expected = None if expected_log_z is None else expected_log_z(fs.max_log_likelihood, len(lik.names))
+            if expected is not None and res.log_evidence < expected - 25.0:
+                res2 = sample(lik, self.n_samples, seed + 99991, self.max_evaluations)
+                self.log(f"  TMCMC rerun (log Z {res.log_evidence:.1f} far below the BIC-type "
+                         f"expectation {expected:.1f}) -> {res2.log_evidence:.1f}")
+                if res2.log_evidence > res.log_evidence:
+                    res = res2
+            samples, log_z, log_z_se = res.samples, res.log_evidence, res.log_evidence_se
+            ll, stages, evals = res.log_likelihood, len(res.stages), res.n_evaluations
+            fs.tier_info = {}
+        fs.n_evaluations = int(evals)
+        fs.samples = np.asarray(samples)
+        fs.log_evidence = float(log_z)
+        fs.log_evidence_se = float(log_z_se)
         fs.refined_log_evidence = fs.refined_log_evidence_se = float("nan")
-        # the TMCMC population may contain a better point than CMA-ES found
-        ll = np.asarray(res.log_likelihood)
+        # the posterior population may contain a better point than CMA-ES found
+        ll = np.asarray(ll)
         j = int(np.argmax(ll))
         if ll[j] > fs.max_log_likelihood:
             fs.theta_max, fs.max_log_likelihood = fs.samples[j].copy(), float(ll[j])
@@ -425,7 +506,7 @@ class Fitter:
             fs.bic = self.bic(lik, fs.max_log_likelihood)
         fs.predictive = coverage(lik, fs.samples, self.data, seed)
         fs.coverage = fs.predictive["overall"]
-        return len(res.stages)
+        return stages
 
     def refine(self, fs: FitSummary, seed: int) -> None:
         """Rerun ``fs``'s evidence with the refined settings (``TMCMC_REFINE_PROPOSAL`` walk, up to
@@ -436,6 +517,11 @@ class Fitter:
         fit (the next round's, the controls') stays between runs of the same settings.
         """
         if np.isfinite(fs.refined_log_evidence) or fs.likelihood is None:
+            return
+        if fs.tier == "collapsed":
+            # the collapsed run is not under-mixed the way the 25-step full-space runs are (its
+            # importance finish converges to |Δlog Z| ≲ 0.1): it is its own refined value
+            fs.refined_log_evidence, fs.refined_log_evidence_se = fs.log_evidence, fs.log_evidence_se
             return
         t0 = _time.perf_counter()
         res = sample(fs.likelihood, self.n_samples, seed, self.max_evaluations, max_steps=TMCMC_REFINE_STEPS,

@@ -55,6 +55,20 @@ class FitSummary:
     #: posterior-predictive band and its coverage (overall, per test, along strain), from
     #: :func:`hbm.detective.fitting.coverage`; empty when the fit was not sampled
     predictive: dict = field(default_factory=dict, repr=False)
+    #: likelihood tier of the evidence run: "collapsed" (amplitudes integrated exactly, TMCMC over
+    #: the nonlinear and noise parameters, :meth:`hbm.detective.fitting.Fitter.collapsed`) or "full"
+    tier: str = ""
+    #: one line: which tier and why
+    tier_note: str = ""
+    #: the collapsed run's route, evidence source and quadrature error (empty for the full tier)
+    tier_info: dict = field(default_factory=dict, repr=False)
+    #: likelihood evaluations of the evidence run (collapsed: basis evaluations)
+    n_evaluations: int = 0
+
+    def tier_dict(self) -> dict:
+        """JSON-ready tier record of this fit's evidence run."""
+        return {"tier": self.tier or None, "note": self.tier_note, "evaluations": int(self.n_evaluations),
+                **jsonable(self.tier_info)}
 
     def interval(self, name: str, q: tuple[float, float] = (0.025, 0.975)) -> tuple[float, float]:
         """Posterior quantiles of parameter ``name`` (NaN when not sampled or not free)."""
@@ -132,7 +146,8 @@ class CandidateResult:
                 "shape_detail": self.shape_detail,
                 "white_noise_gain": _num(self.white_gain) if self.white_gain is not None else None,
                 "placements": dict(self.placements),
-                "placement_ties": {k: [_num(x) for x in v] for k, v in self.placement_ties.items()}}
+                "placement_ties": {k: [_num(x) for x in v] for k, v in self.placement_ties.items()},
+                "likelihood_tier": self.fit.tier_dict() if self.fit is not None else None}
 
 
 def gain(c: CandidateResult | None) -> float:
@@ -245,6 +260,7 @@ class Diagnosis:
                      "rmse": _num(self.base.rmse), "log_evidence": _num(self.base.log_evidence),
                      "log_evidence_se": _num(self.base.log_evidence_se),
                      "max_log_likelihood": _num(self.base.max_log_likelihood),
+                     "likelihood_tier": self.base.tier_dict(),
                      "theta": {n: _num(v) for n, v in zip(self.base.names, self.base.theta_max)}},
             "coverage": jsonable(self.coverage),
             "misfit_window_detail": jsonable(self.window_detail),
@@ -373,6 +389,7 @@ class Extension:
                            "log_evidence_se": _num(s.log_evidence_se),
                            "coverage": _num(s.coverage), "noise": s.noise,
                            "max_log_likelihood": _num(s.max_log_likelihood),
+                           "likelihood_tier": s.tier_dict(),
                            "gain_over_previous": jsonable(self.step_gain(i))} for i, s in enumerate(self.steps)],
                 "decisions": jsonable(self.decisions), "stopped": jsonable(self.stopped)}
 

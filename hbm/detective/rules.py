@@ -41,6 +41,25 @@ TMCMC_MIN_SAMPLES = 250
 # 1.7, covers their scatter); the stages still run to the cap (the decorrelation criterion is not met)
 TMCMC_REFINE_STEPS = 50
 TMCMC_REFINE_PROPOSAL = "local"
+# the collapsed tier (issue 27; Fitter.collapsed): where a model's amplitudes integrate exactly, its
+# evidence run samples only the nonlinear and noise parameters: a small TMCMC run and an importance
+# finish (hbm.collapse's pilot settings).  On validation case qlv_0 (three rates, 105 points), base +
+# viscoelastic, iid, seeds 0-2: the full-space 25-step run gave log Z 493.4 / 500.3 / 496.9 (2 s
+# CPU each), this 502.96 / 502.93 (finish accepted, 1.7 s) and one refusal; qlv_1: full 427.0 /
+# 424.4 / 422.9, this 427.64 / 427.66 / 427.62.  300 particles × 4 steps + 4000 draws was refused
+# in 7 of 9 such runs.  A refused finish (k̂ > 0.7 or ESS < 200) is followed by a collapsed TMCMC run
+# of COLLAPSED_FALLBACK_SAMPLES particles with ≤ COLLAPSED_FALLBACK_STEPS steps per stage.  On the
+# 90-point QLV case of tests/test_detective_tiers.py (finish refused in 3/3 seeds; long full-space
+# runs, N 2000 ≤ 100 steps: 420.8, 419.7): N 400 ≤ 10 steps 418.5 / 418.7 / 417.3 (low), N 400
+# ≤ 25 steps 420.3 / 420.3 (7.5 s CPU), N 800 ≤ 25 steps 420.7 / 420.2 (15 s)
+COLLAPSED_SAMPLES = 500
+COLLAPSED_MAX_STEPS = 5
+COLLAPSED_IMPORTANCE_DRAWS = 10_000
+COLLAPSED_FALLBACK_SAMPLES = 400
+COLLAPSED_FALLBACK_STEPS = 25
+#: integrated columns above which "auto" keeps the full tier (3: ~0.07 ms per evaluation of the
+#: 150-point record; 4, e.g. base + offset: ~2 ms, a minute per run against a second in full)
+COLLAPSED_MAX_COLUMNS = 3
 TMCMC_SE_FACTOR = 2.5     # reported SE × this covers the seed-to-seed scatter of Δlog Z (12 seeds, README)
 MIN_POINTS = 5            # the smallest curve diagnose/extend accept (as hbm fit)
 FEW_POINTS = 10           # below this a one-line warning says the detective has little power
