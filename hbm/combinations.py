@@ -255,13 +255,24 @@ def combination_features(names: Sequence[str], samples, bounds, **quadrature) ->
     return phi, log_density(phi, box, **quadrature)
 
 
-def fibre_point(phi, bounds, names: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def fibre_point(phi, bounds, names: Sequence[str] | None = None, *,
+                box: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One (VOLF, P1, T1, GF, GM) with combinations φ, and whether φ is in the support of p0.
 
     Each box limit of P1 = e^{y1}/c, T1 = e^{y2}/(1−c) and of G = c·GF + (1−c)·GM is a half-line
     in c; φ lies in the support iff their intersection with c's box is not empty.  The point
     takes c mid-way in that interval and GF, GM at the same fraction of their boxes (a
     deterministic point of the fibre: the likelihood is the same anywhere on it).
+
+    Parameters
+    ----------
+    phi : array (n, 3)
+        log G, log c·P1, log (1−c)·T1.
+    bounds, names
+        As in :func:`combination_box`.
+    box : array (5, 2), optional
+        That box, already built: callers that call this in a sampler's inner loop pass it once-built
+        (validating the box each call cost ~10 % of the hierarchical exact fallback's CPU).
 
     Returns
     -------
@@ -271,7 +282,7 @@ def fibre_point(phi, bounds, names: Sequence[str] | None = None) -> tuple[np.nda
         Exactly where :func:`log_density` is finite.
     """
     phi = _check_phi(phi)
-    box = combination_box(bounds, names)
+    box = combination_box(bounds, names) if box is None else box
     (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = box
     G, a, b = np.exp(phi[:, 0]), np.exp(phi[:, 1]), np.exp(phi[:, 2])
     lo = np.maximum(ca, a / pb)

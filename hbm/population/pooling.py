@@ -20,8 +20,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .. import io, seeds
-from ..combinations import (COMBINATION_PARAMS, combination_features, fibre_point, log_density,
-                            sample_conditional, support_hull, to_features)
+from ..combinations import (COMBINATION_PARAMS, combination_box, combination_features, fibre_point,
+                            log_density, sample_conditional, support_hull, to_features)
 from ..errors import HbmError
 from ..model import COMBINATIONS
 from ..samplers.hierarchical import auto_pool
@@ -222,6 +222,7 @@ class PhiCoordinates:
         self.comb = [self.names.index(p) for p in COMBINATION_PARAMS]
         self.other = [j for j, n in enumerate(self.names) if n not in COMBINATION_PARAMS]
         self.box = np.vstack([np.asarray(hull, float), self.bounds[self.other]])
+        self.cbox = combination_box(self.bounds, self.names)  # built once: theta_of is in the sampler's inner loop
         self.names_y = list(COMBINATION_COLUMNS) + [self.names[j] for j in self.other]
 
     def y_of(self, theta: np.ndarray) -> np.ndarray:
@@ -230,7 +231,7 @@ class PhiCoordinates:
 
     def theta_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A θ with combinations φ = y[:, :3] (:func:`hbm.combinations.fibre_point`) and whether one exists."""
-        parts, ok = fibre_point(y[:, :3], self.bounds, self.names)
+        parts, ok = fibre_point(y[:, :3], self.bounds, self.names, box=self.cbox)
         theta = np.empty((y.shape[0], len(self.names)))
         theta[:, self.comb] = parts
         theta[:, self.other] = y[:, 3:]

@@ -170,10 +170,10 @@ class ExactState:
     def _log_q(self, y: np.ndarray, mix=None) -> np.ndarray:
         """log density of the Gaussian-mixture proposal (default ``self.mix``) at ``y``."""
         logw, mu, L, logdet = self.mix if mix is None else mix
-        terms = np.empty((y.shape[0], logw.size))
-        for m in range(logw.size):  # few components; vectorised over chains
-            a = np.linalg.solve(L[m], (y - mu[m]).T)
-            terms[:, m] = logw[m] - 0.5 * np.sum(a * a, axis=0) - logdet[m]
+        # all components at once (one batched inverse of the few small factors instead of a solve
+        # per component: this runs several times per sweep, so numpy call overhead dominates)
+        a = np.einsum("mij,mnj->nmi", np.linalg.inv(L), y[None, :, :] - mu[:, None, :])
+        terms = logw - 0.5 * np.einsum("nmi,nmi->nm", a, a) - logdet
         mx = terms.max(axis=1)
         return mx + np.log(np.exp(terms - mx[:, None]).sum(axis=1)) - 0.5 * y.shape[1] * np.log(2 * np.pi)
 
