@@ -18,7 +18,7 @@ from typing import Any, Mapping
 from .errors import SettingError
 
 __all__ = ["SEED_LIMIT", "MAX_WORKERS_PER_CORE", "check_seed", "check_int", "check_positive", "check_workers",
-           "check_physical_bounds"]
+           "usable_cores", "check_physical_bounds"]
 
 #: seeds are non-negative integers below 2**32 (numpy's legacy seeding inside cma and SALib)
 SEED_LIMIT = 2 ** 32
@@ -64,6 +64,14 @@ def check_positive(value: Any, name: str) -> float:
     if not (math.isfinite(v) and v > 0):
         raise SettingError(f"{name}: expected a finite number > 0, got {value!r}")
     return v
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS tells it, else the count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:      # (not on macOS / Windows)
+        return os.cpu_count() or 1
 
 
 def check_workers(value: Any, name: str = "workers") -> int:

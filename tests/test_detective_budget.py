@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import pytest
 
+import hbm
 from hbm.cli import main
 from hbm.data import protocol, ramp, save_specimen, synthetic_specimen
 from hbm.detective import diagnose, extend
@@ -70,3 +72,79 @@ def test_extend_auto_and_diagnose_report_the_same_evidence():
     assert f"{g['delta_log_evidence']:.1f} ± {g['delta_log_evidence_se']:.1f}" in ext.table()
     assert ext.to_dict()["steps"][1]["gain_over_previous"]["delta_log_evidence"] == pytest.approx(
         g["delta_log_evidence"])
+
+
+class _SlowOffset(hbm.Effect):
+    """An offset whose every stress batch sleeps: a user model far slower than the base model,
+    so that one refit of it outlasts the whole --max-time."""
+
+    name = "slow_offset"
+    stage = "output"
+    description = "constant offset, evaluated slowly (a stand-in for an expensive user model)"
+    parameters = (hbm.Parameter("SLOW_S0", -0.02, 0.02, "MPa", "offset", null=0.0),)
+
+    def modify(self, state, p, stress):
+        time.sleep(0.05)
+        return stress + p["SLOW_S0"]
+
+
+def test_a_fit_under_way_stops_at_max_time():
+    """The deadline falls inside a refit that would take minutes (≥ 0.05 s per batch, thousands
+    of batches): the refit is interrupted at its next batch and listed as undecided, and the
+    diagnosis returns within --max-time (it keeps a reserve for what follows the last fit),
+    not after the refit's end."""
+    ds = _offset_curve(6)
+    t0 = time.perf_counter()
+    dg = diagnose(ds, seed=1, n_samples=200, candidates=[_SlowOffset()], max_time=12.0, removal=True)
+    wall = time.perf_counter() - t0
+    assert wall < 12.0, wall
+    whats = {u["what"]: u["why"] for u in dg.stopped["undecided"]}
+    assert "interrupted at --max-time" in whats["refit of slow_offset"]
+    slow = next(c for c in dg.candidates if c.effect == "slow_offset")
+    assert not slow.refit and slow.fit is None       # nothing half-fitted is reported as a result
+    assert dg.verdict != "adequate"
+
+
+def test_extend_add_guards_against_ar1_absorbing_a_misfit():
+    """The issue's case: the given effect (an offset) is real, but a second, unlisted one
+    (viscoelastic relaxation on two rates) leaves a smooth misfit that AR(1) noise would soak
+    up.  extend --add runs diagnose's guard on the most complete model: AR(1) is rejected (the
+    data prefer white noise + a generic shape), every step is compared at a white noise model,
+    and the table says why."""
+    m = spyrou_model() + make_effect("offset") + make_effect("viscoelastic")
+    prot = protocol([ramp(0.25, 1e-3, 30)], [ramp(0.25, 1e-1, 30)])
+    ds = synthetic_specimen(m, {**TH, "S0": 0.006, "G1": 0.25, "LOGTAU1": 0.5}, prot, 0.0012, seed=3)
+    plain = extend(ds, add=["offset"], seed=3, n_samples=200, noise_models=("iid", "ar1"),
+                   correlated="noise")
+    assert {s.noise for s in plain.steps} == {"iid"}
+    assert any(n.startswith("AR(1) noise rejected") for n in plain.notes)
+    assert "AR(1) noise rejected" in plain.table() and plain.to_dict()["notes"] == plain.notes
+    # without the guard (AR(1) forced) the misfit is absorbed and the offset's gain shrinks
+    forced = extend(ds, add=["offset"], seed=3, n_samples=200, noise="ar1")
+    assert plain.step_gain(1)["delta_log_evidence"] > forced.step_gain(1)["delta_log_evidence"] + 3
+
+
+def test_refits_in_worker_processes_match_the_serial_ones():
+    """The candidate refits of a round run in forked worker processes: every number of the
+    diagnosis is the serial one, bitwise (each refit has its own seed), and a user effect
+    class crosses to the workers."""
+    ds = _offset_curve(7, n=30)
+    kw = dict(seed=2, n_samples=200, candidates=["offset", _SlowOffsetFast()], removal=False, noise="iid",
+              max_effects=1)
+    one, two = diagnose(ds, workers=1, **kw), diagnose(ds, workers=2, **kw)
+    assert two.timings["workers"] == 2 and one.timings["workers"] == 1
+    a, b = one.to_dict(), two.to_dict()
+    for x in (a, b):
+        x.pop("timings")
+    assert a == b
+    assert sum(c.refit for c in two.candidates) >= 3      # the parallel path ran
+
+
+class _SlowOffsetFast(_SlowOffset):
+    """The user effect of the test above without the sleep (a class defined in this module)."""
+
+    name = "user_offset"
+    parameters = (hbm.Parameter("USER_S0", -0.02, 0.02, "MPa", "offset", null=0.0),)
+
+    def modify(self, state, p, stress):
+        return stress + p["USER_S0"]

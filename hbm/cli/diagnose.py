@@ -15,7 +15,7 @@ from ..model import spyrou_model
 from ..utils import prepare_output_file
 from ._common import (n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
                       check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
-                      name_list, non_negative_int, plot_path, positive_float, print_json, sample_size)
+                      name_list, non_negative_int, plot_path, positive_float, print_json, sample_size, workers)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
@@ -78,6 +78,9 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help=f"wall seconds after which no new fit is started (default {DEFAULT_MAX_TIME:.0f}); the "
                         "verdict so far, with the candidates not yet decided and why, is written (text, JSON, "
                         "figure) and the command exits 0")
+    p.add_argument("--workers", type=workers, default=None, metavar="K",
+                   help="processes the candidate refits of a round run in (default: the usable cores; 0 or 1: "
+                        "all in this process); the results do not depend on it")
     p.add_argument("--noise", default=None, metavar="iid|ar1|proportional|...",
                    help="force one noise model for every fit (default: chosen by evidence)")
     p.add_argument("--correlated", choices=CORRELATED_CHOICES, default="auto",
@@ -153,7 +156,7 @@ def _prepare(args, extra: list[str]):
         prepare_output_file(args.plot, "--plot")
     kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,
           "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
-          "likelihood": args.likelihood}
+          "likelihood": args.likelihood, "workers": args.workers}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:

@@ -5,9 +5,8 @@
   (CMA-ES per noise model + the TMCMC stages), summed over the fits a diagnosis usually runs;
 * :func:`stop_record` -- after a stop: the verdict so far, the steps not run and why.
 
-The refits run one after the other in this process (they share the fitter's warm starts and
-the base fit they re-optimise; dask workers would each rebuild the likelihoods), so the
-estimate is a sum.
+The refits of a round run in ``fitter.workers`` forked processes (one refit each, all started
+from the same base fit), so a round's refits cost about their sum over the workers.
 """
 
 from __future__ import annotations
@@ -22,7 +21,8 @@ from .fitting import Fitter
 from .rules import (COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES, N_CONTROL_REFITS,
                     TMCMC_MAX_STEPS)
 
-__all__ = ["cost_estimate", "revised_estimate", "stop_record", "fit_evaluations", "collapsed_evaluations"]
+__all__ = ["cost_estimate", "revised_estimate", "stop_record", "stop_reserve", "fit_evaluations",
+           "collapsed_evaluations"]
 
 #: TMCMC stages of a typical evidence run (β from 0 to 1; measured 10-16 on the validation)
 _STAGES = 13
@@ -102,7 +102,10 @@ def cost_estimate(base_model: Model, candidates: Sequence[Effect], fitter: Fitte
     med = float(np.median(list(cand_s.values()))) if cand_s else base_s
     rounds = min(2, 1 + int(max_effects))
     refits = max(0, int(top)) + N_CONTROL_REFITS
-    seconds = base_s * 2 + (max(0, int(top)) * med + N_CONTROL_REFITS * base_s) * rounds
+    # a round's refits share the workers (one refit each): their sum over the workers, at least the dearest
+    per_round = max(0, int(top)) * med + N_CONTROL_REFITS * base_s
+    per_round = max(per_round / min(fitter.workers, refits or 1), med if top else base_s)
+    seconds = base_s * 2 + per_round * rounds
     dear = sorted(cand_s.items(), key=lambda kv: -kv[1])[:3]
     # decisive comparisons are rerun with twice the MH steps (refits.refine_decisive): up to
     # about twice the sampling of the base and every refit again
@@ -112,9 +115,11 @@ def cost_estimate(base_model: Model, candidates: Sequence[Effect], fitter: Fitte
             f"candidate ~{med:.1f} s median" + (", dearest " + ", ".join(f"{n} {v:.1f} s" for n, v in dear) if dear else "")
             + f"; base fit + {refits} refits per round × {rounds} rounds + removal test; {fit_evaluations(fitter.n_samples, k)} "
             f"likelihood evaluations per full-space fit, ~{collapsed_evaluations(fitter.n_samples)} collapsed ones per "
-            f"collapsed fit ({fitter.tier} tier); refits run one after the other)")
+            f"collapsed fit ({fitter.tier} tier); refits in {fitter.workers} process"
+            f"{'es' if fitter.workers > 1 else ''}, and a candidate whose optimum cannot gain enough to be named "
+            "skips its evidence run, so often less)")
     if fitter.deadline is not None:
-        budget = fitter.deadline - _time.perf_counter()
+        budget = fitter.seconds_left()
         if seconds > budget:
             text += f"; above the --max-time of {budget:.0f} s: the verdict so far will be written when it is reached"
     return {"seconds": float(seconds), "seconds_with_reruns": float(seconds + refined), "base_fit_seconds": float(base_s), "candidate_fit_seconds": cand_s,
@@ -126,6 +131,18 @@ def revised_estimate(estimate: dict, base_wall: float) -> str:
     f = base_wall / max(estimate["base_fit_seconds"], 1e-9)
     return (f"base fit took {base_wall:.1f} s ({f:.1f}x its estimate): revised estimate of the whole diagnosis "
             f"~{estimate['seconds'] * f:.0f} s")
+
+
+#: wall seconds a stopped diagnosis keeps for what follows its last fit -- the misfit windows at
+#: the best base (calibrated by simulation), the Laplace gains, the caveats, and the command's
+#: text, JSON and figure: 3-12 s on the 150-point three-rate record (results/multirate_relaxation)
+_STOP_RESERVE = 20.0
+
+
+def stop_reserve(max_time: float) -> float:
+    """Seconds before ``max_time`` at which fits stop, so that the written verdict lands within
+    ``max_time``: ``_STOP_RESERVE``, or a tenth of a short ``max_time``."""
+    return min(_STOP_RESERVE, 0.1 * max(float(max_time), 0.0))
 
 
 def stop_record(fitter: Fitter, max_time: float | None, t_start: float) -> dict:

@@ -6,8 +6,10 @@ the candidate refits, each step of :func:`hbm.extend`).
 from __future__ import annotations
 
 import math
+import multiprocessing as mp
 import sys
 import time as _time
+from concurrent.futures import ProcessPoolExecutor
 from typing import Mapping, Sequence
 
 import cma
@@ -24,7 +26,35 @@ from .results import FitSummary
 from .rules import (BAND, COLLAPSED_FALLBACK_SAMPLES, COLLAPSED_FALLBACK_STEPS, COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_COLUMNS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES,
                     TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL, TMCMC_REFINE_STEPS)
 
-__all__ = ["Fitter", "coverage", "laplace_occam", "noise_evidence", "sample_tier"]
+__all__ = ["Fitter", "FitInterrupted", "coverage", "laplace_occam", "noise_evidence", "sample_tier"]
+
+
+class FitInterrupted(Exception):
+    """A fit stopped at the diagnosis's ``max_time`` (raised by a :class:`_Guarded` likelihood:
+    the step that ran it is recorded as undecided, and the verdict so far stands)."""
+
+
+class _Guarded:
+    """A likelihood (full or collapsed) that raises :class:`FitInterrupted` once its fitter's
+    deadline has passed.  Checked before every batch of evaluations, so a fit under way stops at
+    its next batch -- within a fraction of a second -- rather than at its end (a refit of a slow
+    candidate takes minutes on a busy machine).  Every other attribute is the wrapped object's."""
+
+    __slots__ = ("_lik", "_fitter")
+
+    def __init__(self, lik, fitter: "Fitter"):
+        object.__setattr__(self, "_lik", lik)
+        object.__setattr__(self, "_fitter", fitter)
+
+    def __call__(self, *args, **kwargs):
+        self._fitter.check_time()
+        return self._lik(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._lik, name)
+
+    def __setattr__(self, name, value):
+        setattr(self._lik, name, value)
 
 
 def cma_maximise(lik, x0s: Sequence[np.ndarray], sigma0: float, seed: int, maxfevals: int,
@@ -274,7 +304,7 @@ class Fitter:
     """Shared settings of all fits in one diagnosis (same data, same noise prior)."""
 
     def __init__(self, data: SpecimenData, fix, seed: int, n_samples: int, sigma_bounds, progress: bool,
-                 max_evaluations: int | None = None, likelihood: str = "full"):
+                 max_evaluations: int | None = None, likelihood: str = "full", workers: int = 1):
         if likelihood not in TIERS:
             raise SettingError(f"likelihood must be one of {', '.join(TIERS)}, got {likelihood!r}")
         self.data, self.fix, self.seed = data, fix, seed
@@ -285,13 +315,58 @@ class Fitter:
         self.max_evaluations = max_evaluations   # per TMCMC evidence run (``--max-evaluations``)
         self.n = data.stress.size
         self.refine_seconds = 0.0                 # wall time of the refined evidence reruns
-        self.deadline: float | None = None        # perf_counter() time of --max-time (None: no limit)
+        #: wall-clock (``time.time()``) moment of --max-time (None: no limit); the wall clock, not
+        #: perf_counter, because the refits' worker processes read it too
+        self.deadline: float | None = None
+        self.workers = max(1, int(workers))       # processes of the refits (1: this one)
+        self._pool = None
+        #: once True (after the base fit), a fit running past ``deadline`` is interrupted
+        #: (:class:`FitInterrupted`); before, fits run to their end (a diagnosis needs its base fit)
+        self.interruptible = False
         #: what was left undecided when the deadline passed: (what, why) in order
         self.undecided: list[tuple[str, str]] = []
 
     def out_of_time(self) -> bool:
-        """Has the diagnosis's ``max_time`` passed?  (Checked between fits: a fit under way finishes.)"""
-        return self.deadline is not None and _time.perf_counter() > self.deadline
+        """Has the diagnosis's ``max_time`` passed?  (No new step starts after it.)"""
+        return self.deadline is not None and _time.time() > self.deadline
+
+    def seconds_left(self) -> float:
+        """Seconds until the deadline (inf without one)."""
+        return math.inf if self.deadline is None else self.deadline - _time.time()
+
+    def pool(self):
+        """The worker processes of the candidate refits (None: refit in this process).
+
+        Created at its first use, after the base fit, by forking this process: the workers start
+        with the data, the compiled model and the user's effect modules already loaded, and no
+        argument but the refit's own inputs crosses (pickled).  None where fork is unavailable
+        or ``workers`` is 1."""
+        if self._pool is None and self.workers > 1 and "fork" in mp.get_all_start_methods():
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"))
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the worker processes (if any)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __getstate__(self):
+        # a worker gets the settings and caches, not the pool
+        state = dict(self.__dict__)
+        state["_pool"] = None
+        return state
+
+    def guard(self, lik):
+        """``lik`` for an optimiser's or sampler's loop: interrupted at the deadline (once
+        :attr:`interruptible`).  Only the long loops are guarded -- the cheap steps after them
+        (Laplace curvatures, predictions) run to their end, so a stop never leaves a fit half-read."""
+        return _Guarded(lik, self)
+
+    def check_time(self) -> None:
+        """Raise :class:`FitInterrupted` when the deadline has passed and fits are interruptible."""
+        if self.interruptible and self.out_of_time():
+            raise FitInterrupted("max_time reached")
 
     def skip(self, what: str, why: str) -> None:
         """Record a step left undecided at the deadline (and say so in the progress log)."""
@@ -373,17 +448,25 @@ class Fitter:
                         noise="", names=[], theta_max=np.zeros(0), max_log_likelihood=-np.inf, bic=np.inf,
                         rmse=np.nan, model=model, noise_fits=table)
         self.choose(fs, seed, sample=False)
-        best = fs.noise
-        t_cma = _time.perf_counter() - t0
-        n_stages = 0
-        if sample:
-            n_stages = self._sample(fs, seed, expected_log_z)
         fs.wall_time = _time.perf_counter() - t0
-        self.log(f"fit {'+'.join(fs.effects) or 'base'} [{best}]: max logL {fs.max_log_likelihood:.2f}, "
+        if sample:
+            self.evidence_run(fs, seed, expected_log_z)
+        else:
+            self.log(f"fit {'+'.join(fs.effects) or 'base'} [{fs.noise}]: max logL {fs.max_log_likelihood:.2f}, "
+                     f"RMSE {fs.rmse:.4g} (optimum only, {fs.wall_time:.1f} s)")
+        return fs
+
+    def evidence_run(self, fs: FitSummary, seed: int, expected_log_z=None) -> None:
+        """The evidence run of a fit made with ``sample=False`` (or of :meth:`fit` itself): TMCMC
+        (or the collapsed tier) at its chosen noise model -- log Z, posterior, coverage."""
+        t0 = _time.perf_counter()
+        n_stages = self._sample(fs, seed, expected_log_z)
+        t_cma = fs.wall_time
+        fs.wall_time += _time.perf_counter() - t0
+        self.log(f"fit {'+'.join(fs.effects) or 'base'} [{fs.noise}]: max logL {fs.max_log_likelihood:.2f}, "
                  f"log Z {fs.log_evidence:.2f} ± {fs.log_evidence_se:.2f}, RMSE {fs.rmse:.4g} "
                  f"({fs.wall_time:.1f} s, CMA-ES {t_cma:.1f} s, {fs.tier} tier, {fs.n_evaluations} evaluations, "
                  f"{n_stages} stages)")
-        return fs
 
     def choose(self, fs: FitSummary, seed: int, sample: bool = True) -> None:
         """(Re)choose ``fs``'s noise model by evidence (:func:`noise_evidence`) among its
@@ -402,6 +485,12 @@ class Fitter:
             return
         score = {k: noise_evidence(v, fs.model.parameter_names) for k, v in fs.noise_fits.items()}
         self._apply(fs, noise, score, seed, True)
+
+    def settle(self, fs: FitSummary) -> None:
+        """Copy the optimum of ``fs``'s own noise model from its ``noise_fits`` into ``fs`` (after a
+        re-optimisation stopped part-way), keeping its noise model and evidence run."""
+        score = {k: noise_evidence(v, fs.model.parameter_names) for k, v in fs.noise_fits.items()}
+        self._apply(fs, fs.noise, score, 0, False)
 
     def _apply(self, fs: FitSummary, best: str, score: dict, seed: int, sample: bool) -> None:
         table = fs.noise_fits
@@ -435,15 +524,15 @@ class Fitter:
             guess = lik.noise_model.moment_guess(r)
             x0 = np.array([vals.get(n, guess.get(n, np.nan)) for n in lik.names])
             x0s = [fill_nan(x0, b)] + x0s[:1]
-            x, f = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=800)
+            x, f = cma_maximise(self.guard(lik), x0s, 0.02, seed + 7 * k, maxfevals=800)
         elif global_restarts:
-            x, f = global_fit(lik, seed + 101 * k, global_restarts)
+            x, f = global_fit(self.guard(lik), seed + 101 * k, global_restarts)
             if x0s:
-                x2, f2 = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=1000)
+                x2, f2 = cma_maximise(self.guard(lik), x0s, 0.02, seed + 7 * k, maxfevals=1000)
                 if f2 > f:
                     x, f = x2, f2
         else:
-            x, f = cma_maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=1500)
+            x, f = cma_maximise(self.guard(lik), x0s, 0.02, seed + 7 * k, maxfevals=1500)
         return {"bic": self.bic(lik, f), "max_log_likelihood": f, "x": x, "lik": lik}
 
     def _cross_seed(self, noises: Sequence[str], table: dict, seed: int) -> None:
@@ -462,7 +551,7 @@ class Fitter:
                 own = dict(zip(lik.names, table[noise]["x"]))
                 x0 = np.array([vals[n] if (n in vals and n in lik.model.parameter_names) else own[n]
                                for n in lik.names])
-                x, f = cma_maximise(lik, [fill_nan(x0, b)], 0.01, seed + 31, maxfevals=500)
+                x, f = cma_maximise(self.guard(lik), [fill_nan(x0, b)], 0.01, seed + 31, maxfevals=500)
                 if f > table[noise]["max_log_likelihood"]:
                     table[noise].update(x=x, max_log_likelihood=f, bic=self.bic(lik, f))
 
@@ -473,16 +562,16 @@ class Fitter:
         cl, note = self.collapsed(lik)
         fs.tier, fs.tier_note = ("full", note) if cl is None else ("collapsed", note)
         if cl is not None:
-            cf = sample_tier(cl, self.n_samples, seed, self.max_evaluations)
+            cf = sample_tier(self.guard(cl), self.n_samples, seed, self.max_evaluations)
             samples, log_z, log_z_se = cf.samples, cf.log_evidence, cf.log_evidence_se
             ll, stages, evals = cf.log_likelihood, len(cf.tmcmc.stages), cf.n_evaluations
             fs.tier_info = {k: v for k, v in cf.info.items() if k in (
                 "sampled", "integrated_columns", "evidence_source", "quadrature_error", "route")}
         else:
-            res = sample(lik, self.n_samples, seed, self.max_evaluations)
+            res = sample(self.guard(lik), self.n_samples, seed, self.max_evaluations)
             expected = None if expected_log_z is None else expected_log_z(fs.max_log_likelihood, len(lik.names))
             if expected is not None and res.log_evidence < expected - 25.0:
-                res2 = sample(lik, self.n_samples, seed + 99991, self.max_evaluations)
+                res2 = sample(self.guard(lik), self.n_samples, seed + 99991, self.max_evaluations)
                 self.log(f"  TMCMC rerun (log Z {res.log_evidence:.1f} far below the BIC-type "
                          f"expectation {expected:.1f}) -> {res2.log_evidence:.1f}")
                 if res2.log_evidence > res.log_evidence:
@@ -524,7 +613,7 @@ class Fitter:
             fs.refined_log_evidence, fs.refined_log_evidence_se = fs.log_evidence, fs.log_evidence_se
             return
         t0 = _time.perf_counter()
-        res = sample(fs.likelihood, self.n_samples, seed, self.max_evaluations, max_steps=TMCMC_REFINE_STEPS,
+        res = sample(self.guard(fs.likelihood), self.n_samples, seed, self.max_evaluations, max_steps=TMCMC_REFINE_STEPS,
                      proposal=TMCMC_REFINE_PROPOSAL)
         fs.refined_log_evidence = float(res.log_evidence)
         fs.refined_log_evidence_se = float(res.log_evidence_se)

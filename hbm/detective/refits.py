@@ -12,15 +12,18 @@ parameters at the optimum next to the TMCMC difference ± SE.
 from __future__ import annotations
 
 import math
+import pickle
+from dataclasses import fields
 from typing import Sequence
 
 import numpy as np
 
 from ..effects import placements
 from ..model.core import Effect, Model
-from .fitting import Fitter, cma_maximise, laplace_occam
+from .fitting import FitInterrupted, Fitter, cma_maximise, laplace_occam
 from .results import CandidateResult, FitSummary, gain
-from .rules import DELTA_LOGZ_MIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN, TMCMC_SE_FACTOR
+from .rules import (DELTA_LOGZ_MIN, EVIDENCE_RUN_MIN_GAIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN,
+                    TMCMC_SE_FACTOR)
 
 __all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains", "decisive",
            "to_refine", "refine_decisive", "placement_models", "placement_text"]
@@ -57,19 +60,82 @@ def refit_candidates(results: list[CandidateResult], controls: list[CandidateRes
         k0 = len(phys)
         todo = [todo[k0]] + todo[:k0] + todo[k0 + 1:]
     done = []
-    for k, c in todo:
-        if fitter.out_of_time():
-            fitter.skip(f"refit of {c.effect}", f"screened (z {max(c.score, c.local_z):.1f}), not refitted: "
+    for (k, c), status in zip(todo, _run_refits(todo, base, fitter, noises, seed)):
+        z = max(c.score, c.local_z)
+        if status == "late":
+            fitter.skip(f"refit of {c.effect}", f"screened (z {z:.1f}), not refitted: its evidence gain is unknown")
+        elif status == "interrupted":
+            fitter.skip(f"refit of {c.effect}", f"screened (z {z:.1f}); its refit was interrupted at --max-time: "
                         "its evidence gain is unknown")
-            continue
-        refit_candidate(c, base, fitter, noises, seed + 1000 * (k + 1))
-        done.append(c)
+        else:
+            done.append(c)
     done = [c for c in phys + ctrl if c in done]
-    if reoptimise_base(base, done, fitter, seed + 77):
-        fitter.log(f"base re-optimised from the refits: max logL {base.max_log_likelihood:.2f} [{base.noise}]")
+    if fitter.out_of_time():
+        fitter.skip("re-optimisation of the base from the refits", "gains are measured against the base as fitted")
+    else:
+        try:
+            if reoptimise_base(base, done, fitter, seed + 77):
+                fitter.log(f"base re-optimised from the refits: max logL {base.max_log_likelihood:.2f} "
+                           f"[{base.noise}]")
+        except FitInterrupted:
+            # optima improved before the stop are kept, at the base's current noise model (a
+            # change of noise model would need a new evidence run)
+            fitter.settle(base)
+            fitter.skip("re-optimisation of the base from the refits (interrupted)",
+                        "gains are measured against the best base found before the stop")
     evidence_gains(done, base)
     refine_decisive(done, base, fitter, seed + 555)
     return done
+
+
+def _refit_one(c: CandidateResult, base: FitSummary, fitter: Fitter, noises: Sequence[str], seed: int) -> str:
+    """Refit ``c`` in place: "done", "interrupted" (at the deadline) or "late" (not started)."""
+    if fitter.out_of_time():
+        return "late"
+    try:
+        refit_candidate(c, base, fitter, noises, seed)
+    except FitInterrupted:
+        return "interrupted"
+    return "done"
+
+
+def _refit_task(c: CandidateResult, base: FitSummary, fitter: Fitter, noises: Sequence[str],
+                seed: int) -> tuple[str, CandidateResult, float]:
+    """:func:`_refit_one` in a worker process, on copies: its status, the refitted candidate and
+    the seconds its refined reruns took."""
+    t = fitter.refine_seconds
+    status = _refit_one(c, base, fitter, noises, seed)
+    return status, c, fitter.refine_seconds - t
+
+
+def _run_refits(todo: list[tuple[int, CandidateResult]], base: FitSummary, fitter: Fitter,
+                noises: Sequence[str], seed: int) -> list[str]:
+    """Refit every candidate of ``todo`` (``(k, c)``, seed ``seed + 1000 (k + 1)``), in place; the
+    status of each, in order.
+
+    With the fitter's worker pool (:meth:`.fitting.Fitter.pool`, more than one core) the refits
+    run in parallel, one process each; every refit depends only on its own seed, the data and
+    the base fit, so the results are those of the serial loop, bitwise, whatever the number of
+    workers.  A candidate that cannot be sent to a worker (an effect class that does not
+    pickle) makes the round serial."""
+    seeds = [seed + 1000 * (k + 1) for k, _ in todo]
+    pool = fitter.pool() if len(todo) > 1 else None
+    if pool is not None:
+        try:
+            pickle.dumps((todo, base, fitter))
+        except Exception:    # noqa: BLE001 -- e.g. a user effect defined in a closure: run serially
+            pool = None
+    if pool is None:
+        return [_refit_one(c, base, fitter, noises, sd) for (_, c), sd in zip(todo, seeds)]
+    futures = [pool.submit(_refit_task, c, base, fitter, noises, sd) for (_, c), sd in zip(todo, seeds)]
+    out = []
+    for (_, c), fut in zip(todo, futures):
+        status, got, secs = fut.result()
+        for f in fields(CandidateResult):       # the worker refitted a copy: take its state
+            setattr(c, f.name, getattr(got, f.name))
+        fitter.refine_seconds += secs
+        out.append(status)
+    return out
 
 
 def decisive(c: CandidateResult) -> bool:
@@ -122,7 +188,12 @@ def refine_decisive(refitted: Sequence[CandidateResult], base: FitSummary, fitte
         fitter.skip("refined evidence of " + ", ".join(c.effect for c in todo),
                     "the standard 25-step evidence stands for this comparison")
         return []
-    fitter.refine(base, seed)
+    try:
+        fitter.refine(base, seed)
+    except FitInterrupted:
+        fitter.skip("refined evidence of " + ", ".join(c.effect for c in todo),
+                    "interrupted at --max-time: the standard 25-step evidence stands for this comparison")
+        return []
     done = []
     for k, c in enumerate(todo):
         if fitter.out_of_time():
@@ -131,8 +202,13 @@ def refine_decisive(refitted: Sequence[CandidateResult], base: FitSummary, fitte
             fitter.skip("refined evidence of " + ", ".join(x.effect for x in todo[k:]),
                         "their standard 25-step evidence stands")
             break
+        try:
+            fitter.refine(c.fit, seed + 1 + k)
+        except FitInterrupted:
+            fitter.skip("refined evidence of " + ", ".join(x.effect for x in todo[k:]),
+                        "interrupted at --max-time: their standard 25-step evidence stands")
+            break
         done.append(c)
-        fitter.refine(c.fit, seed + 1 + k)
         std = c.delta_log_evidence_tmcmc
         _evidence_gain(c, c.fit, base)
         fitter.log(f"  {c.effect}: refined Δlog Z {c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f} "
@@ -157,7 +233,7 @@ def reoptimise_base(base: FitSummary, refitted: Sequence[CandidateResult], fitte
                 continue
             vals = dict(zip(ent["lik"].names, ent["x"]))
             x0 = np.array([vals.get(n, v) for n, v in zip(own["lik"].names, own["x"])], float)
-            x, f = cma_maximise(own["lik"], [x0], 0.01, seed + 13 * k, maxfevals=300)
+            x, f = cma_maximise(fitter.guard(own["lik"]), [x0], 0.01, seed + 13 * k, maxfevals=300)
             if f > own["max_log_likelihood"] + 1e-9:
                 own.update(x=x, max_log_likelihood=f, bic=fitter.bic(own["lik"], f))
                 changed = True
@@ -252,8 +328,11 @@ def refit_candidate(c: CandidateResult, base: FitSummary, fitter: Fitter, noises
     ``c.placement_ties`` the placements the data do not tell apart.
     """
     fits = []
-    for k, (mc, e, moved) in enumerate(placement_models(base.model, c.effect_instance, fitter.data.loading)):
-        fits.append((_refit_model(c, mc, e, base, fitter, noises, seed + 31 * k), e, moved))
+    models = placement_models(base.model, c.effect_instance, fitter.data.loading)
+    for k, (mc, e, moved) in enumerate(models):
+        # one placement: its evidence run only when its likelihood gain can matter
+        fits.append((_refit_model(c, mc, e, base, fitter, noises, seed + 31 * k, gate=len(models) == 1
+                                  and c.physical), e, moved))
     if len(fits) > 1:
         for k, (fs, e, moved) in enumerate(fits):
             fitter.refine(fs, seed + 500 + k)
@@ -287,8 +366,14 @@ def placement_text(moved: dict[str, str]) -> str:
 
 
 def _refit_model(c: CandidateResult, mc: Model, e: Effect, base: FitSummary, fitter: Fitter,
-                 noises: Sequence[str], seed: int) -> FitSummary:
-    """CMA-ES (warm and global) + TMCMC of ``mc``, the base model with ``c``'s effect ``e``."""
+                 noises: Sequence[str], seed: int, gate: bool = False) -> FitSummary:
+    """CMA-ES (warm and global) + TMCMC of ``mc``, the base model with ``c``'s effect ``e``.
+
+    With ``gate`` the TMCMC evidence run is made only when the optimum gains more than
+    ``EVIDENCE_RUN_MIN_GAIN`` in log-likelihood over the base: below, the candidate's gain (capped
+    by its likelihood gain) cannot name it or tie it with a named effect, and the evidence run of
+    a slow candidate (series compliance, damage: minutes on a busy machine) would buy nothing.
+    Its gain is then the Laplace estimate (``evidence_method`` "laplace")."""
     starts = fitter.warm_starts(base, mc, noises, [c.start, {q.name: q.null for q in e.parameters}, c.score_start])
     if c.local_full:
         # the local refit's optimum with its own base parameters
@@ -307,7 +392,15 @@ def _refit_model(c: CandidateResult, mc: Model, e: Effect, base: FitSummary, fit
 
     # a global search besides the warm starts: absorbing the misfit may have moved the base
     # parameters far from where the model with the new term fits best
-    return fitter.fit(mc, noises, starts, seed, global_restarts=1, expected_log_z=expect)
+    fs = fitter.fit(mc, noises, starts, seed, global_restarts=1, expected_log_z=expect, sample=not gate)
+    if gate:
+        dl = fs.max_log_likelihood - base.max_log_likelihood
+        if dl > EVIDENCE_RUN_MIN_GAIN:
+            fitter.evidence_run(fs, seed, expect)
+        else:
+            fitter.log(f"  {c.effect}: no evidence run (likelihood gain {dl:+.1f} ≤ {EVIDENCE_RUN_MIN_GAIN:g}: "
+                       f"its capped gain cannot reach {DELTA_LOGZ_MIN:g}); Laplace estimate used")
+    return fs
 
 
 def _null_test(c: CandidateResult, e: Effect, fs: FitSummary) -> bool | None:
@@ -325,7 +418,7 @@ def _null_test(c: CandidateResult, e: Effect, fs: FitSummary) -> bool | None:
             continue
         lo, hi = fs.interval(q.name)
         c.intervals[q.name] = (lo, hi, q.null)
-        if q.name in primary and q.name in fs.names:
+        if q.name in primary and q.name in fs.names and fs.samples is not None:
             col = fs.samples[:, fs.names.index(q.name)]
             sdv = float(np.std(col))
             excl.append(bool((lo > q.null or hi < q.null) and abs(np.median(col) - q.null) > 2 * sdv))

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..model.core import Model
 from ..model.spyrou import BASE_EFFECTS
-from .fitting import Fitter, cma_maximise, laplace_occam
+from .fitting import FitInterrupted, Fitter, cma_maximise, laplace_occam
 from .results import FitSummary
 
 __all__ = ["removal_test"]
@@ -33,7 +33,8 @@ def removal_test(base: FitSummary, fitter: Fitter, seed: int) -> list[dict]:
     model = base.model
     out = []
     full = dict(zip(base.names, base.theta_max))
-    for k, part in enumerate(p for p in BASE_EFFECTS if p in model.effect_names):
+    parts = [p for p in BASE_EFFECTS if p in model.effect_names]
+    for k, part in enumerate(parts):
         effects = [e for e in model.effects if e.name != part]
         try:
             reduced = Model(effects, name=f"{model.name} without {part}")
@@ -44,7 +45,12 @@ def removal_test(base: FitSummary, fitter: Fitter, seed: int) -> list[dict]:
         lik = fitter.likelihood(reduced, base.noise, fix=fix)
         b = np.asarray(lik.bounds, float)
         x0 = np.clip([full.get(n, 0.5 * (lo + hi)) for n, (lo, hi) in zip(lik.names, b)], b[:, 0], b[:, 1])
-        x, f = cma_maximise(lik, [x0], 0.05, seed + 7 * k, maxfevals=1200)
+        try:
+            x, f = cma_maximise(fitter.guard(lik), [x0], 0.05, seed + 7 * k, maxfevals=1200)
+        except FitInterrupted:
+            fitter.skip("the removal test of " + ", ".join(parts[k:]), "interrupted at --max-time: whether the "
+                        "data need these parts is not known")
+            break
         occ = laplace_occam(base.likelihood, base.theta_max, base.names, removed, base.samples)
         dl = float(f - base.max_log_likelihood)
         dz = dl - occ    # removing the parameters gives back their Occam factor (≤ 0)

@@ -303,19 +303,28 @@ class Diagnosis:
                      "(Laplace: the screen's estimate); intervals: TMCMC posterior 95 %")
         lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ ± SE':>15}"
                      f"{'Laplace':>9}{'RMSE before':>12}{'after':>11}  noise  interval of new parameter")
+        any_unsampled = False
         for c in self.candidates:
             # the curvature (Laplace) intervals stay in the JSON: beside the TMCMC ones they mislead
             # (local curvature at the optimum, up to 10x narrower where the posterior is skewed)
-            iv = "; ".join(f"{k} [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in c.intervals.items()
-                           if not k.endswith("(Laplace)"))
+            unsampled = c.refit and c.evidence_method == "laplace"
+            iv = "; ".join((f"{k} [{v[0]:.3g}, {v[1]:.3g}]" if np.isfinite(v[0]) and np.isfinite(v[1]) else
+                            f"{k} undefined (flat or at a box edge)") + f" (null {v[2]:.3g})"
+                           for k, v in c.intervals.items() if k.endswith("(Laplace)") == unsampled)
             if c.refit:
-                tm = f"{c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f}"
+                tm = (f"{c.delta_log_evidence:.1f} ± {c.delta_log_evidence_se:.1f}" if not unsampled else
+                      f"{c.delta_log_evidence:.1f} (L)†")
+                any_unsampled |= unsampled
                 lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{tm:>15}"
                              f"{c.delta_log_evidence_laplace:>9.1f}{c.rmse_before:>12.4g}{c.rmse_after:>11.4g}  "
                              f"{c.noise or '':<6} {iv}")
             else:
                 lines.append(f"{c.effect:<20}{c.score:>8.2f}{c.local_z:>8.2f}{c.absorbed:>9.2f}{'—':>15}{'':>9}"
                              f"{c.rmse_before:>12.4g}{'':>11}")
+        if any_unsampled:
+            lines.append("†: no evidence run -- its likelihood gain at the optimum cannot reach the "
+                         f"{DELTA_LOGZ_MIN:g}-nat threshold, so the run could not change the verdict; Δlog Z is the "
+                         "Laplace estimate and the interval the curvature one")
         if self.noise.get("preference"):
             lines.append(f"noise: {self.noise['preference']}")
         if len(self.steps) > 1:
@@ -371,6 +380,9 @@ class Extension:
     #: ``{"delta_log_evidence", "delta_log_evidence_se", "evidence_method"}`` -- for the effects
     #: ``auto`` added, the diagnosis's own numbers (its refined reruns where it made them)
     gains: list = field(default_factory=list)
+    #: how the given steps' noise model was chosen (one line each), e.g. an AR(1) rejected by
+    #: diagnose's guard
+    notes: list = field(default_factory=list)
 
     def step_gain(self, i: int) -> dict | None:
         """Step ``i``'s gain over step ``i - 1`` (None for the first step)."""
@@ -391,7 +403,7 @@ class Extension:
                            "max_log_likelihood": _num(s.max_log_likelihood),
                            "likelihood_tier": s.tier_dict(),
                            "gain_over_previous": jsonable(self.step_gain(i))} for i, s in enumerate(self.steps)],
-                "decisions": jsonable(self.decisions), "stopped": jsonable(self.stopped)}
+                "decisions": jsonable(self.decisions), "stopped": jsonable(self.stopped), "notes": list(self.notes)}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict())
@@ -412,6 +424,7 @@ class Extension:
         rows.append("dlogZ(prev): evidence gain over the previous step, SE calibrated to the seed-to-seed scatter"
                     + ("; *: from the refined evidence reruns of the diagnosis (log Z column: standard runs)"
                        if refined else ""))
+        rows += list(self.notes)
         if self.stopped:
             rows.append(self.stopped["text"])
         return "\n".join(rows)

@@ -25,6 +25,11 @@ BAND = 0.90               # posterior-predictive band used for coverage
 CONTROL_NAME = "local_misfit"
 MIN_REFIT_SCORE = 1.0     # screen z below which a candidate is not refitted
 N_CONTROL_REFITS = 2      # controls refitted (the best always, the next when its screen is remarkable)
+#: a physical refit whose CMA-ES likelihood gain over the base stays at or below this gets no
+#: evidence run: its gain (capped by the likelihood gain, decision.gain) cannot reach
+#: DELTA_LOGZ_MIN, so it can be neither named nor tied; the Laplace estimate is reported instead.
+#: Half the threshold leaves room for an evidence run finding a better optimum than CMA-ES
+EVIDENCE_RUN_MIN_GAIN = DELTA_LOGZ_MIN / 2
 MAX_EFFECTS = 3           # greedy additions of diagnose (each with the same rule, re-screened)
 SCREEN_STEPS = (1e-4, 0.1, 0.3)  # derivative and secant steps (fractions of the box width)
 
