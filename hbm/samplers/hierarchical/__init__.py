@@ -20,7 +20,8 @@ sum of their logs.  By concept:
   with the specimens' lock-step states and moves (:mod:`.chain_states`), its Gaussian-mixture
   proposal (:mod:`.mixture`) and R-hat/ESS (:mod:`.convergence`);
 * :mod:`.psis` -- Pareto-smoothed importance sampling k̂;
-* :mod:`.result` -- :class:`HierarchicalResult`.
+* :mod:`.result` -- :class:`HierarchicalResult` (the products of TMCMC over ψ that it shares with
+  :mod:`.posterior`'s ``LayerFit``: :class:`~.result.LayerProducts`).
 
 This package is sampler-layer code: it knows nothing about muscles.
 """
