@@ -4,6 +4,9 @@ TMCMC: :mod:`.tmcmc` (pure ``init``/``step`` and the driver ``tmcmc``), :mod:`.t
 state, stage info, result), :mod:`.moves` (the Move protocol and registry: random walk,
 manifold, local walk), :mod:`.coordinates`, :mod:`.resampling`, :mod:`.checkpoint`, :mod:`.linalg`,
 :mod:`.chains` (the islands, or importance batches, as independent chains for R-hat).
+Importance-sampling evidence: :mod:`.importance` (PSIS k̂: :mod:`.psis`); the mixture proposals
+fitted to posterior draws, by weighted EM there and by k-means in the hierarchical exact fallback:
+:mod:`.mixtures`.
 ``hbm.samplers.tmcmc`` is the module; the driver function is ``hbm.samplers.tmcmc.tmcmc`` (also
 ``hbm.tmcmc``).
 """

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .resampling import resample_islands
+
 __all__ = ["Chains", "POOLED", "spread_tolerance", "block_chains", "importance_batches",
            "MIN_SPREAD", "MAX_SPREAD", "SPREAD_SDS"]
 
@@ -152,7 +154,7 @@ def importance_batches(log_weights: np.ndarray, n_out: int, k: int,
 
     The draws are split into ``k`` interleaved batches (row i belongs to batch i mod k); if
     :func:`block_chains` keeps them, each batch is resampled systematically from its own normalised
-    weights into ``n_out // k`` rows (chain-major).  Otherwise the indices are None and the caller
+    weights into ``n_out // k`` rows (chain-major; :func:`~hbm.samplers.resampling.resample_islands`).  Otherwise the indices are None and the caller
     resamples the pooled draws.  Interleaved, not contiguous: when the finish combined rounds from
     two proposals (balance-heuristic weights against their draw-count mixture), every batch holds
     both rounds in the mixture's proportions, so each batch's weights remain valid for its own draws.
@@ -192,11 +194,5 @@ def importance_batches(log_weights: np.ndarray, n_out: int, k: int,
     chains = block_chains(z, sd, int(n_out), "importance_batches", BATCH_NOTE)
     if chains.n_chains == 1:
         return None, chains
-    per = int(n_out) // k
-    cum = np.cumsum(w / np.add.reduceat(w, starts)[isl])
-    offset = np.concatenate([[0.0], cum[starts[1:] - 1]])
-    cw = cum - offset[isl] + isl  # batch j occupies (j, j + 1]
-    out_isl = np.repeat(np.arange(k), per)
-    u = out_isl + (rng.random(k)[out_isl] + np.tile(np.arange(per), k)) / per
-    idx = np.searchsorted(cw, u, side="right")
-    return order[np.clip(idx, starts[out_isl], starts[out_isl] + sizes[out_isl] - 1)], chains
+    # every top is finite here (block_chains pooled otherwise)
+    return order[resample_islands(lw, top, starts, sizes, isl, rng, "systematic", n_per=int(n_out) // k)], chains

@@ -24,9 +24,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import gammaln, logsumexp
+from scipy.special import logsumexp
 
 from ..errors import HbmError
+from .mixtures import TMixture, weighted_em, weighted_moments
 from .psis import K_HAT_THRESHOLD, pareto_khat
 
 __all__ = ["ImportanceResult", "importance_evidence", "MIN_ESS", "FINISH_MIXTURE", "FINISH_RESERVE"]
@@ -89,105 +90,30 @@ def _logit(x, lo, hi):
     return np.log(t) - np.log1p(-t)
 
 
-class _Proposal:
-    """A mixture of multivariate t components in the logit coordinates u of the box.
-
-    ``components``: (weight, mean (d,), covariance (d, d), df) tuples; weights are normalised.
-    """
-
-    def __init__(self, components) -> None:
-        w = np.array([c[0] for c in components], float)
-        self.weights = w / w.sum()
-        d = np.asarray(components[0][1]).size
-        self.means = [np.asarray(c[1], float) for c in components]
-        self.chols = [np.linalg.cholesky(np.asarray(c[2], float) + 1e-10 * np.eye(d)) for c in components]
-        self.dfs = [float(c[3]) for c in components]
-
-    def draw(self, m: int, rng: np.random.Generator) -> np.ndarray:
-        d = self.means[0].size
-        which = rng.choice(len(self.weights), size=m, p=self.weights) if len(self.weights) > 1 else np.zeros(m, int)
-        z = rng.standard_normal((m, d))
-        g = np.empty(m)
-        u = np.empty((m, d))
-        for i, (mean, L, df) in enumerate(zip(self.means, self.chols, self.dfs)):
-            sel = which == i
-            g[sel] = rng.chisquare(df, int(sel.sum())) / df
-            u[sel] = mean + (z[sel] @ L.T) / np.sqrt(g[sel])[:, None]
-        return u
-
-    def logpdf(self, u: np.ndarray) -> np.ndarray:
-        d = u.shape[1]
-        terms = []
-        for w, mean, L, df in zip(self.weights, self.means, self.chols, self.dfs):
-            sol = np.linalg.solve(L, (u - mean).T).T
-            maha = np.einsum("ij,ij->i", sol, sol)
-            terms.append(np.log(w) + gammaln((df + d) / 2) - gammaln(df / 2) - 0.5 * d * np.log(df * np.pi)
-                         - np.log(np.diag(L)).sum() - 0.5 * (df + d) * np.log1p(maha / df))
-        return logsumexp(np.stack(terms), axis=0)
-
-
-def _weighted_moments(u: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    w = w / w.sum()
-    mean = w @ u
-    return mean, ((u - mean).T * w) @ (u - mean)
-
-
 def _ess(w: np.ndarray) -> float:
     return float(w.sum() ** 2 / (w * w).sum()) if w.sum() > 0 else 0.0
 
 
-def _mixture_fit(u: np.ndarray, w: np.ndarray, k: int, rng: np.random.Generator, iters: int = 60):
-    """Weighted EM for a k-component Gaussian mixture of draws ``u`` with weights ``w``.
-
-    Returns (weights, means, covariances) or None when the fit degenerates (the caller keeps
-    one component).  Each covariance gets 1e-6 of the overall one, so none collapses to a point.
-    """
-    n, d = u.shape
-    w = w / w.sum()
-    _, overall = _weighted_moments(u, w)
-    reg = 1e-6 * overall
-    means = u[rng.choice(n, size=k, replace=False, p=w if np.count_nonzero(w) >= k else None)].copy()
-    covs = np.array([overall.copy() for _ in range(k)])
-    pis = np.full(k, 1.0 / k)
-    for _ in range(iters):
-        try:  # responsibilities (a t with df → ∞ is the Gaussian)
-            lr = np.stack([np.log(p) + _Proposal([(1.0, mu, c, 1e6)]).logpdf(u) for p, mu, c in zip(pis, means, covs)],
-                          axis=1)
-        except np.linalg.LinAlgError:
-            return None
-        lr -= logsumexp(lr, axis=1, keepdims=True)
-        r = np.exp(lr) * w[:, None]
-        nk = r.sum(axis=0)
-        if not np.all(nk > 0):
-            return None
-        pis = nk / nk.sum()
-        means = (r.T @ u) / nk[:, None]
-        covs = np.array([((u - means[j]).T * r[:, j]) @ (u - means[j]) / nk[j] + reg for j in range(k)])
-    if not (np.all(np.isfinite(means)) and np.all(np.isfinite(covs))):
-        return None
-    return pis, means, covs
-
-
-def _fit_proposal(u, w, inflate, df, mixture, share, rng) -> _Proposal:
+def _fit_proposal(u, w, inflate, df, mixture, share, rng) -> TMixture:
     """The proposal refitted to weighted draws: one t, or ``mixture`` t components (share
     ``share``, each covariance × ``inflate``) plus the one t as a defensive component."""
-    mean, cov = _weighted_moments(u, w)
+    mean, cov = weighted_moments(u, w)
     one = [(1.0, mean, cov * inflate, df)]
     d = u.shape[1]
     k = min(int(mixture), int(_ess(w) // (10 * (d + 1))))  # ≥ 10 effective draws per covariance entry row
     if k < 2:
-        return _Proposal(one)
-    fit = _mixture_fit(u, w, k, rng)
+        return TMixture(one)
+    fit = weighted_em(u, w, k, rng)
     if fit is None:
-        return _Proposal(one)
+        return TMixture(one)
     comps = [(share * p, m, c * inflate, df) for p, m, c in zip(*fit) if p > 1e-3]
     try:
-        return _Proposal(comps + [(1.0 - share, mean, cov * inflate, df)])
+        return TMixture(comps + [(1.0 - share, mean, cov * inflate, df)])
     except np.linalg.LinAlgError:
-        return _Proposal(one)
+        return TMixture(one)
 
 
-def _draw_round(log_likelihood, lo, hi, proposal: _Proposal, m, rng, batch):
+def _draw_round(log_likelihood, lo, hi, proposal: TMixture, m, rng, batch):
     """m draws of the proposal: box points, their logit coordinates, log L and log(π/q_x)."""
     un = proposal.draw(m, rng)
     logq_u = proposal.logpdf(un)
@@ -257,7 +183,7 @@ def importance_evidence(log_likelihood, bounds, samples, n_draws: int, *, seed, 
     if int(n_draws) < 10:
         raise HbmError(f"importance_evidence: n_draws must be >= 10, got {n_draws}")
     u = _logit(x, lo, hi)
-    proposal = _Proposal([(1.0, u.mean(axis=0), np.cov(u, rowvar=False) * inflate, df)])
+    proposal = TMixture([(1.0, u.mean(axis=0), np.cov(u, rowvar=False) * inflate, df)])
     rng = np.random.default_rng(seed)
     m = int(n_draws)
     m1 = int(round(adapt * m)) if adapt > 0 else 0

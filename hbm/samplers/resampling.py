@@ -1,9 +1,10 @@
 """Resampling of weighted particle populations (systematic or multinomial), whole or by island.
 
 The one copy of the scheme for the package: TMCMC resamples between stages with it, the
-hierarchical layer draws its equally weighted outputs with it.  Islands are contiguous blocks of
-particles resampled separately, so each carries its own evidence estimate (their spread is the
-TMCMC within-run standard error).
+hierarchical layer draws its equally weighted outputs with it, and the importance finish resamples
+its batches into chains with it (:func:`hbm.samplers.chains.importance_batches`).  Islands are
+contiguous blocks of particles resampled separately, so each carries its own evidence estimate
+(their spread is the TMCMC within-run standard error).
 """
 
 from __future__ import annotations
@@ -49,22 +50,29 @@ def islands(n: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return starts, sizes, np.repeat(np.arange(k), sizes)
 
 
-def resample_islands(logw, m_k, starts, sizes, isl, rng, scheme) -> np.ndarray:
+def resample_islands(logw, m_k, starts, sizes, isl, rng, scheme, n_per: int | None = None) -> np.ndarray:
     """Resample each island from its own log weights ``logw`` (vectorised over islands).
 
-    ``m_k`` is the largest log weight of each island; ``starts, sizes, isl`` come from
-    :func:`islands`.  Every island keeps its size and draws only its own particles.
+    ``m_k`` is the largest log weight of each island (finite); ``starts, sizes, isl`` describe
+    contiguous islands (from :func:`islands`, or any other split into contiguous blocks).  Every
+    island draws only its own particles: as many as it has (``n_per`` None), or ``n_per`` each,
+    returned island-major (the importance batches of :func:`hbm.samplers.chains.importance_batches`).
     """
     w = np.exp(logw - m_k[isl])
     tot = np.add.reduceat(w, starts)
     cum = np.cumsum(w / tot[isl])
     offset = np.concatenate([[0.0], cum[starts[1:] - 1]])
     cw = cum - offset[isl] + isl  # island k occupies (k, k + 1]
-    n = len(logw)
-    if scheme == "systematic":
-        rank = np.arange(n) - starts[isl]
-        u = isl + (rng.random(len(starts))[isl] + rank) / sizes[isl]
+    if n_per is None:  # each island keeps its size
+        out_starts, out_sizes, out_isl = starts, sizes, isl
     else:
-        u = isl + rng.random(n)
+        k, per = len(starts), int(n_per)
+        out_starts, out_sizes, out_isl = np.arange(k) * per, np.full(k, per), np.repeat(np.arange(k), per)
+    n = len(out_isl)
+    if scheme == "systematic":
+        rank = np.arange(n) - out_starts[out_isl]
+        u = out_isl + (rng.random(len(starts))[out_isl] + rank) / out_sizes[out_isl]
+    else:
+        u = out_isl + rng.random(n)
     idx = np.searchsorted(cw, u, side="right")
-    return np.clip(idx, starts[isl], starts[isl] + sizes[isl] - 1)
+    return np.clip(idx, starts[out_isl], starts[out_isl] + sizes[out_isl] - 1)

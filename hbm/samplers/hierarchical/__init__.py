@@ -18,9 +18,10 @@ sum of their logs.  By concept:
 * :mod:`.joint_gibbs` -- the exact fallback, Metropolis-within-Gibbs on the joint posterior
   (conditional blocks: columns whose likelihood is cheap given the rest, :class:`ConditionalBlock`),
   with the specimens' lock-step states and moves (:mod:`.chain_states`), its Gaussian-mixture
-  proposal (:mod:`.mixture`) and R-hat/ESS (:mod:`.convergence`);
+  proposal (:func:`hbm.samplers.mixtures.kmeans_mixture`) and R-hat/ESS (:mod:`.convergence`);
 * :mod:`.psis` -- Pareto-smoothed importance sampling k̂;
-* :mod:`.result` -- :class:`HierarchicalResult`.
+* :mod:`.result` -- :class:`HierarchicalResult` (the products of TMCMC over ψ that it shares with
+  :mod:`.posterior`'s ``LayerFit``: :class:`~.result.LayerProducts`).
 
 This package is sampler-layer code: it knows nothing about muscles.
 """

@@ -18,7 +18,7 @@ import numpy as np
 
 from ...errors import HbmError
 from ..linalg import safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
-from .mixture import fit_mixture, pick
+from ..mixtures import gaussian_mixture_logpdf, kmeans_mixture, pick
 from .model import HierarchicalModel
 
 __all__ = ["ConditionalBlock", "ExactSpecimen", "ReuseSpecimen", "ExactState", "ReuseState", "log_r", "TARGET_ACCEPT"]
@@ -149,7 +149,7 @@ class ExactState:
         self.L = safe_cholesky(np.cov(rows, rowvar=False).reshape(self.dy, self.dy))
         self.log_step = np.log(2.38 / np.sqrt(self.dy))
         self.coord_step = np.log(2.38 * np.sqrt(np.diag(self.L @ self.L.T)))
-        self.mix = fit_mixture(rows, int(n_components), float(inflate), rng)
+        self.mix = kmeans_mixture(rows, int(n_components), float(inflate), rng)
         self.cond = {}  # coordinate k -> per-component (beta, Cholesky of the conditional covariance)
         self.block = spec.block
         self.prep = None  # the block's per-chain state, valid between block_prepare and block_release
@@ -169,13 +169,7 @@ class ExactState:
 
     def _log_q(self, y: np.ndarray, mix=None) -> np.ndarray:
         """log density of the Gaussian-mixture proposal (default ``self.mix``) at ``y``."""
-        logw, mu, L, logdet = self.mix if mix is None else mix
-        # all components at once (one batched inverse of the few small factors instead of a solve
-        # per component: this runs several times per sweep, so numpy call overhead dominates)
-        a = np.einsum("mij,mnj->nmi", np.linalg.inv(L), y[None, :, :] - mu[:, None, :])
-        terms = logw - 0.5 * np.einsum("nmi,nmi->nm", a, a) - logdet
-        mx = terms.max(axis=1)
-        return mx + np.log(np.exp(terms - mx[:, None]).sum(axis=1)) - 0.5 * y.shape[1] * np.log(2 * np.pi)
+        return gaussian_mixture_logpdf(y, self.mix if mix is None else mix)
 
     def _conditional(self, k: int):
         if k not in self.cond:

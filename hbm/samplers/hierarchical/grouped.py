@@ -232,13 +232,9 @@ class GroupedResult(HierarchicalResult):
         return HierarchicalResult(
             hyper_samples=b.natural(raw), hyper_names=list(b.hyper_names), names=list(self.names),
             all_names=list(self.all_names), bounds=self.bounds, transforms=dict(self.transforms),
-            specimens=list(self.specimens), log_evidence=self.log_evidence, log_evidence_se=self.log_evidence_se,
-            log_evidence_parts=self.log_evidence_parts, log_marginal=self.log_marginal, ess=self.ess,
-            ess_raw=self.ess_raw, ess_summary=self.ess_summary, ess_collapsed=self.ess_collapsed,
-            hyper_ess_collapsed=self.hyper_ess_collapsed, ess_trace=[], updated=self.updated,
-            updated_weights=self.updated_weights, updated_ess=self.updated_ess,
-            predictive=self.group_predictive[:, g, :], warnings=list(self.warnings), timings={},
-            sampler_result=self.sampler_result, model=b, raw_samples=raw, options=dict(self.options))
+            specimens=list(self.specimens), predictive=self.group_predictive[:, g, :], timings={}, model=b,
+            raw_samples=raw, options=dict(self.options),
+            **self.layer_fields(ess_trace=[], warnings=list(self.warnings), reuse={}))
 
 
 def group_differences(means: np.ndarray, groups: Sequence[str], names: Sequence[str], prob: float = 0.9) -> list[dict]:

@@ -20,14 +20,15 @@ import numpy as np
 
 from ..tmcmc import tmcmc as _tmcmc
 from .diagnostics import ess_checks, evidence_parts, reuse_diagnostics, reuse_unreliable
+from .result import LayerProducts
 from .reuse import ReuseEstimator
 
 __all__ = ["LayerFit", "fit_layer"]
 
 
-@dataclass
-class LayerFit:
-    """What :func:`fit_layer` computed (attributes as in :class:`~hbm.samplers.hierarchical.HierarchicalResult`).
+@dataclass(kw_only=True)
+class LayerFit(LayerProducts):
+    """What :func:`fit_layer` computed: the :class:`~hbm.samplers.hierarchical.result.LayerProducts`, and
 
     ``x``: the TMCMC draws in the driver's sampler coordinates; ``raws``: each group's population
     at those draws (the model's raw coordinates); ``timings``: ``tmcmc``, ``updated``, ``diagnostics``.
@@ -35,32 +36,13 @@ class LayerFit:
 
     x: np.ndarray
     raws: list
-    sampler_result: Any
-    log_marginal: np.ndarray
-    ess: np.ndarray
-    ess_raw: np.ndarray
-    ess_summary: dict
-    ess_collapsed: dict
-    hyper_ess_collapsed: dict
-    warnings: list
-    log_evidence: float
-    log_evidence_se: float
-    log_evidence_parts: dict
-    updated: dict
-    updated_weights: dict
-    updated_ess: dict
-    reuse: dict
-    ess_trace: list
     timings: dict
 
     def result_fields(self, setup: float, predictive: float) -> dict:
         """The keyword arguments of a result that both drivers fill alike (``setup``, ``predictive``: seconds)."""
-        names = ("log_evidence", "log_evidence_se", "log_evidence_parts", "log_marginal", "ess", "ess_raw",
-                 "ess_summary", "ess_collapsed", "hyper_ess_collapsed", "ess_trace", "updated", "updated_weights",
-                 "updated_ess", "warnings", "sampler_result", "reuse")
         timings = {"setup": setup, **self.timings, "predictive": predictive,
                    "total": setup + sum(self.timings.values()) + predictive, "likelihood_calls": len(self.ess_trace)}
-        return {**{n: getattr(self, n) for n in names}, "timings": timings}
+        return {**self.layer_fields(), "timings": timings}
 
 
 def fit_layer(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -10,27 +10,19 @@ import numpy as np
 from ...errors import HbmError
 from .model import HierarchicalModel
 
-__all__ = ["HierarchicalResult", "thin_rows"]
+__all__ = ["LayerProducts", "HierarchicalResult", "thin_rows"]
 
 
-@dataclass
-class HierarchicalResult:
-    """Output of :func:`hierarchical`.
+@dataclass(kw_only=True)
+class LayerProducts:
+    """What TMCMC over ψ on the reuse estimator yields, the same for every driver.
+
+    The one home of these attributes: :class:`HierarchicalResult` (and so the grouped result)
+    carries them, and so does the sampling step both drivers share
+    (:class:`~hbm.samplers.hierarchical.posterior.LayerFit`).
 
     Attributes
     ----------
-    hyper_samples : ndarray (n, 2d+q)
-        Hyper-posterior draws (equal weights): ``mu_<P>`` (transformed units, see
-        ``transforms``), ``sd_<P>`` (transformed units), ``corr_<P>_<Q>`` (full_cov only).
-        Fixed hyperparameters appear as constant columns.
-    hyper_names : list of str
-    names : list of str
-        Pooled parameter names (columns of ``predictive``).
-    all_names : list of str
-        Stage-1 column names (columns of ``updated[...]``).
-    bounds : ndarray (len(all_names), 2)
-    transforms : dict name -> transform
-    specimens : list of str
     log_evidence, log_evidence_se : float
         log p(all data | hyperprior family) = TMCMC log-evidence over ψ + Σ_i log Z_i; the SE
         combines the TMCMC SE, the stage-1 SEs and the importance-sampling noise in quadrature.
@@ -58,24 +50,15 @@ class HierarchicalResult:
     updated_weights : dict specimen -> ndarray (N_i,)
         Normalised weights on the stage-1 samples behind ``updated``.
     updated_ess : dict specimen -> float
-    predictive : ndarray (n, d)
-        Posterior predictive of a new, unseen specimen (pooled columns).
     warnings : list of str
-    timings : dict
     sampler_result : object
         The TMCMC result over the free hyperparameters.
-    model : HierarchicalModel
-    raw_samples : ndarray (n, 2d+q)
-        Hyper draws in sampler coordinates (used by :func:`refine_individual`).
+    reuse : dict specimen -> dict
+        What the reused stage-1 samples cannot represent and the verdict
+        (:func:`~hbm.samplers.hierarchical.diagnostics.reuse_diagnostics`,
+        :func:`~hbm.samplers.hierarchical.diagnostics.reuse_unreliable`); empty when not computed.
     """
 
-    hyper_samples: np.ndarray
-    hyper_names: list
-    names: list
-    all_names: list
-    bounds: np.ndarray
-    transforms: dict
-    specimens: list
     log_evidence: float
     log_evidence_se: float
     log_evidence_parts: dict
@@ -89,14 +72,58 @@ class HierarchicalResult:
     updated: dict
     updated_weights: dict
     updated_ess: dict
-    predictive: np.ndarray
     warnings: list
-    timings: dict
     sampler_result: Any
+    reuse: dict = field(default_factory=dict)
+
+    def layer_fields(self, **changes) -> dict:
+        """These attributes as keyword arguments of another result (``changes`` replace some)."""
+        return {**{f.name: getattr(self, f.name) for f in fields(LayerProducts)}, **changes}
+
+
+@dataclass
+class HierarchicalResult(LayerProducts):
+    """Output of :func:`hierarchical`.
+
+    The attributes of :class:`LayerProducts` (hyper-evidence, ESS and its flags, updated
+    individuals, reuse diagnostics, the TMCMC result), and:
+
+    Attributes
+    ----------
+    hyper_samples : ndarray (n, 2d+q)
+        Hyper-posterior draws (equal weights): ``mu_<P>`` (transformed units, see
+        ``transforms``), ``sd_<P>`` (transformed units), ``corr_<P>_<Q>`` (full_cov only).
+        Fixed hyperparameters appear as constant columns.
+    hyper_names : list of str
+    names : list of str
+        Pooled parameter names (columns of ``predictive``).
+    all_names : list of str
+        Stage-1 column names (columns of ``updated[...]``).
+    bounds : ndarray (len(all_names), 2)
+    transforms : dict name -> transform
+    specimens : list of str
+    predictive : ndarray (n, d)
+        Posterior predictive of a new, unseen specimen (pooled columns).
+    timings : dict
+    model : HierarchicalModel
+    raw_samples : ndarray (n, 2d+q)
+        Hyper draws in sampler coordinates (used by :func:`refine_individual`).
+    options : dict
+        The settings of the run (stored with the result).
+    """
+
+    hyper_samples: np.ndarray
+    hyper_names: list
+    names: list
+    all_names: list
+    bounds: np.ndarray
+    transforms: dict
+    specimens: list
+    predictive: np.ndarray
+    timings: dict
     model: HierarchicalModel
     raw_samples: np.ndarray
     options: dict = field(default_factory=dict)
-    reuse: dict = field(default_factory=dict)
 
     @property
     def collapsed(self) -> bool:
