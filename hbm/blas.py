@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["BLAS_ENV", "single_thread_env", "single_thread_blas"]
+__all__ = ["BLAS_ENV", "single_thread_env", "single_thread_blas", "one_blas_thread"]
 
 #: environment of the worker processes: one BLAS/OpenMP thread each (workers are the parallelism)
 BLAS_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -56,6 +56,19 @@ def _blas_api() -> list:
     return _BLAS_API
 
 
+def one_blas_thread() -> list[tuple]:
+    """Switch every loaded OpenBLAS to one thread (e.g. in a forked worker process, whose BLAS is
+    already loaded so the environment no longer counts); returns the previous (setter, threads)."""
+    old = []
+    for setter, getter in _blas_api():
+        try:
+            old.append((setter, int(getter())))
+            setter(1)
+        except Exception:  # pragma: no cover - exotic BLAS builds
+            pass
+    return old
+
+
 class single_thread_blas:
     """Run a hot loop with one BLAS thread.
 
@@ -66,13 +79,7 @@ class single_thread_blas:
     """
 
     def __enter__(self):
-        self._old = []
-        for setter, getter in _blas_api():
-            try:
-                self._old.append((setter, int(getter())))
-                setter(1)
-            except Exception:  # pragma: no cover - exotic BLAS builds
-                pass
+        self._old = one_blas_thread()
         return self
 
     def __exit__(self, *exc):

@@ -37,6 +37,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+try:
+    import resource as _resource     # the refit workers' CPU time (Unix, like the forked workers)
+except ImportError:                  # pragma: no cover - Windows
+    _resource = None
+
 from .. import seeds as _seeds
 from ..errors import HbmError, HbmWarning
 from ..validation import check_workers, usable_cores
@@ -259,11 +264,23 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                     usable_cores() if workers is None else check_workers(workers, "workers") or 1)
     if max_time is not None:
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
+    kids = _children_cpu()
     try:
-        return _diagnose(fitter, d, base_model, cands, noises, mf, digitised, seed, top, max_effects, removal,
-                         power, noise, correlated, max_time, t_start, cpu_start, timings)
+        out = _diagnose(fitter, d, base_model, cands, noises, mf, digitised, seed, top, max_effects, removal,
+                        power, noise, correlated, max_time, t_start, cpu_start, timings)
     finally:
         fitter.close()
+    # the refit workers' CPU, counted once they have exited
+    out.timings["cpu"] += _children_cpu() - kids
+    return out
+
+
+def _children_cpu() -> float:
+    """CPU seconds of this process's exited child processes (0 where the OS does not say)."""
+    if _resource is None:
+        return 0.0
+    r = _resource.getrusage(_resource.RUSAGE_CHILDREN)
+    return float(r.ru_utime + r.ru_stime)
 
 
 def _diagnose(fitter: Fitter, d, base_model, cands, noises, mf, digitised, seed, top, max_effects, removal, power,
@@ -513,7 +530,8 @@ def _base_at_bounds(base: FitSummary, name: str) -> list[dict]:
              for i, n in enumerate(base.names) if n in model_names}
     found = edges(base.names, boxes, base.theta_max, base.samples)
     for line in format_at_bounds(found):
-        warnings.warn(f"{name}: base fit: {line.removeprefix('warning: ')}", HbmWarning, stacklevel=3)
+        # (stacklevel: this function <- _diagnose <- diagnose <- the caller's line)
+        warnings.warn(f"{name}: base fit: {line.removeprefix('warning: ')}", HbmWarning, stacklevel=4)
     return found
 
 

@@ -15,6 +15,7 @@ from typing import Mapping, Sequence
 import cma
 import numpy as np
 
+from ..blas import one_blas_thread
 from ..collapse import TIERS, CollapsedLikelihood, choose_tier, fit_collapsed, sample_collapsed
 from ..errors import HbmError, SettingError
 from ..likelihood import make_likelihood
@@ -320,6 +321,7 @@ class Fitter:
         self.deadline: float | None = None
         self.workers = max(1, int(workers))       # processes of the refits (1: this one)
         self._pool = None
+        self._blas: list = []                     # BLAS thread settings to restore at close()
         #: once True (after the base fit), a fit running past ``deadline`` is interrupted
         #: (:class:`FitInterrupted`); before, fits run to their end (a diagnosis needs its base fit)
         self.interruptible = False
@@ -342,7 +344,10 @@ class Fitter:
         argument but the refit's own inputs crosses (pickled).  None where fork is unavailable
         or ``workers`` is 1."""
         if self._pool is None and self.workers > 1 and "fork" in mp.get_all_start_methods():
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"))
+            # the workers are the parallelism: one BLAS thread each (and here, until close())
+            self._blas = one_blas_thread()
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"),
+                                             initializer=one_blas_thread)
         return self._pool
 
     def close(self) -> None:
@@ -350,11 +355,14 @@ class Fitter:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+            for setter, n in self._blas:
+                setter(n)
+            self._blas = []
 
     def __getstate__(self):
         # a worker gets the settings and caches, not the pool
         state = dict(self.__dict__)
-        state["_pool"] = None
+        state["_pool"], state["_blas"] = None, []      # (ctypes setters do not pickle)
         return state
 
     def guard(self, lik):

@@ -101,41 +101,69 @@ def _refit_one(c: CandidateResult, base: FitSummary, fitter: Fitter, noises: Seq
 
 def _refit_task(c: CandidateResult, base: FitSummary, fitter: Fitter, noises: Sequence[str],
                 seed: int) -> tuple[str, CandidateResult, float]:
-    """:func:`_refit_one` in a worker process, on copies: its status, the refitted candidate and
-    the seconds its refined reruns took."""
+    """:func:`_refit_one` as a task: its status, the refitted candidate and the seconds its
+    refined reruns took (in a worker, ``c`` and ``fitter`` are copies)."""
     t = fitter.refine_seconds
     status = _refit_one(c, base, fitter, noises, seed)
     return status, c, fitter.refine_seconds - t
 
 
-def _run_refits(todo: list[tuple[int, CandidateResult]], base: FitSummary, fitter: Fitter,
-                noises: Sequence[str], seed: int) -> list[str]:
-    """Refit every candidate of ``todo`` (``(k, c)``, seed ``seed + 1000 (k + 1)``), in place; the
-    status of each, in order.
+def _refine_task(fs: FitSummary, fitter: Fitter, seed: int) -> tuple[str, float, float, float]:
+    """:meth:`.fitting.Fitter.refine` of ``fs`` as a task: status ("done", "late", "interrupted"),
+    the refined log Z and SE, and its seconds."""
+    if fitter.out_of_time():
+        return "late", math.nan, math.nan, 0.0
+    t = fitter.refine_seconds
+    try:
+        fitter.refine(fs, seed)
+    except FitInterrupted:
+        return "interrupted", math.nan, math.nan, fitter.refine_seconds - t
+    return "done", fs.refined_log_evidence, fs.refined_log_evidence_se, fitter.refine_seconds - t
 
-    With the fitter's worker pool (:meth:`.fitting.Fitter.pool`, more than one core) the refits
-    run in parallel, one process each; every refit depends only on its own seed, the data and
-    the base fit, so the results are those of the serial loop, bitwise, whatever the number of
-    workers.  A candidate that cannot be sent to a worker (an effect class that does not
-    pickle) makes the round serial."""
-    seeds = [seed + 1000 * (k + 1) for k, _ in todo]
-    pool = fitter.pool() if len(todo) > 1 else None
+
+def _in_workers(fitter: Fitter, task, calls: list[tuple]) -> tuple[list, bool]:
+    """``task(*args)`` for every ``args`` of ``calls``, in order; and whether they ran in workers.
+
+    With the fitter's worker pool (:meth:`.fitting.Fitter.pool`, more than one core) the calls run
+    in parallel, one process each, on pickled copies of their arguments (the caller copies the
+    results back); else here, one after the other.  Every call depends only on its own seed, the
+    data and fits made before, so the results are those of the serial loop, bitwise, whatever
+    the number of workers.  Arguments that do not pickle (a user effect defined in a closure)
+    run here."""
+    pool = fitter.pool() if len(calls) > 1 else None
     if pool is not None:
         try:
-            pickle.dumps((todo, base, fitter))
-        except Exception:    # noqa: BLE001 -- e.g. a user effect defined in a closure: run serially
+            pickle.dumps(calls)
+        except Exception:    # noqa: BLE001 -- unpicklable user code: run serially
             pool = None
     if pool is None:
-        return [_refit_one(c, base, fitter, noises, sd) for (_, c), sd in zip(todo, seeds)]
-    futures = [pool.submit(_refit_task, c, base, fitter, noises, sd) for (_, c), sd in zip(todo, seeds)]
-    out = []
-    for (_, c), fut in zip(todo, futures):
-        status, got, secs = fut.result()
-        for f in fields(CandidateResult):       # the worker refitted a copy: take its state
-            setattr(c, f.name, getattr(got, f.name))
-        fitter.refine_seconds += secs
-        out.append(status)
-    return out
+        return [task(*args) for args in calls], False
+    return [f.result() for f in [pool.submit(task, *args) for args in calls]], True
+
+
+def _run_refits(todo: list[tuple[int, CandidateResult]], base: FitSummary, fitter: Fitter,
+                noises: Sequence[str], seed: int) -> list[str]:
+    """Refit every candidate of ``todo`` (``(k, c)``, seed ``seed + 1000 (k + 1)``), in place, in the
+    fitter's workers where it has them (:func:`_in_workers`); the status of each, in order."""
+    out, remote = _in_workers(fitter, _refit_task, [(c, base, fitter, noises, seed + 1000 * (k + 1))
+                                                    for k, c in todo])
+    for (_, c), (status, got, secs) in zip(todo, out):
+        if remote:
+            for f in fields(CandidateResult):       # the worker refitted a copy: take its state
+                setattr(c, f.name, getattr(got, f.name))
+            fitter.refine_seconds += secs
+    return [status for status, _, _ in out]
+
+
+def _run_refines(fits: list[FitSummary], seeds: list[int], fitter: Fitter) -> list[str]:
+    """Refined evidence reruns of ``fits`` (in place), in the fitter's workers where it has them;
+    the status of each, in order."""
+    out, remote = _in_workers(fitter, _refine_task, [(fs, fitter, sd) for fs, sd in zip(fits, seeds)])
+    for fs, (status, lz, se, secs) in zip(fits, out):
+        if remote and status == "done":
+            fs.refined_log_evidence, fs.refined_log_evidence_se = lz, se
+            fitter.refine_seconds += secs
+    return [status for status, *_ in out]
 
 
 def decisive(c: CandidateResult) -> bool:
@@ -188,25 +216,20 @@ def refine_decisive(refitted: Sequence[CandidateResult], base: FitSummary, fitte
         fitter.skip("refined evidence of " + ", ".join(c.effect for c in todo),
                     "the standard 25-step evidence stands for this comparison")
         return []
-    try:
-        fitter.refine(base, seed)
-    except FitInterrupted:
+    status = _run_refines([base] + [c.fit for c in todo], [seed] + [seed + 1 + k for k in range(len(todo))], fitter)
+    if status[0] != "done":
         fitter.skip("refined evidence of " + ", ".join(c.effect for c in todo),
-                    "interrupted at --max-time: the standard 25-step evidence stands for this comparison")
+                    ("interrupted at --max-time: " if status[0] == "interrupted" else "")
+                    + "the standard 25-step evidence stands for this comparison")
         return []
     done = []
-    for k, c in enumerate(todo):
-        if fitter.out_of_time():
+    for k, (c, st) in enumerate(zip(todo, status[1:])):
+        if st != "done":
             # the rest keep their standard comparison (base and refit of one comparison always
             # come from runs of the same settings)
             fitter.skip("refined evidence of " + ", ".join(x.effect for x in todo[k:]),
-                        "their standard 25-step evidence stands")
-            break
-        try:
-            fitter.refine(c.fit, seed + 1 + k)
-        except FitInterrupted:
-            fitter.skip("refined evidence of " + ", ".join(x.effect for x in todo[k:]),
-                        "interrupted at --max-time: their standard 25-step evidence stands")
+                        ("interrupted at --max-time: " if st == "interrupted" else "")
+                        + "their standard 25-step evidence stands")
             break
         done.append(c)
         std = c.delta_log_evidence_tmcmc
