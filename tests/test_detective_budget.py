@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 
 import pytest
@@ -148,3 +149,31 @@ class _SlowOffsetFast(_SlowOffset):
 
     def modify(self, state, p, stress):
         return stress + p["USER_S0"]
+
+
+_PARENT = os.getpid()
+
+
+class _DiesInWorkers(_SlowOffsetFast):
+    """A user effect whose evaluation kills any process but the test's own (a worker killed
+    by the OS, out of memory): the diagnosis must carry on in this process."""
+
+    name = "dies_in_workers"
+    parameters = (hbm.Parameter("DIE_S0", -0.02, 0.02, "MPa", "offset", null=0.0),)
+
+    def modify(self, state, p, stress):
+        if os.getpid() != _PARENT:
+            os._exit(9)
+        return stress + p["DIE_S0"]
+
+
+def test_a_dead_refit_worker_does_not_lose_the_diagnosis():
+    ds = _offset_curve(7, n=30)
+    kw = dict(seed=2, n_samples=200, candidates=["offset", _DiesInWorkers()], removal=False, noise="iid",
+              max_effects=1)
+    dg = diagnose(ds, workers=2, **kw)
+    assert dg.timings["workers"] == 1          # it fell back to this process
+    ref = diagnose(ds, workers=1, **kw)
+    a, b = dg.to_dict(), ref.to_dict()
+    a.pop("timings"), b.pop("timings")
+    assert a == b

@@ -59,7 +59,7 @@ from .power import detection_power
 from .refits import refit_candidates
 from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
-from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, RUNNER_UP_MARGIN
+from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
 from .screen import local_refit_screen, score_screen, screen_candidates
 
 __all__ = ["diagnose", "extend", "place_as_diagnosed", "Diagnosis", "Extension", "CandidateResult", "FitSummary",
@@ -260,8 +260,10 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     noises = correlated_noises(noises, noise, correlated, digitised)
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
+    workers = usable_cores() if workers is None else check_workers(workers, "workers") or 1
+    # no more processes than a round has refits (+ the base's rerun): the rest would sit idle
     fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, likelihood,
-                    usable_cores() if workers is None else check_workers(workers, "workers") or 1)
+                    min(workers, max(0, int(top)) + N_CONTROL_REFITS + 1))
     if max_time is not None:
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
     kids = _children_cpu()

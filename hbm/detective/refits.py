@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import pickle
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import fields
 from typing import Sequence
 
@@ -136,9 +137,15 @@ def _in_workers(fitter: Fitter, task, calls: list[tuple]) -> tuple[list, bool]:
             pickle.dumps(calls)
         except Exception:    # noqa: BLE001 -- unpicklable user code: run serially
             pool = None
-    if pool is None:
-        return [task(*args) for args in calls], False
-    return [f.result() for f in [pool.submit(task, *args) for args in calls]], True
+    if pool is not None:
+        try:
+            return [f.result() for f in [pool.submit(task, *args) for args in calls]], True
+        except BrokenProcessPool:
+            # a worker died (killed, out of memory): the rest of the diagnosis runs here
+            fitter.log("a refit worker process died: refitting in this process from now on")
+            fitter.close()
+            fitter.workers = 1
+    return [task(*args) for args in calls], False
 
 
 def _run_refits(todo: list[tuple[int, CandidateResult]], base: FitSummary, fitter: Fitter,
