@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing as mp
 import os
 import time
 
@@ -177,3 +178,18 @@ def test_a_dead_refit_worker_does_not_lose_the_diagnosis():
     a, b = dg.to_dict(), ref.to_dict()
     a.pop("timings"), b.pop("timings")
     assert a == b
+
+
+def _diagnose_in_a_daemon(_):
+    ds = _offset_curve(7, n=30)
+    dg = diagnose(ds, seed=2, n_samples=200, candidates=["offset"], removal=False, noise="iid", max_effects=1,
+                  workers=2)
+    return dg.verdict, dg.timings["workers"]
+
+
+def test_diagnose_inside_a_worker_process_refits_there():
+    """A daemonic process (a dask or multiprocessing worker) may not start processes: a diagnosis
+    run there refits in its own process instead of failing."""
+    with mp.get_context("fork").Pool(1) as pool:
+        verdict, workers = pool.map(_diagnose_in_a_daemon, [0])[0]
+    assert workers == 1 and verdict in ("effect", "adequate", "unexplained")

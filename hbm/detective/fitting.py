@@ -319,7 +319,10 @@ class Fitter:
         #: wall-clock (``time.time()``) moment of --max-time (None: no limit); the wall clock, not
         #: perf_counter, because the refits' worker processes read it too
         self.deadline: float | None = None
-        self.workers = max(1, int(workers))       # processes of the refits (1: this one)
+        #: processes of the refits (1: this one): only by fork, and not from a daemonic process (a
+        #: dask or multiprocessing worker may not start processes of its own)
+        self.workers = (max(1, int(workers)) if "fork" in mp.get_all_start_methods()
+                        and not mp.current_process().daemon else 1)
         self._pool = None
         self._blas: list = []                     # BLAS thread settings to restore at close()
         #: once True (after the base fit), a fit running past ``deadline`` is interrupted
@@ -342,8 +345,8 @@ class Fitter:
         Created at its first use, after the base fit, by forking this process: the workers start
         with the data, the compiled model and the user's effect modules already loaded, and no
         argument but the refit's own inputs crosses (pickled).  None where fork is unavailable
-        or ``workers`` is 1."""
-        if self._pool is None and self.workers > 1 and "fork" in mp.get_all_start_methods():
+        or ``workers`` is 1 (see ``__init__``)."""
+        if self._pool is None and self.workers > 1:
             # the workers are the parallelism: one BLAS thread each (and here, until close())
             self._blas = one_blas_thread()
             self._pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("fork"),
