@@ -393,7 +393,8 @@ def test_refined_gains_compare_runs_of_the_same_settings():
         calls.append(f.effects[0])
         f.refined_log_evidence, f.refined_log_evidence_se = f.likelihood
 
-    fitter = SimpleNamespace(refine=refine, log=lambda msg: None, out_of_time=lambda: False)
+    fitter = SimpleNamespace(refine=refine, log=lambda msg: None, out_of_time=lambda: False, pool=lambda: None,
+                             refine_seconds=0.0)
     base = fs("base", 375.0, 377.0)
     off = _refit("offset", -1.5, 12.3, se=2.6)
     off.fit = fs("offset", 373.5, 383.0)
@@ -464,7 +465,7 @@ def test_refined_reruns_stop_at_the_deadline_and_keep_standard_comparisons():
         f.refined_log_evidence, f.refined_log_evidence_se = f.likelihood
 
     fitter = SimpleNamespace(refine=refine, log=lambda msg: None, out_of_time=lambda: len(calls) >= 2,
-                             skip=lambda what, why: skipped.append(what))
+                             skip=lambda what, why: skipped.append(what), pool=lambda: None, refine_seconds=0.0)
     base = fs("base", 375.0, 377.0)
     off = _refit("offset", -1.5, 12.3, se=2.6)
     off.fit = fs("offset", 373.5, 383.0)

@@ -155,7 +155,8 @@ def test_a_placement_is_kept_only_when_its_refined_evidence_is_clearly_better(mo
     monkeypatch.setattr(refits, "placement_models", lambda model, e, loading: models)
     made = iter(range(2))
 
-    def refit_model(c, mc, e, base, fitter, noises, seed):
+    def refit_model(c, mc, e, base, fitter, noises, seed, gate=False):
+        assert not gate          # several placements: every one gets its evidence run
         k = next(made)
         return FitSummary(effects=[e.name], noise="iid", names=["S0"], theta_max=np.zeros(1),
                           max_log_likelihood=max_logl[k], bic=0.0, rmse=0.001 * (k + 1), model=mc,
