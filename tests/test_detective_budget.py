@@ -193,3 +193,13 @@ def test_diagnose_inside_a_worker_process_refits_there():
     with mp.get_context("fork").Pool(1) as pool:
         verdict, workers = pool.map(_diagnose_in_a_daemon, [0])[0]
     assert workers == 1 and verdict in ("effect", "adequate", "unexplained")
+
+
+@pytest.mark.slow
+def test_detection_limits_in_worker_processes_match_the_serial_ones():
+    """--power computes each effect's limit in a worker: the same limits, bitwise."""
+    ds = _offset_curve(7, n=30)
+    kw = dict(seed=2, n_samples=200, candidates=["offset", "slack", _SlowOffsetFast()], removal=False,
+              noise="iid", max_effects=1, power=True)
+    one, two = diagnose(ds, workers=1, **kw), diagnose(ds, workers=2, **kw)
+    assert len(two.power["effects"]) == 3 and two.power == one.power

@@ -56,7 +56,7 @@ from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_
 from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
 from .noise_check import NoiseCheck, check_noise, misfit_windows, model_free_noise, noise_prior_box
 from .power import detection_power
-from .refits import refit_candidates
+from .refits import refit_candidates, run_in_workers
 from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
 from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
@@ -373,7 +373,8 @@ def _diagnose(fitter: Fitter, d, base_model, cands, noises, mf, digitised, seed,
             # from the user's starting model, so every library effect gets its limit (also those
             # named here), with the noise of the final model (the starting fit's holds the misfit)
             try:
-                extra["power"] = detection_power(first.base, d, cands, _seed(seed, 91), noise_fit=current)
+                extra["power"] = detection_power(first.base, d, cands, _seed(seed, 91), noise_fit=current,
+                                                 run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
             except FitInterrupted:
                 fitter.skip("the detection-power estimate (--power)", "interrupted at --max-time: no detection "
                             "limits")

@@ -138,9 +138,18 @@ def whitener(sd: np.ndarray, rho: float, first: np.ndarray):
     Divides by the marginal sd, then for AR(1) takes innovations (u_t = (z_t − ρ z_{t−1})/√(1−ρ²),
     u = z where the process restarts, ``first``), which makes the noise iid N(0, 1).
     """
-    noise = make_noise("ar1", history_starts=np.asarray(first, bool))
-    sd = np.asarray(sd, float)
-    return lambda a: noise.whiten(a, (np.nan, float(rho)), sd=sd)
+    return _Whitener(np.asarray(sd, float), float(rho), np.asarray(first, bool))
+
+
+class _Whitener:
+    """:func:`whitener`'s function as a small object (it crosses to worker processes pickled)."""
+
+    def __init__(self, sd: np.ndarray, rho: float, first: np.ndarray):
+        self.sd, self.rho, self.first = sd, rho, first
+        self.noise = make_noise("ar1", history_starts=first)
+
+    def __call__(self, a):
+        return self.noise.whiten(a, (np.nan, self.rho), sd=self.sd)
 
 
 # =========================================================================================

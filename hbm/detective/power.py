@@ -166,7 +166,8 @@ def _named_fraction(model: Model, eff: Effect, others: Sequence[Effect], ctrls: 
 
 def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effect], seed: int,
                     n_rep: int = POWER_REPLICATES, level: float = POWER_LEVEL, n_levels: int = 7,
-                    refine: int = 3, with_controls: bool = True, noise_fit: FitSummary | None = None) -> dict:
+                    refine: int = 3, with_controls: bool = True, noise_fit: FitSummary | None = None,
+                    run_tasks=None) -> dict:
     """Detection limit of every candidate effect on this specimen's protocol and fitted noise.
 
     Parameters
@@ -191,6 +192,10 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
     noise_fit : FitSummary, optional
         Take the noise from this fit instead (diagnose: the final model's, once effects were
         named, so a misfit of the starting model does not inflate the noise of the replicates).
+    run_tasks : callable, optional
+        ``run_tasks(task, calls)`` returns ``[task(*c) for c in calls]``, e.g. in worker processes
+        (diagnose passes its refit workers); every effect's limit is computed independently, from
+        the same noise replicates, so the result does not depend on how they run.
 
     Returns
     -------
@@ -221,45 +226,51 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
         usable.append(e)
     ctrls = controls_for(d) if with_controls else []
     feats = protocol_features(d)
-    rows = []
-    for e in usable:
-        mc = model.with_effects(e)
-        q = next(p for p in e.parameters if p.name == primary_parameters(e)[0])
-        far = q.upper if abs(q.upper - q.null) >= abs(q.lower - q.null) else q.lower
-        others = [o for o in usable if o is not e]
-
-        def share(frac):
-            th = mc.null_theta(theta)
-            th[mc.index(q.name)] = q.null + frac * (far - q.null)
-            y0 = np.asarray(mc.stress(d.loading, th))
-            truth = {p.name: float(th[mc.index(p.name)]) for p in e.parameters}
-            return _named_fraction(model, e, others, ctrls, theta, free, y0, truth, whiten, d, E)
-
-        fracs = list(np.geomspace(0.01, 1.0, n_levels))
-        levels = [(f, share(f)) for f in fracs]
-        hit = next((i for i, (_, s) in enumerate(levels) if s >= level), None)
-        if hit is not None and hit > 0:
-            lo, hi = levels[hit - 1][0], levels[hit][0]
-            for _ in range(int(refine)):
-                mid = math.sqrt(lo * hi)
-                s = share(mid)
-                levels.append((mid, s))
-                lo, hi = (mid, hi) if s < level else (lo, mid)
-            limit_frac = hi
-        else:
-            limit_frac = None if hit is None else levels[hit][0]
-        levels.sort()
-        val = (lambda f: float(q.null + f * (far - q.null)))
-        rows.append({"effect": e.name, "parameter": q.name, "unit": q.unit,
-                     "limit": None if limit_frac is None else val(limit_frac),
-                     "levels": [[val(f), s] for f, s in levels],
-                     "shape": {p.name: p.null for p in e.parameters if p.name != q.name},
-                     "protocol": None if limit_frac is not None else experiments_for([e], feats)})
+    calls = [(e, model, [o for o in usable if o is not e], ctrls, theta, free, whiten, d, E, n_levels, refine, level,
+              feats) for e in usable]
+    rows = run_tasks(_effect_limit, calls) if run_tasks is not None else [_effect_limit(*c) for c in calls]
     out = {"effects": rows, "replicates": int(n_rep), "level": level,
            "method": "Laplace screen: linearised refits of every candidate and control at their noiseless optima",
            "protocol": describe_protocol(feats)}
     out["text"] = _text(out)
     return out
+
+
+def _effect_limit(e: Effect, model: Model, others: list, ctrls: list, theta: np.ndarray, free: list, whiten,
+                  d: SpecimenData, E: np.ndarray, n_levels: int, refine: int, level: float, feats: dict) -> dict:
+    """One effect's detection limit (a row of :func:`detection_power`): the shares named on a
+    geometric grid of strengths, then bisection; independent of the other effects' rows."""
+    mc = model.with_effects(e)
+    q = next(p for p in e.parameters if p.name == primary_parameters(e)[0])
+    far = q.upper if abs(q.upper - q.null) >= abs(q.lower - q.null) else q.lower
+
+    def share(frac):
+        th = mc.null_theta(theta)
+        th[mc.index(q.name)] = q.null + frac * (far - q.null)
+        y0 = np.asarray(mc.stress(d.loading, th))
+        truth = {p.name: float(th[mc.index(p.name)]) for p in e.parameters}
+        return _named_fraction(model, e, others, ctrls, theta, free, y0, truth, whiten, d, E)
+
+    fracs = list(np.geomspace(0.01, 1.0, n_levels))
+    levels = [(f, share(f)) for f in fracs]
+    hit = next((i for i, (_, s) in enumerate(levels) if s >= level), None)
+    if hit is not None and hit > 0:
+        lo, hi = levels[hit - 1][0], levels[hit][0]
+        for _ in range(int(refine)):
+            mid = math.sqrt(lo * hi)
+            s = share(mid)
+            levels.append((mid, s))
+            lo, hi = (mid, hi) if s < level else (lo, mid)
+        limit_frac = hi
+    else:
+        limit_frac = None if hit is None else levels[hit][0]
+    levels.sort()
+    val = (lambda f: float(q.null + f * (far - q.null)))
+    return {"effect": e.name, "parameter": q.name, "unit": q.unit,
+            "limit": None if limit_frac is None else val(limit_frac),
+            "levels": [[val(f), s] for f, s in levels],
+            "shape": {p.name: p.null for p in e.parameters if p.name != q.name},
+            "protocol": None if limit_frac is not None else experiments_for([e], feats)}
 
 
 def _text(p: dict) -> str:

@@ -27,7 +27,7 @@ from .rules import (DELTA_LOGZ_MIN, EVIDENCE_RUN_MIN_GAIN, MIN_REFIT_SCORE, N_CO
                     TMCMC_SE_FACTOR)
 
 __all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains", "decisive",
-           "to_refine", "refine_decisive", "placement_models", "placement_text"]
+           "to_refine", "refine_decisive", "placement_models", "placement_text", "run_in_workers"]
 
 #: the order in which noise models are tried (the first gets the global search)
 _NOISE_ORDER = ("iid", "proportional", "ar1")
@@ -122,7 +122,7 @@ def _refine_task(fs: FitSummary, fitter: Fitter, seed: int) -> tuple[str, float,
     return "done", fs.refined_log_evidence, fs.refined_log_evidence_se, fitter.refine_seconds - t
 
 
-def _in_workers(fitter: Fitter, task, calls: list[tuple]) -> tuple[list, bool]:
+def run_in_workers(fitter: Fitter, task, calls: list[tuple]) -> tuple[list, bool]:
     """``task(*args)`` for every ``args`` of ``calls``, in order; and whether they ran in workers.
 
     With the fitter's worker pool (:meth:`.fitting.Fitter.pool`, more than one core) the calls run
@@ -151,8 +151,8 @@ def _in_workers(fitter: Fitter, task, calls: list[tuple]) -> tuple[list, bool]:
 def _run_refits(todo: list[tuple[int, CandidateResult]], base: FitSummary, fitter: Fitter,
                 noises: Sequence[str], seed: int) -> list[str]:
     """Refit every candidate of ``todo`` (``(k, c)``, seed ``seed + 1000 (k + 1)``), in place, in the
-    fitter's workers where it has them (:func:`_in_workers`); the status of each, in order."""
-    out, remote = _in_workers(fitter, _refit_task, [(c, base, fitter, noises, seed + 1000 * (k + 1))
+    fitter's workers where it has them (:func:`run_in_workers`); the status of each, in order."""
+    out, remote = run_in_workers(fitter, _refit_task, [(c, base, fitter, noises, seed + 1000 * (k + 1))
                                                     for k, c in todo])
     for (_, c), (status, got, secs) in zip(todo, out):
         if remote:
@@ -165,7 +165,7 @@ def _run_refits(todo: list[tuple[int, CandidateResult]], base: FitSummary, fitte
 def _run_refines(fits: list[FitSummary], seeds: list[int], fitter: Fitter) -> list[str]:
     """Refined evidence reruns of ``fits`` (in place), in the fitter's workers where it has them;
     the status of each, in order."""
-    out, remote = _in_workers(fitter, _refine_task, [(fs, fitter, sd) for fs, sd in zip(fits, seeds)])
+    out, remote = run_in_workers(fitter, _refine_task, [(fs, fitter, sd) for fs, sd in zip(fits, seeds)])
     for fs, (status, lz, se, secs) in zip(fits, out):
         if remote and status == "done":
             fs.refined_log_evidence, fs.refined_log_evidence_se = lz, se
