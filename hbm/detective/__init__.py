@@ -267,11 +267,116 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     if max_time is not None:
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
     kids = _children_cpu()
-    try:
-        out = _diagnose(fitter, d, base_model, cands, noises, mf, digitised, seed, top, max_effects, removal,
-                        power, noise, correlated, max_time, t_start, cpu_start, timings)
-    finally:
-        fitter.close()
+    with fitter:             # (its worker processes stop at the end, also on an error)
+        timings["estimate"] = cost_estimate(base_model, cands, fitter, noises, top, max_effects)
+        fitter.log(timings["estimate"]["text"])
+
+        with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
+            base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
+        fitter.log(revised_estimate(timings["estimate"], timings["base_fit"]))
+        fitter.interruptible = True      # from here a fit running past the deadline stops at its next batch
+        problem = unit_anomaly(d)
+        rounds: list[_Step] = []
+        selected: list[str] = []
+        current = base
+        rejected = None
+        if problem is not None:
+            check = check_noise(base, mf, d, _seed(seed, 1))
+            rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
+        else:
+            def run_round(cur, rem, k):
+                return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
+            rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
+            white = rejected = (_ar1_absorbs_misfit(rounds[0])
+                     if noise is None and base.noise == "ar1" and any(n != "ar1" for n in noises) else None)
+            if white is not None and fitter.out_of_time():
+                fitter.skip("the diagnosis under white noise", f"AR(1) noise may absorb a misfit ({white}); the "
+                            "verdict so far is under AR(1) noise")
+                white = rejected = None
+            if white is not None:
+                # the AR(1) correlation is a smooth misfit, not noise: an AR(1) fit would absorb the
+                # very signal the candidates are screened on, so diagnose again under white noise
+                white_noises = [n for n in noises if n != "ar1"]
+                fitter.log(f"AR(1) noise absorbs a smooth misfit ({white}): diagnosing again with "
+                           f"{', '.join(white_noises)}")
+                try:
+                    with _stopwatch(timings, "base_fit"):
+                        white_base = fitter.fit(base_model, white_noises, None, _seed(seed, 0), global_restarts=2)
+                except FitInterrupted:
+                    white_base = None
+                    fitter.skip("the diagnosis under white noise", f"AR(1) noise may absorb a misfit ({white}); its "
+                                "base fit was interrupted at --max-time: the verdict so far is under AR(1) noise")
+                    white = rejected = None
+            if white is not None:
+                noises, base = white_noises, white_base
+                rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
+                pref = rounds[0].check.noise.get("preference")
+                rounds[0].check.noise["preference"] = "; ".join(
+                    [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
+        verdict = _final_verdict(rounds, selected)
+        first = rounds[0]
+        edges_found = _base_at_bounds(first.base, d.name)
+        extra = {}
+        if removal and problem is None and fitter.out_of_time():
+            fitter.skip("the removal test of the base parts", "which base parts the data need is not known")
+        elif removal and problem is None:
+            with _stopwatch(timings, "removal"):
+                extra["removal"] = removal_test(first.base, fitter, _seed(seed, 90))
+        if problem is None:
+            # the noise caveat belongs to the final model: a misfit an AR(1) base absorbed and a named
+            # effect explains is no caveat of the verdict
+            last = rounds[-1]
+            view = white_noise_view(last.base, last.controls, d, _seed(seed, 92)) if last.base.noise == "ar1" else None
+            extra["caveats"] = verdict_caveats(
+                n_points=d.stress.size, base=last.base, check_noise=last.check.noise, z=last.check.z,
+                resid=last.check.resid, d=d, white=view, digitised=digitised, correlated=correlated,
+                ar1_rejected=rejected if problem is None and noise is None else None,
+                removal=extra.get("removal", []), at_bounds=edges_found, verdict=verdict.verdict)
+            verdict = replace(verdict, message=verdict.message + caveat_line(extra["caveats"]))
+        if fitter.undecided:
+            extra["stopped"] = stop_record(fitter, max_time, t_start)
+            if any(w.startswith("refit") for w, _ in fitter.undecided):
+                # "adequate" claims that no candidate gains: not shown when some were never refitted
+                msg = verdict.message.replace("adequate — the model is adequate", "undecided — no sign of "
+                                              "misfit so far, but not every candidate was refitted").replace(
+                    "no candidate or generic shape gains", "no refitted candidate or shape gains")
+                if verdict.verdict == "adequate":
+                    msg = "no sign of misfit so far, but not every candidate was refitted" + msg.removeprefix(
+                        "the model is adequate")
+                verdict = replace(verdict, verdict="undecided" if verdict.verdict == "adequate" else verdict.verdict,
+                                  message=msg)
+            verdict = replace(verdict, message=verdict.message + " | " + extra["stopped"]["text"])
+        if power and fitter.out_of_time():
+            fitter.skip("the detection-power estimate (--power)", "no detection limits")
+        elif power:
+            with _stopwatch(timings, "power"):
+                # from the user's starting model, so every library effect gets its limit (also those
+                # named here), with the noise of the final model (the starting fit's holds the misfit)
+                try:
+                    extra["power"] = detection_power(
+                        first.base, d, cands, _seed(seed, 91), noise_fit=current,
+                        run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
+                except FitInterrupted:
+                    fitter.skip("the detection-power estimate (--power)", "interrupted at --max-time: no detection "
+                                "limits")
+
+        timings["refine"] = fitter.refine_seconds     # part of "refits": the decisive comparisons' reruns
+        timings["workers"] = fitter.workers
+        timings["total"] = _time.perf_counter() - t_start
+        timings["cpu"] = _time.process_time() - cpu_start
+        cov = first.base.predictive
+        ck = first.check
+        out = Diagnosis(verdict=verdict.verdict, selected=verdict.selected, group=verdict.group,
+                        misfit_windows=[(w["eps_lo"], w["eps_hi"], w["sign"]) for w in ck.windows],
+                        noise=ck.noise,
+                        candidates=[c for c in first.results if c.refit] + [c for c in first.results if not c.refit]
+                        + first.controls,
+                        suggested_experiment=verdict.experiment, message=verdict.message, base=first.base,
+                        coverage={k: v for k, v in cov.items() if k in ("band", "overall", "per_test", "along_strain")},
+                        window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
+                        residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
+                        unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
+                        data_problem=problem, named_candidates=_named(rounds, selected), **extra)
     # the refit workers' CPU, counted once they have exited
     out.timings["cpu"] += _children_cpu() - kids
     return out
@@ -283,119 +388,6 @@ def _children_cpu() -> float:
         return 0.0
     r = _resource.getrusage(_resource.RUSAGE_CHILDREN)
     return float(r.ru_utime + r.ru_stime)
-
-
-def _diagnose(fitter: Fitter, d, base_model, cands, noises, mf, digitised, seed, top, max_effects, removal, power,
-              noise, correlated, max_time, t_start, cpu_start, timings) -> Diagnosis:
-    """:func:`diagnose` once its inputs are checked and its fitter is made."""
-    timings["estimate"] = cost_estimate(base_model, cands, fitter, noises, top, max_effects)
-    fitter.log(timings["estimate"]["text"])
-
-    with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
-        base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
-    fitter.log(revised_estimate(timings["estimate"], timings["base_fit"]))
-    fitter.interruptible = True      # from here a fit running past the deadline stops at its next batch
-    problem = unit_anomaly(d)
-    rounds: list[_Step] = []
-    selected: list[str] = []
-    current = base
-    rejected = None
-    if problem is not None:
-        check = check_noise(base, mf, d, _seed(seed, 1))
-        rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
-    else:
-        def run_round(cur, rem, k):
-            return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
-        rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
-        white = rejected = (_ar1_absorbs_misfit(rounds[0])
-                 if noise is None and base.noise == "ar1" and any(n != "ar1" for n in noises) else None)
-        if white is not None and fitter.out_of_time():
-            fitter.skip("the diagnosis under white noise", f"AR(1) noise may absorb a misfit ({white}); the "
-                        "verdict so far is under AR(1) noise")
-            white = rejected = None
-        if white is not None:
-            # the AR(1) correlation is a smooth misfit, not noise: an AR(1) fit would absorb the
-            # very signal the candidates are screened on, so diagnose again under white noise
-            white_noises = [n for n in noises if n != "ar1"]
-            fitter.log(f"AR(1) noise absorbs a smooth misfit ({white}): diagnosing again with "
-                       f"{', '.join(white_noises)}")
-            try:
-                with _stopwatch(timings, "base_fit"):
-                    white_base = fitter.fit(base_model, white_noises, None, _seed(seed, 0), global_restarts=2)
-            except FitInterrupted:
-                white_base = None
-                fitter.skip("the diagnosis under white noise", f"AR(1) noise may absorb a misfit ({white}); its "
-                            "base fit was interrupted at --max-time: the verdict so far is under AR(1) noise")
-                white = rejected = None
-        if white is not None:
-            noises, base = white_noises, white_base
-            rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
-            pref = rounds[0].check.noise.get("preference")
-            rounds[0].check.noise["preference"] = "; ".join(
-                [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
-    verdict = _final_verdict(rounds, selected)
-    first = rounds[0]
-    edges_found = _base_at_bounds(first.base, d.name)
-    extra = {}
-    if removal and problem is None and fitter.out_of_time():
-        fitter.skip("the removal test of the base parts", "which base parts the data need is not known")
-    elif removal and problem is None:
-        with _stopwatch(timings, "removal"):
-            extra["removal"] = removal_test(first.base, fitter, _seed(seed, 90))
-    if problem is None:
-        # the noise caveat belongs to the final model: a misfit an AR(1) base absorbed and a named
-        # effect explains is no caveat of the verdict
-        last = rounds[-1]
-        view = white_noise_view(last.base, last.controls, d, _seed(seed, 92)) if last.base.noise == "ar1" else None
-        extra["caveats"] = verdict_caveats(
-            n_points=d.stress.size, base=last.base, check_noise=last.check.noise, z=last.check.z,
-            resid=last.check.resid, d=d, white=view, digitised=digitised, correlated=correlated,
-            ar1_rejected=rejected if problem is None and noise is None else None,
-            removal=extra.get("removal", []), at_bounds=edges_found, verdict=verdict.verdict)
-        verdict = replace(verdict, message=verdict.message + caveat_line(extra["caveats"]))
-    if fitter.undecided:
-        extra["stopped"] = stop_record(fitter, max_time, t_start)
-        if any(w.startswith("refit") for w, _ in fitter.undecided):
-            # "adequate" claims that no candidate gains: not shown when some were never refitted
-            msg = verdict.message.replace("adequate — the model is adequate", "undecided — no sign of misfit so "
-                                          "far, but not every candidate was refitted").replace(
-                "no candidate or generic shape gains", "no refitted candidate or shape gains")
-            if verdict.verdict == "adequate":
-                msg = "no sign of misfit so far, but not every candidate was refitted" + msg.removeprefix(
-                    "the model is adequate")
-            verdict = replace(verdict, verdict="undecided" if verdict.verdict == "adequate" else verdict.verdict,
-                              message=msg)
-        verdict = replace(verdict, message=verdict.message + " | " + extra["stopped"]["text"])
-    if power and fitter.out_of_time():
-        fitter.skip("the detection-power estimate (--power)", "no detection limits")
-    elif power:
-        with _stopwatch(timings, "power"):
-            # from the user's starting model, so every library effect gets its limit (also those
-            # named here), with the noise of the final model (the starting fit's holds the misfit)
-            try:
-                extra["power"] = detection_power(first.base, d, cands, _seed(seed, 91), noise_fit=current,
-                                                 run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
-            except FitInterrupted:
-                fitter.skip("the detection-power estimate (--power)", "interrupted at --max-time: no detection "
-                            "limits")
-
-    timings["refine"] = fitter.refine_seconds     # part of "refits": the decisive comparisons' reruns
-    timings["workers"] = fitter.workers if fitter.workers > 1 else 1
-    timings["total"] = _time.perf_counter() - t_start
-    timings["cpu"] = _time.process_time() - cpu_start
-    cov = first.base.predictive
-    ck = first.check
-    return Diagnosis(verdict=verdict.verdict, selected=verdict.selected, group=verdict.group,
-                     misfit_windows=[(w["eps_lo"], w["eps_hi"], w["sign"]) for w in ck.windows],
-                     noise=ck.noise,
-                     candidates=[c for c in first.results if c.refit] + [c for c in first.results if not c.refit]
-                     + first.controls,
-                     suggested_experiment=verdict.experiment, message=verdict.message, base=first.base,
-                     coverage={k: v for k, v in cov.items() if k in ("band", "overall", "per_test", "along_strain")},
-                     window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
-                     residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
-                     unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
-                     data_problem=problem, named_candidates=_named(rounds, selected), **extra)
 
 
 def _named(rounds: list[_Step], selected: list[str]) -> list[CandidateResult]:

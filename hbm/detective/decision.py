@@ -93,7 +93,7 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
     phys = sorted([c for c in results if c.refit], key=lambda c: -gain(c))
     ctrls = sorted([c for c in controls if c.refit], key=lambda c: -gain(c))
     best, ctrl = (phys[0] if phys else None), (ctrls[0] if ctrls else None)
-    g_best, g_ctrl = gain(best), gain(ctrl)
+    g_best = gain(best)
     signs = misfit_signs(noise, windows, ctrl, base_noise, ctrls)
     if best is not None and g_best > DELTA_LOGZ_MIN:
         beats = _beats(best, ctrl)

@@ -362,6 +362,12 @@ class Fitter:
                 setter(n)
             self._blas = []
 
+    def __enter__(self) -> "Fitter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def __getstate__(self):
         # a worker gets the settings and caches, not the pool
         state = dict(self.__dict__)
