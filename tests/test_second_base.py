@@ -51,9 +51,13 @@ class ExpLaw(Effect):
         return p["A"] * np.expm1(p["B"] * state.eps)
 
 
+def _initial_modulus(c):
+    return c["A"] * c["B"]
+
+
 SPEC = ModelSpec(
     name="exp_law", parameters=(A, B), effects=("exp_law",), physical_range={"A": (0.0, np.inf), "B": (0.0, np.inf)},
-    combinations=(Combination("A*B", ("A", "B"), lambda c: c["A"] * c["B"], unit="MPa", label="A·B"),),
+    combinations=(Combination("A*B", ("A", "B"), _initial_modulus, unit="MPa", label="A·B"),),
     shape_parameters=("B",), transforms={"A": "log", "B": "logit"})
 
 
@@ -112,3 +116,33 @@ def test_spyrou_result_files_store_no_base_name(tmp_path):
     res = hbm.fit_specimen(spec, samples=40, restarts=0, progress=False, out=tmp_path / "s.nc")
     assert res.result.base_model is None and "base_model" not in io.read_attrs(res.path)
     assert spec_of(io.read_specimen_result(res.path)).name == "spyrou"
+
+
+def test_spyrou_spec_combinations_are_its_linear_amplitude_columns():
+    """The spec's combinations name the model's linear amplitude columns (hbm.model.linear), and compute
+    what an independent formula of the Voigt structure gives."""
+    from hbm.model.linear import structure_of
+
+    model = hbm.spyrou_model()
+    spec = model.spec
+    assert sorted(c.column for c in spec.combinations) == sorted(structure_of(model).columns)
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(model.bounds[:, 0], model.bounds[:, 1], (50, model.n_params))
+    col = dict(zip(model.parameter_names, theta.T))
+    got = spec.combination_values(col)
+    c = theta[:, 0]  # the fraction, first in the table
+    expect = [c * theta[:, 6] + (1 - c) * theta[:, 7], c * theta[:, 2], (1 - c) * theta[:, 3]]
+    for (name, v), e in zip(got.items(), expect):
+        np.testing.assert_allclose(v, e, rtol=1e-15, err_msg=name)
+    assert spec_of(model + hbm.effects.make_effect("offset")) is spec
+    assert spec_of(model.with_bounds(**{spec.manifold.x: (0.6, 0.9)})) is spec
+
+
+def test_models_and_specs_pickle_for_worker_processes():
+    """The detective's refit workers and dask pickle models: a registered base's spec travels by name."""
+    import pickle
+
+    model = hbm.spyrou_model() + hbm.effects.make_effect("offset")
+    back = pickle.loads(pickle.dumps(model))
+    assert back.spec is model.spec and back.parameter_names == model.parameter_names
+    assert pickle.loads(pickle.dumps(SPEC)).name == "exp_law"   # unregistered: by value

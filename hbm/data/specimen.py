@@ -92,11 +92,6 @@ class Series:
         unit, long_name = OBSERVABLES.get(name, ("", name))
         return cls(name, values, unit, long_name)
 
-    @property
-    def measured(self) -> np.ndarray:
-        """Boolean mask (n_points,): True where the quantity was measured (not NaN)."""
-        return ~np.isnan(self.values)
-
 
 @dataclass(frozen=True)
 class Test:
@@ -130,11 +125,6 @@ class Test:
     @property
     def n_points(self) -> int:
         return self.stop - self.start
-
-    @property
-    def name(self) -> str:
-        """The label, or ``test <id>``."""
-        return self.label if self.label is not None else f"test {self.id}"
 
 
 def _labels(attrs: Mapping[str, Any]) -> list[str] | None:

@@ -191,6 +191,14 @@ class ModelSpec:
         """The shape parameters the population layer always pools beside the combinations."""
         return tuple(p for p in self.shape_parameters if p not in self.pooled_when_informed)
 
+    def __reduce_ex__(self, protocol):
+        # a registered base travels by its name (worker processes, dask): one spec per base everywhere,
+        # and its functions need not pickle; any other spec by value
+        registered = BASES.get(self.name)
+        if registered is not None and registered[0] is self:
+            return base_spec, (self.name,)
+        return super().__reduce_ex__(protocol)
+
     @property
     def parameter_names(self) -> tuple[str, ...]:
         return tuple(p.name for p in self.parameters)

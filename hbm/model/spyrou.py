@@ -518,12 +518,29 @@ class SpyrouExport:
         return w + (1 - c) * wc
 
 
+# the combinations from named columns (module-level functions: a spec pickles)
+def _shear(c):
+    return c["VOLF"] * c["GF"] + (1 - c["VOLF"]) * c["GM"]
+
+
 def _fibres(c):
     return c["VOLF"] * c["P1"]
 
 
 def _collagen(c):
     return (1 - c["VOLF"]) * c["T1"]
+
+
+def _collagen_named(c):  # identify.py's candidates: the same products, written as they always were
+    return (1.0 - c["VOLF"]) * c["T1"]
+
+
+def _collagen_rate(c):
+    return (1.0 - c["VOLF"]) * c["T1"] * c["T2"]
+
+
+def _shear_named(c):
+    return c["VOLF"] * c["GF"] + (1.0 - c["VOLF"]) * c["GM"]
 
 
 #: The vocabulary of the Spyrou base (:class:`~hbm.model.spec.ModelSpec`).  The combinations a
@@ -537,8 +554,7 @@ def _collagen(c):
 SPEC = ModelSpec(
     name="spyrou", parameters=BASE_PARAMETERS, effects=BASE_EFFECTS, physical_range=PHYSICAL_RANGE,
     combinations=(
-        Combination("G", ("VOLF", "GF", "GM"), lambda c: c["VOLF"] * c["GF"] + (1 - c["VOLF"]) * c["GM"],
-                    column="G", unit="MPa", label="G = VOLF·GF + (1−VOLF)·GM"),
+        Combination("G", ("VOLF", "GF", "GM"), _shear, column="G", unit="MPa", label="G = VOLF·GF + (1−VOLF)·GM"),
         Combination("VOLF*P1", ("VOLF", "P1"), _fibres, column="VOLF*P1", unit="MPa", label="VOLF·P1",
                     compression_note="the fibre term is identically zero for ε ≤ 0 (compression data)"),
         Combination("(1-VOLF)*T1", ("VOLF", "T1"), _collagen, column="(1-VOLF)*T1", unit="MPa",
@@ -550,11 +566,10 @@ SPEC = ModelSpec(
     # checked by name in identify.py: when the collagen works in its near-linear regime (small
     # T2·(λ − 1)) only (1−c)·T1·T2 is learnable, not (1−c)·T1 itself
     candidates=(
-        Combination("(1-VOLF)*T1", ("VOLF", "T1"), lambda c: (1.0 - c["VOLF"]) * c["T1"]),
-        Combination("(1-VOLF)*T1*T2", ("VOLF", "T1", "T2"), lambda c: (1.0 - c["VOLF"]) * c["T1"] * c["T2"]),
-        Combination("VOLF*P1", ("VOLF", "P1"), lambda c: c["VOLF"] * c["P1"]),
-        Combination("VOLF*GF+(1-VOLF)*GM", ("VOLF", "GF", "GM"),
-                    lambda c: c["VOLF"] * c["GF"] + (1.0 - c["VOLF"]) * c["GM"])),
+        Combination("(1-VOLF)*T1", ("VOLF", "T1"), _collagen_named),
+        Combination("(1-VOLF)*T1*T2", ("VOLF", "T1", "T2"), _collagen_rate),
+        Combination("VOLF*P1", ("VOLF", "P1"), _fibres),
+        Combination("VOLF*GF+(1-VOLF)*GM", ("VOLF", "GF", "GM"), _shear_named)),
     manifold=Manifold("VOLF", "T1", "(1-VOLF)*T1", sweep_width=0.07, level_label="(1−VOLF)·T1"),
     mixture=MixtureRoles("VOLF", "P1", "T1", ("GF", "GM"), angle="THETA", names=("G", "VOLF*P1", "(1-VOLF)*T1")),
     export=SpyrouExport(),

@@ -25,7 +25,7 @@ def forest_quantities(spec: ModelSpec) -> tuple[str, ...]:
 
 def _label(spec: ModelSpec, name: str) -> str:
     """A panel title: the quantity's prose form and unit."""
-    units = {**{p.name: p.unit for p in spec.parameters}, **{c.name: c.unit for c in spec.combinations}}
+    units = spec.units()
     text = next((c.text for c in spec.combinations if c.name == name), name)
     return f"{text} ({units[name]})" if name in units else text
 

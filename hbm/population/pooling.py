@@ -209,9 +209,9 @@ class CombinationAugment:
     (:func:`hbm.samplers.hierarchical.refine_individual`); a class so that dask can ship it.
     """
 
-    def __init__(self, names: Sequence[str], bounds: np.ndarray, log_u: float, roles) -> None:
+    def __init__(self, names: Sequence[str], bounds: np.ndarray, log_u: float, roles=None) -> None:
         self.names, self.bounds, self.log_u = list(names), np.asarray(bounds, float), float(log_u)
-        self.roles = roles
+        self.roles = roles or base_spec().mixture
 
     def __call__(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         f = to_features(self.names, theta, roles=self.roles)
@@ -235,9 +235,10 @@ class PhiCoordinates:
     which is the joint posterior's own conditional.
     """
 
-    def __init__(self, names: Sequence[str], bounds: np.ndarray, hull: np.ndarray, log_u: float, roles) -> None:
+    def __init__(self, names: Sequence[str], bounds: np.ndarray, hull: np.ndarray, log_u: float,
+                 roles=None) -> None:
         self.names, self.bounds, self.log_u = list(names), np.asarray(bounds, float), float(log_u)
-        self.roles = roles
+        self.roles = roles = roles or base_spec().mixture   # the mixture of the model's spec (default base's)
         self.comb = [self.names.index(p) for p in roles.params]
         self.other = [j for j, n in enumerate(self.names) if n not in roles.params]
         self.box = np.vstack([np.asarray(hull, float), self.bounds[self.other]])

@@ -174,8 +174,12 @@ class Settings:
         return obj
 
     def replace(self, **changes: Any):
-        """A copy with some settings changed (checked like a new record)."""
-        return dataclasses.replace(self, **changes)
+        """A copy with some settings changed (checked like a new record; older names warn as in the constructor)."""
+        current = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
+        for name, (_, s) in self.declared().items():
+            if any(o in changes for o in s.old_names):
+                current.pop(name, None)  # the older keyword replaces it (and warns)
+        return type(self)(**{**current, **changes})
 
     # -- keys and files ----------------------------------------------------------------------
     def record(self, **extra: Any) -> dict:

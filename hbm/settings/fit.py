@@ -6,13 +6,8 @@ builds its options from the declarations below, ``hbm run`` inherits them
 (:class:`hbm.settings.RunSettings`), the result key hashes :meth:`FitSettings.record` and the
 result file stores :meth:`FitRecord.to_attrs`.
 
-Stored names (files and keys written before a concept was renamed keep their names)::
-
-    setting   stored as     meaning
-    move      kernel        the TMCMC move (a name of hbm.samplers.moves.MOVES)
-    tier      likelihood    the likelihood tier requested (auto | collapsed | full); the tier a
-                            fit *used* is stored as likelihood_tier, its reason as likelihood_note
-    maxfevals optimize_options.maxfevals   CMA-ES evaluations per run
+Renamed concepts keep their stored names (the table: :mod:`hbm.settings`); the tier a fit *used* is
+stored as ``likelihood_tier``, its reason as ``likelihood_note`` (:class:`FitRecord`).
 """
 
 from __future__ import annotations
