@@ -172,7 +172,7 @@ def _ks_theta(r, truth, i):
 # -- the population side: the amplitude block of a base-model specimen ---------------------------------
 @pytest.fixture(scope="module")
 def specimen():
-    from hbm.combinations import support_hull
+    from hbm.identifiability.combinations import support_hull
     from hbm.data import synthetic_specimen
     from hbm.likelihood import make_likelihood
     from hbm.model import spyrou_model

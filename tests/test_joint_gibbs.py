@@ -164,7 +164,7 @@ def test_bad_input():
 
 
 def test_population_exact_settings_and_combination_coordinates():
-    from hbm.combinations import log_density, support_hull, to_features
+    from hbm.identifiability.combinations import log_density, support_hull, to_features
     from hbm.model import spyrou_model
     from hbm.population import PopulationConfig
     from hbm.population.config import check_config
@@ -200,7 +200,7 @@ def test_population_exact_settings_and_combination_coordinates():
 def test_report_says_what_the_exact_fallback_did(tmp_path):
     from types import SimpleNamespace
 
-    from hbm.report import _reuse
+    from hbm.workflow.report import _reuse
 
     reuse = {"a": {"unreliable": True, "reasons": ["population mass beyond the samples"], "ess_q10": 300.0},
              "b": {"unreliable": False, "reasons": [], "ess_q10": 900.0}}

@@ -17,12 +17,13 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .. import io, seeds
+from .. import io
+from ..runtime import seeds
 from ..errors import HbmError
-from ..likelihood import make_likelihood
+from ..likelihood.core import make_likelihood
 from ..samplers.hierarchical import ExactSpecimen, GroupedResult, ReuseSpecimen, joint_gibbs, refine_individual
 from ..samplers.resampling import resample
-from ..utils import log_progress as _log
+from ..runtime.progress import log_progress as _log
 from .blocks import amplitude_block
 from .config import PopulationConfig
 

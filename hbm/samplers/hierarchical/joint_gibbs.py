@@ -64,7 +64,7 @@ import numpy as np
 from ...errors import HbmError
 from ..linalg import safe_cholesky  # jittered Cholesky: a degenerate ensemble still gives a proposal
 from .chain_states import TARGET_ACCEPT, ConditionalBlock, ExactSpecimen, ExactState, ReuseSpecimen, ReuseState, log_r
-from .convergence import rhat_ess
+from ..convergence import rhat_ess
 from .model import HierarchicalModel, draw_population
 
 __all__ = ["ConditionalBlock", "ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess"]
