@@ -17,7 +17,7 @@ from typing import Mapping
 import numpy as np
 
 from ...errors import HbmError, SettingError
-from ...validation import check_positive
+from ...runtime.validation import check_positive
 from ..spyrou import FORMS, NeoHookeanMatrix, model_form
 from .axial import AxialCollagen
 from .base import DEFAULT_COLLAGEN3D, Sym, get_collagen_reading, is_zero
