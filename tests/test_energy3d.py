@@ -153,7 +153,7 @@ def test_a_new_reading_is_one_class():
         name = "test-along"
         description = "all collagen along the fibre (a test reading)"
 
-        def rule(self, D, theta_deg):
+        def rule(self, D, theta_deg, need="tangent"):
             N = Sym(np.ones((1, 1)), 0.0, 0.0)
             l2m1 = np.asarray(D.ff + 0 * theta_deg, dtype=float)[..., None]
             return N, np.ones_like(l2m1), l2m1

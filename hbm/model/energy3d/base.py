@@ -161,29 +161,32 @@ class DirectionalCollagen(CollagenReading):
     tangent c_ij = 2δ_ij·τ_i + 2λ_i²λ_j²·Σ ω·k·N_ii·N_jj with k = dh/d(l²) = (W_c'' − h)/(2l²)
     (the integrand vanishes where a segment goes slack, so a moving slack boundary adds nothing)."""
 
-    def rule(self, D: Sym, theta_deg: np.ndarray) -> tuple[Sym, np.ndarray, np.ndarray]:
+    def rule(self, D: Sym, theta_deg: np.ndarray, need: str = "tangent") -> tuple[Sym | None, np.ndarray, np.ndarray]:
         """The quadrature at D: structure tensors N (components (..., q)), weights ω (..., q) summing to
-        the average, and l² − 1 = N:D at the nodes (..., q).  For a diagonal D the N's must be exact
-        per node (the tangent uses N ⊗ N); otherwise only linear functionals of N are used."""
+        the average, and l² − 1 = N:D at the nodes (..., q).
+
+        ``need`` says what the caller computes: ``"energy"`` (N may be ``None``), ``"stress"`` (only
+        linear functionals of N: nodes may stand for symmetric groups of segments) or ``"tangent"``
+        (diagonal D; the N's must be exact per node, since the tangent uses N ⊗ N)."""
         raise NotImplementedError
 
-    def _nodes(self, p, D):
-        N, w, l2m1 = self.rule(D, p["THETA"])
+    def _nodes(self, p, D, need):
+        N, w, l2m1 = self.rule(D, p["THETA"], need)
         l, x = segment_excess(l2m1)
         return N, w, l, x, p["T1"][..., None], p["T2"][..., None]
 
     def energy(self, p, D):
-        N, w, l, x, t1, t2 = self._nodes(p, D)
+        _, w, l, x, t1, t2 = self._nodes(p, D, "energy")
         return np.sum(w * collagen_energy(l, t1, t2), axis=-1)
 
     def pk2(self, p, D):
-        N, w, l, x, t1, t2 = self._nodes(p, D)
+        N, w, l, x, t1, t2 = self._nodes(p, D, "stress")
         wh = w * collagen_force(x, t1, t2) / l
         return Sym(*(0.0 if is_zero(v) else np.sum(wh * v, axis=-1) for v in N))
 
     def principal(self, p, e, tangent=False):
         d = tuple(np.expm1(2.0 * np.asarray(ei, dtype=float)) for ei in e)
-        N, w, l, x, t1, t2 = self._nodes(p, Sym(*d))
+        N, w, l, x, t1, t2 = self._nodes(p, Sym(*d), "tangent" if tangent else "stress")
         force = collagen_force(x, t1, t2)
         h = force / l
         wh = w * h

@@ -46,7 +46,7 @@ def _coefficients(D: Sym, c2, cs, s2):
     return a0, 2.0 * cs * D.fc, 2.0 * cs * D.fn, 0.5 * s2 * (D.cc - D.nn), s2 * D.cn
 
 
-def _rule_double(c2, s2, a0, a2, b2, t, w, with_cn: bool):
+def _rule_double(c2, s2, a0, a2, b2, t, w, with_cn: bool, with_n: bool):
     """l² − 1 = a0 + R·cos ψ, ψ = 2φ − atan2(b2, a2): the taut arc ψ ∈ [0, ψ*] (symmetric in ±ψ and
     in φ → φ + π, so one interval holds the whole average; the N are exact per node for diagonal D)."""
     R = np.hypot(a2, b2)
@@ -59,13 +59,15 @@ def _rule_double(c2, s2, a0, a2, b2, t, w, with_cn: bool):
     cp = np.cos(psi_star[..., None] * t)
     weights = (psi_star / np.pi)[..., None] * w
     l2m1 = a0[..., None] + R[..., None] * cp
+    if not with_n:
+        return None, weights, l2m1
     half = 0.5 * s2[..., None]
     along = cp * c2phi0
     cn = half * cp * np.where(pos, b2 / Rs, 0.0)[..., None] if with_cn else 0.0
     return Sym(c2[..., None], half * (1.0 + along), half * (1.0 - along), 0.0, 0.0, cn), weights, l2m1
 
 
-def _rule_even(c2, cs, s2, a0, a1, a2, t, w):
+def _rule_even(c2, cs, s2, a0, a1, a2, t, w, with_n: bool):
     """l² − 1 = a0 + a1·cosφ + a2·cos2φ = q(u), u = cosφ, φ ∈ [0, π] standing for ±φ."""
     A, B, C = 2.0 * a2, a1, a0 - a2
     disc = B * B - 4.0 * A * C
@@ -87,6 +89,8 @@ def _rule_even(c2, cs, s2, a0, a1, a2, t, w):
     weights = (width / np.pi * w).reshape(shape)
     cp = np.cos(phi)
     l2m1 = a0[..., None] + a1[..., None] * cp + a2[..., None] * (2.0 * cp * cp - 1.0)
+    if not with_n:
+        return None, weights, l2m1
     s2n = s2[..., None]
     return Sym(c2[..., None], s2n * cp * cp, s2n * (1.0 - cp * cp), cs[..., None] * cp), weights, l2m1
 
@@ -125,7 +129,7 @@ def _circle_roots(a0, a1, b1, a2, b2):
     return phi
 
 
-def _rule_general(c2, cs, s2, a0, a1, b1, a2, b2, t, w):
+def _rule_general(c2, cs, s2, a0, a1, b1, a2, b2, t, w, with_n: bool):
     """Any D: the slack boundaries (zeros of l² − 1) and the extrema of l² (zeros of its derivative, so
     that every peak sits at an interval end, where Gauss nodes cluster) split [0, 2π) into 8 intervals."""
     phi = np.concatenate([_circle_roots(a0, a1, b1, a2, b2),
@@ -138,6 +142,8 @@ def _rule_general(c2, cs, s2, a0, a1, b1, a2, b2, t, w):
     weights = (width / (2 * np.pi) * w).reshape(shape)
     cp, sp = np.cos(nodes), np.sin(nodes)
     l2m1 = _trig_value(nodes, *(v[..., None] for v in (a0, a1, b1, a2, b2)))
+    if not with_n:
+        return None, weights, l2m1
     s2n, csn = s2[..., None], cs[..., None]
     return Sym(c2[..., None], s2n * cp * cp, s2n * sp * sp, csn * cp, csn * sp, s2n * cp * sp), weights, l2m1
 
@@ -163,16 +169,23 @@ class ConeCollagen(DirectionalCollagen):
         self.n_nodes = int(n_nodes)
         self._t, self._w = gauss_unit(self.n_nodes)
 
-    def rule(self, D, theta_deg):
+    def rule(self, D, theta_deg, need="tangent"):
         c2, cs, s2 = _trig(theta_deg)
         a0, a1, b1, a2, b2 = _coefficients(D, c2, cs, s2)
+        with_n = need != "energy"
+        if need != "tangent" and is_zero(D.fc) and is_zero(D.fn) and is_zero(a2) and is_zero(b2):
+            # every segment has the same stretch (along-fibre uniaxial kinematics): one node is exact
+            half = 0.5 * s2
+            l2m1 = np.asarray(a0 + 0.0 * c2)[..., None]
+            N = Sym(c2[..., None], half[..., None], half[..., None]) if with_n else None
+            return N, np.ones_like(l2m1), l2m1
         shape = np.broadcast_shapes(*(np.shape(v) for v in (a0, a1, b1, a2, b2, c2)))
         c2, cs, s2, a0, a1, b1, a2, b2 = (np.broadcast_to(v, shape) for v in (c2, cs, s2, a0, a1, b1, a2, b2))
         if is_zero(D.fc) and is_zero(D.fn):
-            return _rule_double(c2, s2, a0, a2, b2, self._t, self._w, not is_zero(D.cn))
+            return _rule_double(c2, s2, a0, a2, b2, self._t, self._w, not is_zero(D.cn), with_n)
         if is_zero(D.fn) and is_zero(D.cn):
-            return _rule_even(c2, cs, s2, a0, a1, a2, self._t, self._w)
-        return _rule_general(c2, cs, s2, a0, a1, b1, a2, b2, self._t, self._w)
+            return _rule_even(c2, cs, s2, a0, a1, a2, self._t, self._w, with_n)
+        return _rule_general(c2, cs, s2, a0, a1, b1, a2, b2, self._t, self._w, with_n)
 
 
 class ConeFamilies(DirectionalCollagen):
@@ -188,7 +201,7 @@ class ConeFamilies(DirectionalCollagen):
         self.n = int(n)
         self._phi = (np.arange(self.n) + 0.5) * 2.0 * np.pi / self.n
 
-    def rule(self, D, theta_deg):
+    def rule(self, D, theta_deg, need="tangent"):
         c2, cs, s2 = (v[..., None] for v in _trig(theta_deg))
         cp, sp = np.cos(self._phi), np.sin(self._phi)
         N = Sym(c2, s2 * cp * cp, s2 * sp * sp, cs * cp, cs * sp, s2 * cp * sp)

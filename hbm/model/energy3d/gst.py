@@ -20,7 +20,7 @@ class GstCollagen(DirectionalCollagen):
     name = "gst"
     description = "one averaged helix stretch, lambda_H^2 = H:C (generalised structure tensor)"
 
-    def rule(self, D, theta_deg):
+    def rule(self, D, theta_deg, need="tangent"):
         c2 = np.cos(np.deg2rad(theta_deg)) ** 2
         half = 0.5 * (1.0 - c2)
         N = Sym(c2[..., None], half[..., None], half[..., None])
