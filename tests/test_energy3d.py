@@ -27,18 +27,31 @@ def deformations(seed=0):
            "shear_cn": shear(1, 2, 0.35), "shear_nc": shear(2, 1, -0.3), "shear_fc": shear(0, 1, 0.4),
            "shear_cf": shear(1, 0, -1.6), "general": np.eye(3) + 0.25 * rng.standard_normal((3, 3))}
     out["general_2"] = np.eye(3) + 0.15 * rng.standard_normal((3, 3))
+    out["even_concave"] = np.array([[1.0, 0.3, 0.0], [0.0, 0.9, 0.0], [0.0, 0.0, 1.2]])   # D_cc < D_nn, D_fc != 0
+    out["even_two_arcs"] = shear(0, 1, 1.5)          # f-c shear beyond 2·cot(theta): taut around phi = 0 and pi
     return out
+
+
+def exponent(F, prm):
+    """The largest collagen exponent T2·(l − 1) over the segments (what the cone's Gauss nodes must resolve)."""
+    th = np.deg2rad(prm["THETA"])
+    phi = np.linspace(0, 2 * np.pi, 4001)
+    n = np.stack([np.full_like(phi, np.cos(th)), np.sin(th) * np.cos(phi), np.sin(th) * np.sin(phi)])
+    return prm["T2"] * (np.linalg.norm(F @ n, axis=0).max() - 1)
 
 
 @pytest.mark.parametrize("reading", ["cone", "gst"])
 def test_energy_matches_independent_quadrature(reading):
+    """<= 1e-10 relative while the largest collagen exponent is <= 100 (stresses up to ~1e40 MPa); the
+    cone's 24 Gauss nodes per arc reach 1.5e-8 at exponent 161 (Hawkins-like, f-c shear 1.5: W = 8e63 MPa)."""
     energy = Energy3D(collagen3d=reading)
     for prm in SETS.values():
         for name, F in deformations().items():
             D = Sym.from_matrix(F.T @ F - np.eye(3))
             got = float(energy.energy(as_params(prm), D))
             ref = ind.energy(F, prm, reading)
-            assert got == pytest.approx(ref, rel=1e-10, abs=1e-300), (name, prm)
+            rel = 1e-10 if reading == "gst" or exponent(F, prm) <= 100 else 3e-8
+            assert got == pytest.approx(ref, rel=rel, abs=1e-300), (name, prm)
 
 
 @pytest.mark.parametrize("reading", ["cone", "gst"])
@@ -115,6 +128,12 @@ def test_exact_cone_against_fibre_families():
         scaled = errs * Ns ** 2
         assert scaled.max() / scaled.min() < 3.0, errs
         assert errs[-1] > 1e-7                  # N = 512 is still far from the exact average
+    # a discretised reading plugs into the energy and every mode (held axes are structural zeros)
+    strain = np.array([-0.1, 0.1])
+    for mode in ("planar_c_hold_f", "shear_cf"):
+        exact = predict_observables(Energy3D(), mode, as_params(ind.CALVO), strain)["stress"]
+        fam = predict_observables(Energy3D(collagen3d=ConeFamilies(512)), mode, as_params(ind.CALVO), strain)
+        np.testing.assert_allclose(fam["stress"], exact, rtol=1e-4)
 
 
 def test_gauss_nodes_converged_at_high_t2():

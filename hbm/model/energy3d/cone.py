@@ -13,16 +13,19 @@ integrand is analytic:
 
 * ``D_fc = D_fn = 0`` (diagonal F, shear in the c–n plane): l² depends on 2φ through one harmonic,
   a0 + R·cos ψ with ψ = 2(φ − φ0); the taut arc is ψ ∈ [0, ψ*], ψ* = arccos(−a0/R): one interval.
-* ``D_fn = D_cn = 0`` (shear in the f–c plane): l² is even in φ, a quadratic in u = cos φ whose roots
-  (and vertex, where it is a maximum) split [0, π]: up to four intervals.
+* ``D_fn = D_cn = 0`` (shear in the f–c plane): l² is even in φ, a quadratic in u = cos φ; its roots
+  give at most two taut intervals of [0, π] (split at the vertex where that is an interior maximum).
 * otherwise: the four roots of the quartic in z = exp(iφ), from batched companion-matrix
   eigenvalues polished by Newton steps, and the four of its derivative (the extrema, so peaks sit at
   interval ends): eight intervals (slow, ~6 µs per point; no shipped load case needs it).
 
-Accuracy (measured against adaptive quadrature, :mod:`tests.test_energy3d` and the benchmark):
-with 24 nodes per interval the moments are converged to ≤ 1e-13 relative for T2 ≤ 50 and to
-≤ 7e-11 at T2 = 200 with the taut segments stretched by 37 % (stresses of 1e40 MPa); 32 nodes reach
-≤ 3e-14 everywhere tried.
+Accuracy (measured against adaptive quadrature, ``tests/test_energy3d.py``): it is set by the largest
+collagen exponent κ = T2·(l − 1) over the segments.  With 24 nodes per interval the energy and the
+stresses agree to ≤ 1e-13 relative for κ ≲ 20 (T2 ≤ 50 at 20 % strain), ≤ 1e-11 for κ ≤ 100 (stresses
+up to ~1e40 MPa) and 1.5e-8 at κ = 161 (W = 8e63 MPa); 32 nodes reached ≤ 3e-14 in every diagonal
+state tried up to T2 = 200 and 70 % stretch.  Splitting the arc at the peak's width or mapping the
+nodes towards it did worse for the same node count (Gauss–Legendre already clusters at the ends,
+where every peak is placed).
 """
 
 from __future__ import annotations
@@ -68,23 +71,31 @@ def _rule_double(c2, s2, a0, a2, b2, t, w, with_cn: bool, with_n: bool):
 
 
 def _rule_even(c2, cs, s2, a0, a1, a2, t, w, with_n: bool):
-    """l² − 1 = a0 + a1·cosφ + a2·cos2φ = q(u), u = cosφ, φ ∈ [0, π] standing for ±φ."""
+    """l² − 1 = a0 + a1·cosφ + a2·cos2φ = q(u) = A·u² + B·u + C with u = cosφ, φ ∈ [0, π] standing for ±φ.
+
+    The taut set is at most two φ-intervals: outside the roots of q when A ≥ 0 (a maximum at each end, at
+    φ = 0 and π), between them when A < 0 (split at the vertex, the interior maximum)."""
     A, B, C = 2.0 * a2, a1, a0 - a2
     disc = B * B - 4.0 * A * C
+    real = disc > 0
     sq = np.sqrt(np.maximum(disc, 0.0))
     q = -0.5 * (B + np.where(B >= 0, sq, -sq))     # the stable quadratic formula
-    ok = disc >= 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        r1 = np.where(ok & (q != 0), C / np.where(q != 0, q, 1.0), np.nan)
-        r2 = np.where(ok & (A != 0), q / np.where(A != 0, A, 1.0), np.nan)
-        vertex = np.where(A < 0, -B / np.where(A != 0, 2.0 * A, 1.0), np.nan)   # an interior maximum
-    pts = [np.zeros_like(a0), np.full_like(a0, np.pi)]
-    for u in (r1, r2, vertex):
-        inside = np.abs(u) < 1.0                     # nan compares False
-        pts.append(np.where(inside, np.arccos(np.where(inside, u, 0.0)), np.pi))
-    pts = np.sort(np.stack(pts, axis=-1), axis=-1)   # (..., 5): four intervals, some empty
-    lo, width = pts[..., :-1, None], np.diff(pts, axis=-1)[..., None]
-    shape = a0.shape + (4 * t.size,)
+        x1, x2 = C / q, q / A                      # ±inf where A = 0 (one root: q is linear in u)
+        vertex = np.clip(-B / (2.0 * A), -1.0, 1.0)
+    r_lo = np.clip(np.where(real, np.fmin(x1, x2), -1.0), -1.0, 1.0)
+    r_hi = np.clip(np.where(real, np.fmax(x1, x2), 1.0), -1.0, 1.0)
+    convex = A >= 0
+    # no real root: taut everywhere (A > 0, or q ≡ C > 0) or nowhere
+    everywhere = ~real & ((A > 0) | ((A == 0) & (C > 0)))
+    hi_u = np.where(everywhere, -1.0, r_hi)        # convex: u ∈ [hi_u, 1] and u ∈ [-1, r_lo]
+    acos = np.arccos
+    ends = np.where(convex, [np.zeros_like(a0), acos(hi_u), acos(r_lo), np.full_like(a0, np.pi)],
+                    np.where(real, [acos(r_hi), acos(np.where(real, vertex, 0.0)), acos(np.where(real, vertex, 0.0)),
+                                    acos(r_lo)], 0.0))
+    lo = np.stack([ends[0], ends[2]], axis=-1)[..., None]
+    width = np.maximum(np.stack([ends[1] - ends[0], ends[3] - ends[2]], axis=-1), 0.0)[..., None]
+    shape = a0.shape + (2 * t.size,)
     phi = (lo + width * t).reshape(shape)
     weights = (width / np.pi * w).reshape(shape)
     cp = np.cos(phi)
@@ -199,13 +210,14 @@ class ConeFamilies(DirectionalCollagen):
 
     def __init__(self, n: int = 24) -> None:
         self.n = int(n)
+        self.name = f"cone-families({self.n})"
         self._phi = (np.arange(self.n) + 0.5) * 2.0 * np.pi / self.n
 
     def rule(self, D, theta_deg, need="tangent"):
         c2, cs, s2 = (v[..., None] for v in _trig(theta_deg))
         cp, sp = np.cos(self._phi), np.sin(self._phi)
         N = Sym(c2, s2 * cp * cp, s2 * sp * sp, cs * cp, cs * sp, s2 * cp * sp)
-        l2m1 = N.contract(Sym(*(v if is_zero(v) else np.asarray(v)[..., None] for v in D)))
+        l2m1 = N.contract(Sym(*(0.0 if is_zero(v) else np.asarray(v)[..., None] for v in D)))
         shape = np.broadcast_shapes(np.shape(l2m1), c2.shape[:-1] + (self.n,))
         l2m1 = np.broadcast_to(l2m1, shape)
         return N, np.full(shape, 1.0 / self.n), l2m1

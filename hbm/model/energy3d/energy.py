@@ -20,7 +20,7 @@ from ...errors import HbmError, SettingError
 from ...runtime.validation import check_positive
 from ..spyrou import FORMS, NeoHookeanMatrix, model_form
 from .axial import AxialCollagen
-from .base import DEFAULT_COLLAGEN3D, Sym, get_collagen_reading, is_zero
+from .base import DEFAULT_COLLAGEN3D, CollagenReading, Sym, get_collagen_reading, is_zero
 
 
 class Energy3D:
@@ -33,9 +33,10 @@ class Energy3D:
     form : {"thesis", "energy"}
         The collagen form of the 1-D model (:func:`hbm.model.spyrou_model`).  ``"thesis"`` uses the
         axial reading, meaningful in along-fibre tension only.
-    collagen3d : str or None
+    collagen3d : str, CollagenReading or None
         The energy form's 3-D reading of the collagen (a key of
-        :data:`~hbm.model.energy3d.COLLAGEN_READINGS`: ``"cone"`` (default) or ``"gst"``).  Not
+        :data:`~hbm.model.energy3d.COLLAGEN_READINGS`: ``"cone"`` (default) or ``"gst"``, or a reading
+        instance such as :class:`~hbm.model.energy3d.ConeFamilies` to measure a discretised card).  Not
         allowed with the thesis form, which has only its own reading.
 
     Attributes
@@ -62,6 +63,8 @@ class Energy3D:
                                    "the energy form (--form energy); the thesis form has only its own, along the "
                                    "fibres")
             self.collagen = AxialCollagen()
+        elif isinstance(collagen3d, CollagenReading):
+            self.collagen = collagen3d
         else:
             self.collagen = get_collagen_reading(DEFAULT_COLLAGEN3D if collagen3d is None else collagen3d)
         self.collagen3d = self.collagen.name

@@ -8,10 +8,10 @@ from ...errors import HbmError
 from .base import LoadCase, Observable, full_shape, lateral_strain
 from .registry import register_load_case
 
-#: Newton iterations before giving up (measured: 4-7 suffice from the isotropic start)
+#: Newton iterations before giving up (measured: at most 22 over the prior box, :func:`_lateral_root`)
 MAX_ITER = 60
 #: the solve stops when |σ_ff| <= RTOL·|σ_cc| (or the step reaches round-off) ...
-RTOL = 1e-13
+RTOL = 1e-12
 #: ... and refuses a result whose residual exceeds this fraction of the loaded stress
 ACCEPT = 1e-9
 
@@ -57,13 +57,20 @@ def _evaluate(energy, p, u, ec, tangent):
 
 
 def _lateral_root(energy, p, ec):
-    """u = ln λf with τ_ff = τ_nn for every element (flat arrays): (u, σ_cc)."""
+    """u = ln λf with τ_ff = τ_nn for every element (flat arrays): (u, σ_cc).
+
+    Newton on g(u) = τ_ff − τ_nn; a step that leaves the bracket of the signs seen so far is replaced by
+    bisection, or by a unit step in u while only one side is known.  Measured (box draws x 0-44 %
+    cross-fibre tension): 9.8 evaluations per element on average, at most 22; on the six specimens'
+    parameters x -30..30 %: 6.4.  Newton on ln(τ_ff/τ_nn) (linear for the neo-Hookean) saved a quarter of
+    them but cycled at the collagen onset in compression; it is not used."""
     n = ec.size
     u = -0.5 * ec                                   # isotropic start
     lo, hi = np.full(n, -np.inf), np.full(n, np.inf)
     finite = np.isfinite(ec)
     for v in p.values():
         finite &= np.isfinite(v)
+    taus = np.full((3, n), np.nan)
     active = np.flatnonzero(finite)
     flat = np.zeros(n, dtype=bool)                  # a root where g' = 0: the lateral stretch is not unique
     for _ in range(MAX_ITER):
@@ -87,8 +94,13 @@ def _lateral_root(energy, p, ec):
         done = (np.abs(g) <= RTOL * load + floor) | (np.abs(new - ua) <= 4 * np.finfo(float).eps * (1 + np.abs(ua)))
         u[active] = np.where(done, ua, new)
         flat[active] = done & ~(dg > 0)
+        taus[:, active[done]] = np.stack(tau)[:, done]
         active = active[~done]
-    tau, g, _ = _evaluate(energy, p, u, ec, False)
+    if active.size:
+        taus[:, active] = np.stack(_evaluate(energy, {k: v[active] for k, v in p.items()}, u[active],
+                                             ec[active], False)[0])
+    tau = tuple(taus)
+    g = tau[0] - tau[2]
     sigma = tau[1] - 0.5 * (tau[0] + tau[2])
     bad = finite & (np.abs(g) > ACCEPT * np.abs(sigma) + 8 * np.finfo(float).eps * (np.abs(tau[0]) + np.abs(tau[2])))
     bad[active] = True
