@@ -33,6 +33,7 @@ import json
 import os
 import platform
 import re
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -225,7 +226,13 @@ def main(argv=None) -> int:
     n, repeat = (200, 2) if a.quick else (a.n, a.repeat)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     aff = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
-    head = (f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, Python {platform.python_version()}, "
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                                check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    head = (f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, commit {commit}, "
+            f"Python {platform.python_version()}, "
             f"numpy {np.__version__}, CPU affinity {aff}, OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}, "
             f"load {load:.2f}; n = {n} parameter sets x {N_POINTS} points, best of {repeat} (CPU time)")
     cost = cost_table(n, repeat)

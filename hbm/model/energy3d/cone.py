@@ -71,7 +71,7 @@ def _rule_double(c2, s2, a0, a2, b2, t, w, with_cn: bool, with_n: bool):
 
 
 def _rule_even(c2, cs, s2, a0, a1, a2, t, w, with_n: bool):
-    """l² − 1 = a0 + a1·cosφ + a2·cos2φ = q(u) = A·u² + B·u + C with u = cosφ, φ ∈ [0, π] standing for ±φ.
+    """l² − 1 = a0 + a1·cosφ + a2·cos2φ = q(u) = A·u² + B·u + C, u = cosφ, φ ∈ [0, π] standing for ±φ.
 
     The taut set is at most two φ-intervals: outside the roots of q when A ≥ 0 (a maximum at each end, at
     φ = 0 and π), between them when A < 0 (split at the vertex, the interior maximum)."""

@@ -38,12 +38,21 @@ from ..spyrou import model_form
 from .base import LoadCase, Observable, PrescribedStretch, SimpleShear
 from .registry import ALIASES, DEFAULT_LOAD_CASE, LOAD_CASES, get_load_case, register_load_case
 # the built-in modes register themselves on import, in the order of the table above
-from . import (uniaxial_f, uniaxial_c, planar_f_hold_c, planar_c_hold_f, planar_c_hold_n,  # noqa: F401
-               biaxial_fc, biaxial_cn, shear_fc, shear_cf, shear_cn)
+from .uniaxial_f import UniaxialF
+from .uniaxial_c import UniaxialC
+from .planar_f_hold_c import PlanarFHoldC
+from .planar_c_hold_f import PlanarCHoldF
+from .planar_c_hold_n import PlanarCHoldN
+from .biaxial_fc import BiaxialFC
+from .biaxial_cn import BiaxialCN
+from .shear_fc import ShearFC
+from .shear_cf import ShearCF
+from .shear_cn import ShearCN
 
 __all__ = ["LoadCase", "Observable", "PrescribedStretch", "SimpleShear", "ALIASES", "DEFAULT_LOAD_CASE",
            "LOAD_CASES", "get_load_case", "register_load_case", "check_mode", "predict_observables",
-           "THESIS_FORM_REASON"]
+           "THESIS_FORM_REASON", "UniaxialF", "UniaxialC", "PlanarFHoldC", "PlanarCHoldF", "PlanarCHoldN",
+           "BiaxialFC", "BiaxialCN", "ShearFC", "ShearCF", "ShearCN"]
 
 #: why the thesis form is evaluated only along the fibres (DESIGN.md §8, "axial")
 THESIS_FORM_REASON = (

@@ -200,7 +200,7 @@ class PrescribedStretch(LoadCase):
 
 class Planar(PrescribedStretch):
     """Planar (pure-shear) test, ``axes = (loaded, held)``: stretch λ along ``loaded``, ``held`` kept at
-    1, the third face traction-free (λ = 1/λ).  ``stress`` = σ along the load, ``stress_2`` = σ on the
+    1, the third face traction-free (its stretch 1/λ).  ``stress`` = σ along the load, ``stress_2`` = σ on the
     held faces.  At strain < 0: semi-confined compression."""
 
     roles = ("along the load", "on the held faces")
@@ -215,7 +215,7 @@ class Planar(PrescribedStretch):
 class Biaxial(PrescribedStretch):
     """Biaxial test, ``axes = (first, second)``: λ1 = 1 + strain along the first, λ2 = 1 + strain_2 along
     the second (λ1 when strain_2 is absent: equibiaxial), the third face traction-free
-    (λ = 1/(λ1·λ2)).  ``stress`` = σ along the first axis, ``stress_2`` = σ along the second."""
+    (its stretch 1/(λ1·λ2)).  ``stress`` = σ along the first axis, ``stress_2`` = σ along the second."""
 
     roles = ("along strain", "along strain_2")
     inputs = ("strain", "strain_2")
