@@ -1,12 +1,14 @@
 """Drucker stability of the energy form in uniaxial, equibiaxial and planar modes.
 
-The 3-D energy of hbm's energy form (incompressible, fibres along x)::
+The 3-D energy of the base's energy form (incompressible, fibres along x), read from its export map
+(:meth:`hbm.model.spec.ExportMap.energy`; the Spyrou base evaluates it by
+:class:`hbm.model.energy3d.Energy3D` with the collagen's cone reading, DESIGN.md §8)::
 
     W = k_iso·G/2·(I1 − 3) + c·P1/2·⟨λf − 1 − EOPT⟩₊² + (1 − c)·⟨W_c(λH(φ))⟩_φ
 
-with λf the fibre stretch and the helical collagen averaged over its azimuth φ around the fibre
-(λH(φ)² = cos²θ·λ1² + sin²θ·(sin²φ·λ2² + cos²φ·λ3²); in uniaxial tension every azimuth has the
-λH of hbm's uniaxial formula).  Each mode is a one-parameter, volume-preserving path with the
+with λf the fibre stretch and the helical collagen averaged exactly over its azimuth φ around the
+fibre (λH(φ)² = cos²θ·λ1² + sin²θ·(cos²φ·λ2² + sin²φ·λ3²); in uniaxial tension every azimuth has
+the λH of hbm's uniaxial formula).  Each mode is a one-parameter, volume-preserving path with the
 fibre direction loaded::
 
     uniaxial     F = diag(λ, λ^−1/2, λ^−1/2)

@@ -493,29 +493,17 @@ class SpyrouExport:
         stress has a kink there), the fibre onset EOPT and the collagen onset λ* − 1."""
         return [0.0, p["EOPT"], float(collagen_onset_stretch(p["THETA"])) - 1.0]
 
-    #: azimuth quadrature of the helix average in :meth:`energy`
-    n_azimuth = 24
-
     def energy(self, p: Mapping[str, np.ndarray], k_iso: float, l1, l2, l3) -> np.ndarray:
         """W (MPa) of the energy form, incompressible, fibres along x, at principal stretches (m,)::
 
             W = k_iso·G/2·(I1 − 3) + c·P1/2·⟨λf − 1 − EOPT⟩₊² + (1 − c)·⟨W_c(λH(φ))⟩_φ
 
-        with the helical collagen averaged over its azimuth φ around the fibre (λH(φ)² =
-        cos²θ·λ1² + sin²θ·(sin²φ·λ2² + cos²φ·λ3²); in uniaxial tension every azimuth has the λH of
-        the uniaxial formula).  ``p``: parameter columns (n, 1); returns (n, m).  The 3-D energy of
-        ``hbm/model`` replaces this reading (the stability check and the energy cards call it here)."""
-        c, gf, gm = p["VOLF"], p["GF"], p["GM"]
-        G = c * gf + (1 - c) * gm
-        i1 = l1 ** 2 + l2 ** 2 + l3 ** 2
-        w = k_iso * G / 2.0 * (i1 - 3.0)
-        w = w + c * p["P1"] / 2.0 * np.maximum(l1 - 1.0 - p["EOPT"], 0.0) ** 2
-        phi = (np.arange(self.n_azimuth) + 0.5) * 2.0 * np.pi / self.n_azimuth
-        c2 = np.cos(np.deg2rad(p["THETA"]))[..., None] ** 2  # (n, 1, 1)
-        lh = np.sqrt(c2 * (l1 ** 2)[None, :, None] + (1 - c2) * (np.sin(phi) ** 2 * (l2 ** 2)[:, None]
-                                                                + np.cos(phi) ** 2 * (l3 ** 2)[:, None])[None])
-        wc = collagen_energy(lh, p["T1"][..., None], p["T2"][..., None]).mean(axis=-1)
-        return w + (1 - c) * wc
+        with the helical collagen averaged exactly over its azimuth φ around the fibre (the cone
+        reading of :class:`hbm.model.energy3d.Energy3D`; in uniaxial tension every azimuth has the λH
+        of the uniaxial formula).  ``p``: parameter columns (n, 1); returns (n, m)."""
+        from .energy3d import Energy3D, Sym  # energy3d builds on this module's collagen law
+        D = Sym(*(np.asarray(v, float) ** 2 - 1.0 for v in (l1, l2, l3)))
+        return Energy3D(k_iso, "energy", "cone").energy(p, D)
 
 
 # the combinations from named columns (module-level functions: a spec pickles)
