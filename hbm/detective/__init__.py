@@ -43,14 +43,15 @@ except ImportError:                  # pragma: no cover - Windows
     _resource = None
 
 from ..runtime import seeds as _seeds
-from ..errors import HbmError, HbmWarning
+from ..errors import HbmError, HbmWarning, SettingError
 from ..runtime.validation import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
 from ..model.core import Effect
 from ..likelihood.noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
-from .decision import Verdict, decide, gain
+from .decision import Verdict, decide, gain, shape_preferred
 from .fitting import FitInterrupted, Fitter, noise_evidence
+from .calibration import CALIBRATION_CHOICES, Calibration, calibrate, calibrated_check
 from .budget import cost_estimate, revised_estimate, stop_record, stop_reserve
 from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_caveats, white_noise_view
 from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
@@ -59,7 +60,7 @@ from .power import detection_power
 from .refits import refit_candidates, run_in_workers
 from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
-from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
+from .rules import CALIBRATION_REPLICATES, DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
 from .screen import local_refit_screen, score_screen, screen_candidates
 
 __all__ = ["diagnose", "extend", "place_as_diagnosed", "Diagnosis", "Extension", "CandidateResult", "FitSummary",
@@ -92,6 +93,17 @@ def _noise_models(noise: str | None, noise_models: Sequence[str]) -> list[str]:
     return [noise]
 
 
+def _calibration_setting(calibration: str, replicates: int, seed: int) -> _Calibrate | None:
+    """``diagnose(calibration=..., replicates=...)`` checked (before any fit)."""
+    if calibration not in CALIBRATION_CHOICES:
+        raise SettingError(f"calibration: expected one of {', '.join(CALIBRATION_CHOICES)}, got {calibration!r}")
+    if calibration == "off":
+        return None
+    if isinstance(replicates, bool) or not isinstance(replicates, (int, np.integer)) or replicates < 20:
+        raise SettingError(f"replicates: expected an integer >= 20 (the 5 % quantile needs them), got {replicates!r}")
+    return _Calibrate(int(seed), int(replicates))
+
+
 def correlated_noises(noises: list[str], noise: str | None, correlated: str, digitised: str | None) -> list[str]:
     """The noise models offered once it is decided what correlated residuals are: without AR(1)
     when they are model error (``correlated="misfit"``, or ``"auto"`` on a digitised or
@@ -114,11 +126,21 @@ class _Step:
     controls: list
     skipped: dict
     verdict: Verdict
+    calibration: Calibration | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class _Calibrate:
+    """How the rounds are calibrated (``diagnose(calibration=...)``): the run's root seed and
+    the null replicates per round; ``None`` in its place: the fixed thresholds."""
+
+    seed: int
+    replicates: int
 
 
 def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, noises: list[str], top: int,
-           seed: int, timings: dict) -> _Step:
-    """Where it fails, what is missing, the decision -- at the current model ``base``."""
+           seed: int, timings: dict, calib: _Calibrate | None = None, k: int = 0) -> _Step:
+    """Where it fails, what is missing, the decision -- at the current model ``base`` (round ``k``)."""
     with _stopwatch(timings, "windows"):
         check = check_noise(base, mf, d, seed)
     with _stopwatch(timings, "screen"):
@@ -127,6 +149,17 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
         done = refit_candidates(results, ctrls, base, fitter, noises, top, seed)
         # the windows at the best base found, and what each refit leaves
         check = check_noise(base, mf, d, seed)
+    cal = None
+    if calib is not None:
+        with _stopwatch(timings, "calibration"):
+            # every statistic of the verdict against its null on this file (before windows_after:
+            # the windows a refit leaves are scanned at the calibrated threshold too)
+            cal = calibrate(base, check, [c.effect_instance for c in results], d, calib.seed, k, calib.replicates,
+                            run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
+            check = calibrated_check(check, cal, base, d)
+        fitter.log(f"calibration: {cal.replicates} null replicates in {cal.seconds:.1f} s"
+                   f"{' (cached)' if cal.cached else ''}; smallest family-wise p {cal.p_family:.3g}")
+    with _stopwatch(timings, "refits"):
         for c in done:
             c.windows_after = len(check.remaining_windows(c.fit, d))
             if not c.physical:
@@ -134,8 +167,8 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
                 c.region = c.effect_instance.region(x, d)
                 c.shape_detail = c.effect_instance.describe(x)
     check.noise["preference"] = _noise_preference(base, ctrls)
-    verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d)
-    return _Step(base, check, results, ctrls, skipped, verdict)
+    verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d, cal)
+    return _Step(base, check, results, ctrls, skipped, verdict, cal)
 
 
 def _ar1_absorbs_misfit(step: _Step) -> str | None:
@@ -176,7 +209,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
              correlated: str = "auto", max_time: float | None = None, likelihood: str = "full",
-             workers: int | None = None) -> Diagnosis:
+             workers: int | None = None, calibration: str = "on",
+             replicates: int = CALIBRATION_REPLICATES) -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
@@ -243,6 +277,15 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     workers : int, optional
         Processes the candidate refits of a round run in (default: the usable cores; 1: all in
         this process).  The results do not depend on it (each refit has its own seed).
+    calibration : {"on", "off"}
+        "on" (default): every statistic of the verdict (the largest window score, each generic
+        shape's and each candidate's likelihood gain at its optimum, the noise disagreement) is
+        judged against its own null -- ``replicates`` simulations of the fitted model with its
+        fitted noise on this file's design -- at family-wise 5 % (:mod:`.calibration`; the
+        report gives each with its calibrated p-value).  "off": the fixed thresholds of
+        :mod:`.rules` (10 nats for a shape alone, 5 for a named effect, windows at 5 % each).
+    replicates : int
+        Null replicates of each greedy round (Monte-Carlo resolution 1/(replicates + 1)).
 
     Returns
     -------
@@ -261,6 +304,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     workers = usable_cores() if workers is None else check_workers(workers, "workers") or 1
+    calib = _calibration_setting(calibration, replicates, seed)
     # no more processes than a round has refits (+ the base's rerun): the rest would sit idle
     fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, likelihood,
                     min(workers, max(0, int(top)) + N_CONTROL_REFITS + 1))
@@ -285,7 +329,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
             rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
         else:
             def run_round(cur, rem, k):
-                return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
+                return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings, calib, k)
             rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
             white = rejected = (_ar1_absorbs_misfit(rounds[0])
                      if noise is None and base.noise == "ar1" and any(n != "ar1" for n in noises) else None)
@@ -314,6 +358,11 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 rounds[0].check.noise["preference"] = "; ".join(
                     [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
         verdict = _final_verdict(rounds, selected)
+        if verdict.verdict == "adequate" and rejected:
+            # never "adequate" beside a caveat that the data prefer a misfit shape to AR(1) noise
+            last = rounds[-1]
+            verdict = shape_preferred(last.controls, last.check.windows, d, rejected, last.calibration)
+            rounds[-1].verdict = verdict
         first = rounds[0]
         edges_found = _base_at_bounds(first.base, d.name)
         extra = {}
@@ -376,9 +425,23 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                         window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
                         residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
                         unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
-                        data_problem=problem, named_candidates=_named(rounds, selected), **extra)
+                        data_problem=problem, named_candidates=_named(rounds, selected),
+                        calibration=_calibration_record(rounds), **extra)
     # the refit workers' CPU, counted once they have exited
     out.timings["cpu"] += _children_cpu() - kids
+    return out
+
+
+def _calibration_record(rounds: list[_Step]) -> dict:
+    """What decided the verdict: each round's calibrated statistics, or the fixed thresholds."""
+    cals = [r.calibration for r in rounds]
+    if not any(c is not None for c in cals):
+        return {"method": "fixed", "text": "decided by the fixed thresholds (calibration off): a generic shape "
+                f"alone needs {2 * DELTA_LOGZ_MIN:.0f} nats, a named effect {DELTA_LOGZ_MIN:.0f}, each window scan "
+                "5 % family-wise"}
+    out = {"method": "calibrated", "rounds": [c.to_dict() if c is not None else None for c in cals]}
+    out["text"] = "\n".join((f"round {k} (model {' + '.join(added_effects(r.base.model)) or 'base'}): " if len(cals) > 1
+                             else "") + c.text() for k, (r, c) in enumerate(zip(rounds, cals)) if c is not None)
     return out
 
 
