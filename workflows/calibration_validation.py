@@ -125,17 +125,103 @@ def run_case(c: dict, seed: int, diagnose, **kw) -> dict:
     return row
 
 
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Exact binomial interval of a rate k/n."""
+    from scipy import stats
+    a = (1 - level) / 2
+    lo = 0.0 if k == 0 else float(stats.beta.ppf(a, k, n - k + 1))
+    hi = 1.0 if k == n else float(stats.beta.ppf(1 - a, k + 1, n - k))
+    return lo, hi
+
+
+def _stats(rows: list[dict], key: str) -> str:
+    import statistics
+    v = [r[key] for r in rows if isinstance(r.get(key), (int, float)) and r[key] == r[key]]
+    return f"{statistics.median(v):.1f} / {max(v):.1f}" if v else "-"
+
+
+def report(designs: list[dict], validation: dict | None, commit: str) -> str:
+    """Markdown section of issue 38: false alarms on the clean designs (binomial interval), the
+    ripples, and the validation sets before/after (verdicts right, CPU and wall medians)."""
+    lines = [f"## Calibrated verdicts (issue 38, code {commit})", ""]
+    for label, rows in (("calibrated", [r for r in designs if r.get("method") == "calibrated"]),
+                        ("before (fixed thresholds)", [r for r in designs if r.get("method") != "calibrated"])):
+        clean = [r for r in rows if r["group"] == "clean_designs"]
+        if not clean:
+            continue
+        fa = sum(not r["ok"] for r in clean)
+        lo, hi = clopper_pearson(fa, len(clean))
+        lines.append(f"- **{label}**, {len(clean)} clean curves of new designs (ramps, multi-rate ramps, ramp-holds, "
+                     f"staircases, load-unload-reload; iid, proportional, AR(1) noise; 20-400 points): false alarms "
+                     f"{fa}/{len(clean)} = {fa / len(clean):.1%}, 95 % Clopper-Pearson interval [{lo:.1%}, {hi:.1%}] "
+                     f"({'contains' if lo <= 0.05 <= hi else 'does not contain'} the stated 5 %); CPU s median / max "
+                     f"{_stats(clean, 'cpu_seconds')}")
+        for r in [r for r in rows if r["group"] == "ripple"]:
+            lines.append(f"  - {r['case']} ({r['n']} points): {r['verdict']}, period {r.get('period')} s "
+                         f"({'ok' if r['ok'] else 'WRONG'})")
+    if validation:
+        lines += ["", "Validation sets of `workflows/detective_validation.py`, before (68827b1, fixed thresholds) and "
+                  "after, interleaved case by case in fresh processes (`workflows/benchmarks/detective_before_after.py`):",
+                  "", "| group | right before | right after | CPU s median / max before | after | wall s median before | after |",
+                  "|---|---|---|---|---|---|---|"]
+        for g in ("clean", "unknown", "library", "two"):
+            b = [r for r in validation["before"] if r.get("group") == g]
+            a = [r for r in validation["after"] if r.get("group") == g]
+            if not a:
+                continue
+            lines.append(f"| {g} ({len(a)}) | {sum(r['ok'] for r in b)}/{len(b)} | {sum(r['ok'] for r in a)}/{len(a)} | "
+                         f"{_stats(b, 'cpu_seconds')} | {_stats(a, 'cpu_seconds')} | {_stats(b, 'seconds')} | "
+                         f"{_stats(a, 'seconds')} |")
+        lines += ["", "| case | verdict before | after | CPU s before | after |", "|---|---|---|---|---|"]
+        bb = {r["case"]: r for r in validation["before"]}
+        for r in validation["after"]:
+            b = bb.get(r["case"], {})
+            if b.get("verdict") != r["verdict"] or not r["ok"]:
+                lines.append(f"| {r['case']} | {b.get('verdict')} {','.join(b.get('selected') or [])} | {r['verdict']} "
+                             f"{','.join(r['selected'])}{'' if r['ok'] else ' (WRONG)'} | {b.get('cpu_seconds')} | "
+                             f"{r['cpu_seconds']} |")
+    lines += ["", "| design case | protocol | noise | points | verdict | family-wise p | CPU s |", "|---|---|---|---|---|---|---|"]
+    for r in designs:
+        pf = r.get("p_family")
+        lines.append(f"| {r['case']} | {r['kind']} | {r['noise']} | {r['n']} | {r['verdict']}{'' if r['ok'] else ' (WRONG)'} | "
+                     f"{'-' if pf is None else f'{pf:.3f}'} | {r['cpu_seconds']} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--groups", nargs="*", default=["clean_designs", "ripple"])
     ap.add_argument("--seed", type=int, default=17)
     ap.add_argument("--calibration", default=None, help="on | off (default: diagnose's own default)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--report", nargs="*", default=None, metavar="JSON",
+                    help="write the issue-38 section from these JSON files (rows of this script, and before/after "
+                         "rows of detective_before_after.py) instead of running; to stdout")
+    ap.add_argument("--commit", default="HEAD")
+    ap.add_argument("--cases", default=None, metavar="START:STOP",
+                    help="run only these cases of the enumeration (seeds unchanged), e.g. to shard a run")
     args = ap.parse_args(argv)
+    if args.report is not None:
+        designs, validation = [], {"before": [], "after": []}
+        for f in args.report:
+            got = json.loads(Path(f).read_text())
+            if isinstance(got, list):
+                designs += got
+            elif got["after"] and got["after"][0].get("kind"):
+                designs += got["after"] + got["before"]
+            else:
+                for k in ("before", "after"):
+                    validation[k] += got[k]
+        print(report(designs, validation if validation["after"] else None, args.commit))
+        return 0
     from hbm.detective import diagnose
     kw = {} if args.calibration is None else {"calibration": args.calibration}
     rows = []
-    for k, c in enumerate(cases(args.groups)):
+    every = list(enumerate(cases(args.groups)))
+    if args.cases:
+        a, b = (int(x) if x else None for x in args.cases.split(":"))
+        every = every[a:b]
+    for k, c in every:
         r = run_case(c, args.seed + k, diagnose, **kw)
         rows.append(r)
         print(f"{r['case']:<22} {r['kind']:<10} {r['noise']:<12} n={r['n']:<4} {r['verdict']:<12} "

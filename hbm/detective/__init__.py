@@ -43,7 +43,7 @@ except ImportError:                  # pragma: no cover - Windows
     _resource = None
 
 from ..runtime import seeds as _seeds
-from ..errors import HbmError, HbmWarning, SettingError
+from ..errors import HbmError, HbmWarning
 from ..runtime.validation import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
 from ..model.core import Effect
@@ -51,7 +51,8 @@ from ..likelihood.noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
 from .decision import Verdict, decide, gain, shape_preferred
 from .fitting import FitInterrupted, Fitter, noise_evidence
-from .calibration import CALIBRATION_CHOICES, Calibration, calibrate, calibrated_check
+from .calibration import (
+    Calibration, CalibrationSetting, calibrate, calibrated_check, calibration_record, calibration_setting)
 from .budget import cost_estimate, revised_estimate, stop_record, stop_reserve
 from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_caveats, white_noise_view
 from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
@@ -93,17 +94,6 @@ def _noise_models(noise: str | None, noise_models: Sequence[str]) -> list[str]:
     return [noise]
 
 
-def _calibration_setting(calibration: str, replicates: int, seed: int) -> _Calibrate | None:
-    """``diagnose(calibration=..., replicates=...)`` checked (before any fit)."""
-    if calibration not in CALIBRATION_CHOICES:
-        raise SettingError(f"calibration: expected one of {', '.join(CALIBRATION_CHOICES)}, got {calibration!r}")
-    if calibration == "off":
-        return None
-    if isinstance(replicates, bool) or not isinstance(replicates, (int, np.integer)) or replicates < 20:
-        raise SettingError(f"replicates: expected an integer >= 20 (the 5 % quantile needs them), got {replicates!r}")
-    return _Calibrate(int(seed), int(replicates))
-
-
 def correlated_noises(noises: list[str], noise: str | None, correlated: str, digitised: str | None) -> list[str]:
     """The noise models offered once it is decided what correlated residuals are: without AR(1)
     when they are model error (``correlated="misfit"``, or ``"auto"`` on a digitised or
@@ -129,17 +119,8 @@ class _Step:
     calibration: Calibration | None = None
 
 
-@dataclass(frozen=True, slots=True)
-class _Calibrate:
-    """How the rounds are calibrated (``diagnose(calibration=...)``): the run's root seed and
-    the null replicates per round; ``None`` in its place: the fixed thresholds."""
-
-    seed: int
-    replicates: int
-
-
 def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, noises: list[str], top: int,
-           seed: int, timings: dict, calib: _Calibrate | None = None, k: int = 0) -> _Step:
+           seed: int, timings: dict, calib: CalibrationSetting | None = None, k: int = 0) -> _Step:
     """Where it fails, what is missing, the decision -- at the current model ``base`` (round ``k``)."""
     with _stopwatch(timings, "windows"):
         check = check_noise(base, mf, d, seed)
@@ -304,7 +285,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     workers = usable_cores() if workers is None else check_workers(workers, "workers") or 1
-    calib = _calibration_setting(calibration, replicates, seed)
+    calib = calibration_setting(calibration, replicates, seed)
     # no more processes than a round has refits (+ the base's rerun): the rest would sit idle
     fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, likelihood,
                     min(workers, max(0, int(top)) + N_CONTROL_REFITS + 1))
@@ -358,7 +339,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 rounds[0].check.noise["preference"] = "; ".join(
                     [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
         verdict = _final_verdict(rounds, selected)
-        if verdict.verdict == "adequate" and rejected:
+        if verdict.verdict == "adequate" and rejected and "prefer white noise" in rejected:
             # never "adequate" beside a caveat that the data prefer a misfit shape to AR(1) noise
             last = rounds[-1]
             verdict = shape_preferred(last.controls, last.check.windows, d, rejected, last.calibration)
@@ -404,7 +385,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 try:
                     extra["power"] = detection_power(
                         first.base, d, cands, _seed(seed, 91), noise_fit=current,
-                        run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
+                        run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0],
+                        calibration=first.calibration)
                 except FitInterrupted:
                     fitter.skip("the detection-power estimate (--power)", "interrupted at --max-time: no detection "
                                 "limits")
@@ -426,22 +408,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                         residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
                         unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
                         data_problem=problem, named_candidates=_named(rounds, selected),
-                        calibration=_calibration_record(rounds), **extra)
+                        calibration=calibration_record([(r.base, r.calibration) for r in rounds], calib is not None), **extra)
     # the refit workers' CPU, counted once they have exited
     out.timings["cpu"] += _children_cpu() - kids
-    return out
-
-
-def _calibration_record(rounds: list[_Step]) -> dict:
-    """What decided the verdict: each round's calibrated statistics, or the fixed thresholds."""
-    cals = [r.calibration for r in rounds]
-    if not any(c is not None for c in cals):
-        return {"method": "fixed", "text": "decided by the fixed thresholds (calibration off): a generic shape "
-                f"alone needs {2 * DELTA_LOGZ_MIN:.0f} nats, a named effect {DELTA_LOGZ_MIN:.0f}, each window scan "
-                "5 % family-wise"}
-    out = {"method": "calibrated", "rounds": [c.to_dict() if c is not None else None for c in cals]}
-    out["text"] = "\n".join((f"round {k} (model {' + '.join(added_effects(r.base.model)) or 'base'}): " if len(cals) > 1
-                             else "") + c.text() for k, (r, c) in enumerate(zip(rounds, cals)) if c is not None)
     return out
 
 

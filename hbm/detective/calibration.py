@@ -51,15 +51,17 @@ from ..io.identity import content_key, data_key, model_key, settings_key
 from ..model.core import Effect
 from ..runtime import seeds as _seeds
 from .controls import controls_for
-from .inputs import SpecimenData
+from ..errors import SettingError
+from .inputs import SpecimenData, added_effects
 from .noise_check import (
     NoiseCheck, _window_scales, _window_z, fitted_noise_parameters, misfit_windows, model_free_noise,
     window_threshold, whitener)
 from .results import FitSummary
-from .rules import CALIBRATION_ALPHA, CALIBRATION_REPLICATES
+from .rules import CALIBRATION_ALPHA, CALIBRATION_REPLICATES, CONTROL_ALONE_MIN, DELTA_LOGZ_MIN
 from .screen import absorbable_basis, candidate_column_sets
 
-__all__ = ["Calibration", "calibrate", "calibrated_check", "cache_dir", "CALIBRATION_CHOICES"]
+__all__ = ["Calibration", "CalibrationSetting", "calibrate", "calibrated_check", "calibration_setting",
+           "calibration_record", "cache_dir", "CALIBRATION_CHOICES"]
 
 #: ``calibration=`` choices of diagnose (``--calibration``)
 CALIBRATION_CHOICES = ("on", "off")
@@ -405,3 +407,43 @@ def calibrated_check(check: NoiseCheck, cal: Calibration, base: FitSummary, d: S
     noise["calibrated"] = {"alpha": cal.alpha, **{k: cal.stats[k] for k in ("noise",) if k in cal.stats}}
     return replace(check, windows=sorted(w_fit + w_mf, key=lambda w: -abs(w["z"])), threshold=thr,
                    alpha=cal.alpha, noise=noise)
+
+
+# =========================================================================================
+# the setting of a diagnosis, and what its report says
+# =========================================================================================
+@dataclass(frozen=True, slots=True)
+class CalibrationSetting:
+    """How a diagnosis's rounds are calibrated: the run's root seed and the null replicates per
+    round (``None`` in its place: the fixed thresholds)."""
+
+    seed: int
+    replicates: int
+
+
+def calibration_setting(calibration: str, replicates: int, seed: int) -> CalibrationSetting | None:
+    """``diagnose(calibration=..., replicates=...)`` checked (before any fit)."""
+    if calibration not in CALIBRATION_CHOICES:
+        raise SettingError(f"calibration: expected one of {', '.join(CALIBRATION_CHOICES)}, got {calibration!r}")
+    if calibration == "off":
+        return None
+    if isinstance(replicates, bool) or not isinstance(replicates, (int, np.integer)) or replicates < 20:
+        raise SettingError(f"replicates: expected an integer >= 20 (the 5 % quantile needs them), got {replicates!r}")
+    return CalibrationSetting(int(seed), int(replicates))
+
+
+def calibration_record(rounds: list[tuple[FitSummary, Calibration | None]], on: bool = True) -> dict:
+    """What decided the verdict (``Diagnosis.calibration``): each greedy round's calibrated
+    statistics (``rounds``: its base fit and calibration), or the fixed thresholds (``on``
+    False: calibration switched off)."""
+    cals = [c for _, c in rounds]
+    if on and not any(c is not None for c in cals):
+        return {"method": "none", "text": "no round was calibrated (a data problem is reported before any physics)"}
+    if not any(c is not None for c in cals):
+        return {"method": "fixed", "text": "decided by the fixed thresholds (calibration off): a generic shape "
+                f"alone needs {CONTROL_ALONE_MIN:.0f} nats, a named effect {DELTA_LOGZ_MIN:.0f}, each window scan "
+                "5 % family-wise"}
+    text = [(f"round {k} (model {' + '.join(added_effects(b.model)) or 'base'}): " if len(cals) > 1 else "")
+            + c.text() for k, (b, c) in enumerate(rounds) if c is not None]
+    return {"method": "calibrated", "rounds": [c.to_dict() if c is not None else None for c in cals],
+            "text": "\n".join(text)}

@@ -71,6 +71,8 @@ def main(argv=None) -> int:
     ap.add_argument("--after", required=True, help="checkout of the code measured")
     ap.add_argument("--groups", nargs="*", default=[], help="validation groups (e.g. clean unknown library two)")
     ap.add_argument("--file", action="append", default=[], help="'FILE [diagnose options]' (repeatable)")
+    ap.add_argument("--run-groups", nargs="*", default=None,
+                    help="run only these groups, in this order (seeds as in the enumeration of --groups)")
     ap.add_argument("--module", default="detective_validation",
                     help="the cases' module in the --after checkout's workflows/ (e.g. calibration_validation)")
     ap.add_argument("--json", required=True)
@@ -78,7 +80,10 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(Path(args.after).resolve() / "workflows"))
     V = __import__(args.module)
     rows: dict[str, list] = {"before": [], "after": []}
-    todo = [("case", i) for i in range(len(V.cases(args.groups)) if args.groups else 0)] + \
+    every = V.cases(args.groups) if args.groups else []
+    order = args.run_groups if args.run_groups is not None else sorted({c["group"] for c in every},
+                                                                       key=[c["group"] for c in every].index)
+    todo = [("case", i) for g in order for i, c in enumerate(every) if c["group"] == g] + \
         [("file", f) for f in args.file]
     for kind, what in todo:
         for lab in ("before", "after"):
