@@ -147,3 +147,20 @@ def test_the_report_gives_each_statistic_with_its_calibrated_p_value(monkeypatch
     if dg.verdict == "adequate":
         assert "family-wise" in dg.message and "replicates" in dg.message
     assert calibration_record([(dg.base, None)], on=False)["method"] == "fixed"
+
+
+def test_calibration_in_worker_processes_is_the_serial_one(monkeypatch):
+    """The candidate and shape statistics computed in forked workers: bitwise the serial table."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+    monkeypatch.setenv("HBM_CACHE_DIR", "off")
+    ds, m, th, s0 = _design()
+    base, ds1 = _null_fit(ds, m, th, s0 + SD * np.random.default_rng(9).standard_normal(s0.size))
+    d = as_data(ds1)
+    cands = resolve_candidates(["offset", "viscoelastic"], m)
+    check = check_noise(base, model_free_noise(d.stress, d.segment), d, 0)
+    serial = calibrate(base, check, cands, d, seed=5, replicates=60)
+    with ProcessPoolExecutor(2, mp_context=mp.get_context("fork")) as pool:
+        par = calibrate(base, check, cands, d, seed=5, replicates=60,
+                        run_tasks=lambda task, calls: [f.result() for f in [pool.submit(task, *c) for c in calls]])
+    assert par.stats == serial.stats

@@ -10,7 +10,7 @@ the verdict are computed exactly as on the data:
 
 * ``windows`` -- the largest smoothed-residual window score of the two scans (fitted and
   model-free noise, :func:`.noise_check.misfit_windows`), each divided by its pure-noise
-  threshold;
+  threshold and by the row's own noise level;
 * one per generic shape (:mod:`.controls`) -- its likelihood gain at its optimum over a fine
   grid of shapes (the amplitude is linear: each shape's gain is a projection);
 * one per physical candidate -- its likelihood gain at the optimum of the score test's linear
@@ -20,7 +20,10 @@ the verdict are computed exactly as on the data:
   max(log(σ_fit/σ_mf)/log 1.5, (ρ_fit − ρ_mf)/0.3) (≥ 1 is the fixed rule's "disagrees").
 
 Every gain is that of a Gauss–Newton refit linearised at the base optimum, in the noise-whitened
-units of the screen (the base's absorbable directions projected out): the cost is a few model
+units of the screen (the base's absorbable directions projected out), with the noise level
+re-estimated as a refit does -- (n/2)·log(RSS₀/RSS₁): a statistic of every row in its own noise
+level (studentised), so the maximum-likelihood noise level, low by a factor (n − p)/n on few
+points, does not make the data look noisier than its replicates.  The cost is a few model
 Jacobians, whatever the number of replicates.  A statistic's p-value is its rank among the
 replicates; the family-wise level over all of them is held by the single-step min-p adjustment
 (Westfall & Young): a statistic is significant when its p-value is below the ``alpha`` quantile of
@@ -68,7 +71,7 @@ CALIBRATION_CHOICES = ("on", "off")
 #: the fixed rule's bounds of the noise disagreement (noise_check.noise_consistent)
 _SD_RATIO, _RHO_DIFF = 1.5, 0.3
 #: bump when a statistic changes: old cache entries are then never read
-_FORMAT = 1
+_FORMAT = 2
 
 
 @dataclass(slots=True)
@@ -307,6 +310,10 @@ def calibrate(base: FitSummary, check: NoiseCheck, candidates: Sequence[Effect],
     # the pure-noise thresholds of the two scans only scale the window statistic (it is calibrated)
     c_fit = window_threshold(segs, rho_fit, 0.05, 200, 0)
     c_mf = window_threshold(segs, check.rho, 0.05, 200, 0)
+    # the data's own noise level in the screen's whitened units (the windows' threshold scales with it)
+    rw0 = whiten(check.resid)
+    rw0 = rw0 - U @ (U.T @ rw0)
+    scale0 = math.sqrt(float(rw0 @ rw0) / max(d.stress.size - U.shape[1], 1))
     table = _cache_read(key, names)
     cached = table is not None
     if table is None:
@@ -317,18 +324,26 @@ def calibrate(base: FitSummary, check: NoiseCheck, candidates: Sequence[Effect],
         noise = lik.noise_model.simulate(rng, q, np.repeat(pred[None, :], replicates, axis=0)
                                          if lik.noise_model.needs_model_stress else None)
         # row 0 the data, then the replicates: every statistic computed by one code path
-        # linearised refit of the base on each replicate (generalised least squares, screen whitening)
-        beta = np.linalg.pinv(whiten(Jb)) @ whiten(noise.T)
+        # linearised refit of the base on each replicate (generalised least squares, screen whitening),
+        # along the directions the fit resolves (U's cutoff: a direction the data barely determine is
+        # left in the data's residual by the optimiser, so it is left in the replicates' too)
+        beta = np.linalg.pinv(whiten(Jb), rcond=1e-9) @ whiten(noise.T)
         R = np.vstack([check.resid[None, :], noise - (Jb @ beta).T])
         Rw = whiten(R.T).T
         Rw = Rw - (Rw @ U) @ U.T
         ref = float(np.linalg.norm(Rw[0]))
+        # each row's own noise level (studentised): an ML noise level is low by (n - p)/n on few
+        # points, which would make the data look noisier than every replicate
+        S = np.sum(Rw * Rw, axis=1)
+        scale = np.sqrt(S / max(d.stress.size - U.shape[1], 1))
         calls = [("control", c, model, theta_model, d, whiten, U, Rw, ref) for c in ctrls] + \
                 [("candidate", e, model, theta_model, d, whiten, U, Rw, ref) for e in usable]
         gains = run_tasks(_gain_task, calls) if run_tasks is not None else [_gain_task(*c) for c in calls]
-        # windows: both scans, each over its pure-noise threshold
+        # a gain with the noise level re-estimated, as a refit's Δmax log L: (n/2)·log(RSS0/RSS1)
+        gains = [0.5 * d.stress.size * np.log(S / np.maximum(S - 2.0 * g, 1e-300 * S + 1e-300)) for g in gains]
+        # windows: both scans, each over its pure-noise threshold, in the row's own noise level
         T_w = np.maximum(_scan_max(R / sd_fit, d.segment, rho_fit) / c_fit,
-                         _scan_max(R / check.sd, d.segment, check.rho) / c_mf)
+                         _scan_max(R / check.sd, d.segment, check.rho) / c_mf) / np.maximum(scale, 1e-300)
         # noise: the fitted noise (its level re-estimated on each replicate's residual) against the
         # model-free estimate of each replicate curve
         Y = np.vstack([d.stress[None, :], pred[None, :] + noise])
@@ -347,7 +362,7 @@ def calibrate(base: FitSummary, check: NoiseCheck, candidates: Sequence[Effect],
         table = np.column_stack([T_w, T_n] + list(gains))
         _cache_write(key, names, table)
     stats, p_fam = _pvalues(table, alpha)
-    units = {"windows": "window z / pure-noise threshold", "noise": "sd and rho disagreement (1: fixed rule)"}
+    units = {"windows": "window z / pure-noise threshold (studentised)", "noise": "sd and rho disagreement (1: fixed rule)"}
     out = {}
     for j, (nm, kd) in enumerate(zip(names, kinds)):
         if kd == "noise" and not np.isfinite(table[0, j]):
@@ -359,7 +374,8 @@ def calibrate(base: FitSummary, check: NoiseCheck, candidates: Sequence[Effect],
             f"{base.noise} noise on this file's strains, times and histories")
     return Calibration(replicates=int(replicates), alpha=float(alpha), stats=out,
                        p_family=float(min(s["p_family"] for s in out.values())),
-                       window_thresholds={"fitted": float(c_fit * crit_w), "model-free": float(c_mf * crit_w)},
+                       window_thresholds={"fitted": float(c_fit * crit_w * scale0),
+                                          "model-free": float(c_mf * crit_w * scale0)},
                        null=null, cached=cached, key=key, seconds=_time.perf_counter() - t0, order=list(out))
 
 
