@@ -124,7 +124,7 @@ def register(subparsers) -> None:
                         "model with its fitted noise simulated on this file's design -- at family-wise 5 %% and "
                         "reported with its calibrated p-value; off: the fixed thresholds (10 nats for a shape "
                         "alone, 5 for a named effect); the output says which was used")
-    p.add_argument("--replicates", type=integer(20, "an integer >= 20"), default=CALIBRATION_REPLICATES, metavar="N",
+    p.add_argument("--replicates", type=integer(40, "an integer >= 40"), default=CALIBRATION_REPLICATES, metavar="N",
                    help=f"null replicates per round of the calibration (default {CALIBRATION_REPLICATES}; "
                         "a p-value's resolution is 1/(N+1))")
     p.set_defaults(func=run_diagnose)

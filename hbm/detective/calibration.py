@@ -443,8 +443,8 @@ def calibration_setting(calibration: str, replicates: int, seed: int) -> Calibra
         raise SettingError(f"calibration: expected one of {', '.join(CALIBRATION_CHOICES)}, got {calibration!r}")
     if calibration == "off":
         return None
-    if isinstance(replicates, bool) or not isinstance(replicates, (int, np.integer)) or replicates < 20:
-        raise SettingError(f"replicates: expected an integer >= 20 (the 5 % quantile needs them), got {replicates!r}")
+    if isinstance(replicates, bool) or not isinstance(replicates, (int, np.integer)) or replicates < 40:
+        raise SettingError(f"replicates: expected an integer >= 40 (below, nothing can be significant at 5 %: a p-value is at least 2/(replicates + 1) family-wise), got {replicates!r}")
     return CalibrationSetting(int(seed), int(replicates))
 
 
