@@ -100,6 +100,8 @@ def test_calibrated_false_alarms_and_a_ripple(tmp_path, monkeypatch):
     cal = p_family(s0 + SD * rng.standard_normal(s0.size) + 0.03 * s0.max() * np.sin(2 * np.pi * t / 11.0))
     assert cal.significant("periodic")
     assert cal.stats["periodic"]["p"] == pytest.approx(1 / 201)
+    # located at its period (the verdict reports it when the refit of the shape did not find it)
+    assert cal.stats["periodic"]["optimum"]["RIP_P"] == pytest.approx(11.0, rel=0.03)
 
 
 def test_calibration_cache_is_keyed_by_the_inputs(tmp_path, monkeypatch):

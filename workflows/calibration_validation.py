@@ -174,7 +174,8 @@ def report(designs: list[dict], validation: dict | None, commit: str) -> str:
             a = [r for r in validation["after"] if r.get("group") == g]
             if not a:
                 continue
-            lines.append(f"| {g} ({len(a)}) | {sum(r['ok'] for r in b)}/{len(b)} | {sum(r['ok'] for r in a)}/{len(a)} | "
+            lines.append(f"| {g} ({len(a)}) | {f'{sum(r[chr(111) + chr(107)] for r in b)}/{len(b)}' if b else '-'} | "
+                         f"{sum(r['ok'] for r in a)}/{len(a)} | "
                          f"{_stats(b, 'cpu_seconds')} | {_stats(a, 'cpu_seconds')} | {_stats(b, 'seconds')} | "
                          f"{_stats(a, 'seconds')} |")
         lines += ["", "| case | verdict before | after | CPU s before | after |", "|---|---|---|---|---|"]
@@ -212,11 +213,16 @@ def main(argv=None) -> int:
             got = json.loads(Path(f).read_text())
             if isinstance(got, list):
                 designs += got
+            elif "rows" in got:           # detective_validation.py's own run (after only)
+                validation["after"] += got["rows"]
             elif got["after"] and got["after"][0].get("kind"):
                 designs += got["after"] + got["before"]
             else:
                 for k in ("before", "after"):
                     validation[k] += got[k]
+        # a case run twice (shards that overlapped): its first row
+        seen: set = set()
+        designs = [r for r in designs if not ((r["case"], r.get("method")) in seen or seen.add((r["case"], r.get("method"))))]
         print(report(designs, validation if validation["after"] else None, args.commit))
         return 0
     from hbm.detective import diagnose

@@ -161,6 +161,20 @@ def _control_gain(ctl, d: SpecimenData, whiten, U: np.ndarray, Rw: np.ndarray) -
     return np.max(0.5 * (Rw @ Fp[:, ok]) ** 2 / nn[ok], axis=1)
 
 
+def control_optimum(ctl, d: SpecimenData, whiten, U: np.ndarray, rw0: np.ndarray) -> dict[str, float]:
+    """The shape of ``ctl``'s dense grid that fits the data's whitened residual ``rw0`` best, with
+    its amplitude (MPa: whitening is linear, so the whitened fit's coefficient is the raw one)."""
+    grid = ctl.dense_grid()
+    q = {k: np.array([g[k] for g in grid])[:, None] for k in grid[0]}
+    F = np.asarray(ctl.shape(d.loading, q), float) * np.ones((len(grid), d.stress.size))
+    Fw = whiten(F.T)
+    Fp = Fw - U @ (U.T @ Fw)
+    nn = np.maximum(np.sum(Fp * Fp, axis=0), 1e-300)
+    proj = rw0 @ Fp
+    k = int(np.argmax(proj ** 2 / nn))
+    return {ctl.amp: float(proj[k] / nn[k]), **grid[k]}
+
+
 def _bounded_gain(A: np.ndarray, lb: np.ndarray, ub: np.ndarray, Rw: np.ndarray) -> np.ndarray:
     """Largest ½·(drop of ‖r‖²) of a linear fit of columns ``A`` with sign bounds, per row.
 
@@ -369,6 +383,13 @@ def calibrate(base: FitSummary, check: NoiseCheck, candidates: Sequence[Effect],
             continue     # no model-free estimate (too few points per segment)
         out[nm] = {"kind": kd, "observed": float(table[0, j]), "p": stats[j][0], "p_family": stats[j][1],
                    "critical": stats[j][2], "unit": units.get(nm, "nats (likelihood gain at the optimum)")}
+    for c in ctrls:
+        # where the data's best shape of each control acts (the verdict locates a significant one
+        # that was not refitted, e.g. a ripple's period)
+        x = control_optimum(c, d, whiten, U, rw0)
+        axis, lo, hi = c.region(x, d)
+        out[c.name].update(optimum=x, region=[axis, lo, hi], detail=c.describe(x),
+                           shape=c.description.split(": ")[-1])
     crit_w = out["windows"]["critical"]
     null = (f"the fitted {' + '.join(getattr(base, 'effects', []) or ['base'])} model with its fitted "
             f"{base.noise} noise on this file's strains, times and histories")

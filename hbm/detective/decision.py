@@ -151,7 +151,7 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
             # second effect may be hidden with it (offset + viscoelasticity) -- tentative; the
             # next greedy round decides (diagnose), else the unexplained verdict stands
             return replace(_effect(best, calibration), verdict="partial",
-                           fallback=_unexplained(ctrl, windows, data, best, signs))
+                           fallback=_unexplained(ctrl, windows, data, best, signs, calibration))
         if beats:
             tied = [c for c in phys[1:] if named_strongly(c, calibration) and
                     g_best - gain(c) < max(RUNNER_UP_MARGIN, 2 * math.hypot(best.delta_log_evidence_se,
@@ -159,9 +159,9 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
             if tied:
                 return _group(best, tied, data)
             return _effect(best, calibration)
-        return _unexplained(ctrl, windows, data, best, signs)
+        return _unexplained(ctrl, windows, data, best, signs, calibration)
     if signs:
-        return _unexplained(ctrl, windows, data, best, signs)
+        return _unexplained(ctrl, windows, data, best, signs, calibration)
     return Verdict("adequate", [], [], "", adequate_message(noise, windows, ctrl, calibration))
 
 
@@ -220,11 +220,32 @@ def _gain_words(c: CandidateResult) -> str:
     return f"Δlog Z = {gain(c):.1f}"
 
 
+def _significant_shape(cal, ctrl: CandidateResult | None) -> dict | None:
+    """The calibrated verdict's shape: the most significant control, located at its grid optimum,
+    when it is not the refitted best control (None: the refit says it, or nothing is significant)."""
+    if cal is None:
+        return None
+    hits = [k for k, v in cal.stats.items() if v["kind"] == "control" and cal.significant(k) and "region" in v]
+    if not hits:
+        return None
+    k = min(hits, key=lambda k: (cal.stats[k]["p_family"], -cal.stats[k]["observed"]))
+    if ctrl is not None and ctrl.refit and ctrl.effect == k and ctrl.region is not None and gain(ctrl) > 0:
+        return None
+    v = cal.stats[k]
+    return {"axis": v["region"][0], "range": [v["region"][1], v["region"][2]],
+            "shape": v["shape"] + (f", {v['detail']}" if v["detail"] else ""), "control": k,
+            "delta_log_evidence": None, "likelihood_gain": v["observed"],
+            "words": f"likelihood gain {v['observed']:.1f} nats, {cal.strength(k)}"}
+
+
 def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: CandidateResult | None,
-                 signs: list[str]) -> Verdict:
-    """Unexplained misfit: where (the best control's region, else the strongest window) and its shape."""
-    where = None
-    if ctrl is not None and ctrl.refit and ctrl.region is not None and gain(ctrl) > 0:
+                 signs: list[str], cal=None) -> Verdict:
+    """Unexplained misfit: where (the best control's region -- or, calibrated, the most significant
+    shape's -- else the strongest window) and its shape."""
+    where = _significant_shape(cal, ctrl)
+    if where is not None:
+        pass
+    elif ctrl is not None and ctrl.refit and ctrl.region is not None and gain(ctrl) > 0:
         axis, lo, hi = ctrl.region
         shape = ctrl.effect_instance.description.split(": ")[-1]
         where = {"axis": axis, "range": [lo, hi], "shape": shape + (f", {ctrl.shape_detail}" if ctrl.shape_detail else ""),
@@ -242,7 +263,7 @@ def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: 
     msg = (f"unexplained misfit in {sym} ∈ [{where['range'][0]:.3g}, {where['range'][1]:.3g}]{unit}"
            f" (best-fitting shape: {where['shape']}"
            + (f", Δlog Z = {where['delta_log_evidence']:.1f}" if where["delta_log_evidence"] is not None else "")
-           + ")")
+           + (f", {where.pop('words')}" if "words" in where else "") + ")")
     if best is not None and best.refit:
         msg += f"; best physical candidate {best.effect} {_gain_words(best)} does not explain it as well"
     if signs:
@@ -272,4 +293,4 @@ def shape_preferred(controls: list[CandidateResult], windows: list[dict], data, 
     if ctrl is not None and cal is not None and ctrl.effect in cal.stats:
         signs.append(f"under white noise {ctrl.effect} gains {cal.stats[ctrl.effect]['observed']:.1f} nats at its "
                      f"optimum ({cal.strength(ctrl.effect)}; not significant alone at family-wise {cal.alpha:.0%})")
-    return _unexplained(ctrl, windows, data, None, signs)
+    return _unexplained(ctrl, windows, data, None, signs, cal)
