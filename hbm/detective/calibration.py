@@ -401,28 +401,33 @@ def calibrate(base: FitSummary, check: NoiseCheck, candidates: Sequence[Effect],
 
 
 def _pvalues(table: np.ndarray, alpha: float) -> tuple[list[tuple[float, float, float]], float]:
-    """Per statistic (column): p-value of row 0 among the replicate rows, its single-step min-p
+    """Per statistic (column): p-value of row 0 (the data) among all rows, its single-step min-p
     family-wise adjusted p-value, and the critical value (significant when observed > it).
 
-    Returns the list and the replicates' min-p quantile at ``alpha``."""
-    obs, null = table[0], table[1:]
-    n = null.shape[0]
-    # each replicate's p-value per statistic: the share of replicates at least as large
-    srt = np.sort(null, axis=0)
-    ge = n - np.stack([np.searchsorted(srt[:, j], null[:, j], side="left") for j in range(null.shape[1])], axis=1)
-    min_p = np.min(ge / n, axis=1)
-    out = []
-    # the largest p-value still significant family-wise: (1 + #{min_p <= p}) / (n + 1) <= alpha
+    The data and the replicates are exchangeable under the null, so every row's p-value is its
+    rank among all n + 1 rows, and the data's family-wise p-value is the share of rows whose
+    smallest p-value is at most the data's: P(family-wise p <= alpha) <= alpha exactly, also at
+    the resolution 1/(n + 1) (the data beating every replicate of one of m statistics has
+    family-wise p about m/(n + 1), not 1/(n + 1)).
+
+    Returns the list and the largest per-statistic p-value significant at ``alpha``."""
+    n1 = table.shape[0]
+    srt = np.sort(table, axis=0)
+    ge = n1 - np.stack([np.searchsorted(srt[:, j], table[:, j], side="left") for j in range(table.shape[1])], axis=1)
+    P = ge / n1                                   # each row's p-value per statistic (itself counted)
+    min_p = np.min(P, axis=1)
     cand = np.sort(min_p)
-    ok = (1 + np.arange(1, n + 1)) / (n + 1) <= alpha
+    ok = np.arange(1, n1 + 1) / n1 <= alpha
     p_star = float(cand[ok][-1]) if ok.any() else 0.0
+    null = np.sort(table[1:], axis=0)
+    n = n1 - 1
+    k = int(math.floor(p_star * n1 - 1 + 1e-9))   # significant iff #{replicates >= observed} <= k
+    out = []
     for j in range(table.shape[1]):
-        p = (1 + np.sum(null[:, j] >= obs[j])) / (n + 1)
-        p_f = (1 + np.sum(min_p <= p)) / (n + 1)
-        # significant iff p <= p_star iff #{null >= obs} <= K
-        k = int(math.floor(p_star * (n + 1) - 1 + 1e-9))
-        crit = float(srt[n - 1 - k, j]) if 0 <= k < n else float("inf")
-        out.append((float(p), float(min(p_f, 1.0)), crit))
+        p = float(P[0, j])
+        p_f = float(np.mean(min_p <= p + 1e-15))
+        crit = float(null[n - 1 - k, j]) if 0 <= k < n else float("inf")
+        out.append((p, p_f, crit))
     return out, p_star
 
 
