@@ -7,7 +7,9 @@ import argparse
 
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
+from ..detective.calibration import CALIBRATION_CHOICES
 from ..detective.caveats import CORRELATED_CHOICES
+from ..detective.rules import CALIBRATION_REPLICATES
 from ..effects import resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
@@ -15,7 +17,7 @@ from ..runtime.files import prepare_output_file
 from ..settings import FitSettings, add_arguments
 from ._common import (
     n_noise_parameters, add_data_arguments, add_fix, add_form_argument, check_fix_bounds, check_population_memory,
-    load_specimen_arg, name_list, non_negative_int, plot_path, positive_float, print_json, workers)
+    load_specimen_arg, name_list, integer, non_negative_int, plot_path, positive_float, print_json, workers)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
@@ -48,7 +50,10 @@ Compare the model with a specimen, show where it fails and name the missing effe
 4. verdict: effect (Δlog Z > 5, explains the misfit like the best control and beats it;
    greedy: several effects, in order) | group (with the experiment that separates them) |
    unexplained (misfit in ε or t ∈ [a, b], with its shape) | data_problem | adequate (only
-   without any sign of misfit).  --power adds the detection limit of every library effect.
+   without any sign of misfit).  Each statistic (window score, each shape's and candidate's
+   likelihood gain, the noise disagreement) is judged against its own null on this file at
+   family-wise 5 % (--calibration off: fixed thresholds).  --power adds the detection limit
+   of every library effect.
 
 examples:
   hbm diagnose data/specimens/calvo_1.csv
@@ -114,6 +119,14 @@ def register(subparsers) -> None:
                    help="physical candidates refitted (default 3)")
     p.add_argument("--power", action="store_true",
                    help="also report the detection limit of every library effect on this protocol and noise")
+    p.add_argument("--calibration", choices=list(CALIBRATION_CHOICES), default="on",
+                   help="on (default): each statistic of the verdict is judged against its own null -- the fitted "
+                        "model with its fitted noise simulated on this file's design -- at family-wise 5 %% and "
+                        "reported with its calibrated p-value; off: the fixed thresholds (10 nats for a shape "
+                        "alone, 5 for a named effect); the output says which was used")
+    p.add_argument("--replicates", type=integer(40, "an integer >= 40"), default=CALIBRATION_REPLICATES, metavar="N",
+                   help=f"null replicates per round of the calibration (default {CALIBRATION_REPLICATES}; "
+                        "a p-value's resolution is 1/(N+1))")
     p.set_defaults(func=run_diagnose)
 
     q = subparsers.add_parser("extend", help="add effects one at a time and show the error fall",
@@ -192,7 +205,8 @@ def run_diagnose(args) -> int:
     """Check everything, then diagnose and print (or plot) the verdict."""
     candidates = _candidates(args)
     ds, kw = _prepare(args, [])
-    dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, **kw)
+    dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, calibration=args.calibration,
+                  replicates=args.replicates, **kw)
     if args.plot:
         dg.plot(args.plot)
     if args.json:
