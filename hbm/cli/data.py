@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -26,6 +27,11 @@ converted specimen): '# units_stress: kPa' (or Pa, or a column stress_kPa ...), 
 ('# stress_measure: nominal' or a column nominal_stress...), stretch or sarcomere_length_um
 (with '# reference_sarcomere_length_um: 2.0') instead of strain.  A Cauchy stress above 5 MPa
 is refused as a unit mix-up.
+
+Tests as data (README "Loading modes"): a 'mode' column (uniaxial_f, uniaxial_c, planar_*,
+biaxial_*, shear_*; constant within a test) and the observables strain_2, stress_2, strain_c,
+strain_n, strain_f (empty cell = not measured); the check then lists each specimen's tests by mode.
+--json prints one JSON object per run instead of the table.
 """
 
 
@@ -40,6 +46,8 @@ def register(subparsers) -> None:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     check.add_argument("paths", nargs="+", metavar="PATH", help="CSV file or folder of CSV files")
     add_data_arguments(check)
+    check.add_argument("--json", action="store_true",
+                       help="print the specimens (with their tests by mode) and the errors as one JSON object")
     check.set_defaults(func=run_check)
     parser.set_defaults(func=_no_action)
 
@@ -80,8 +88,27 @@ def _row(spec) -> list[str]:
     if len(source) > 48:
         source = source[:45] + "..."
     return [spec.id, str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
-            f"{stress[np.argmax(np.abs(stress))]:.4g}", str(len(spec.tests)), "yes" if spec.time is not None else "-",
+            f"{stress[np.nanargmax(np.abs(stress))]:.4g}" if np.isfinite(stress).any() else "-", str(len(spec.tests)), "yes" if spec.time is not None else "-",
             _input(spec), provenance(spec), source]
+
+
+def tests_by_mode(spec) -> dict[str, list[dict]]:
+    """Mode -> its tests (id, label, points, the observables measured in it with their counts)."""
+    out: dict[str, list[dict]] = {}
+    for t in spec.tests:
+        measured = {k: int(np.isfinite(s.values[t.rows]).sum()) for k, s in spec.observed.items()}
+        out.setdefault(t.load_case, []).append(
+            {"id": t.id, "label": t.label, "points": t.n_points, "measured": {k: v for k, v in measured.items() if v}})
+    return out
+
+
+def _mode_line(spec) -> str:
+    parts = []
+    for mode, tests in tests_by_mode(spec).items():
+        names = ", ".join(str(t["label"] if t["label"] is not None else t["id"]) for t in tests)
+        seen = sorted({k for t in tests for k in t["measured"]})
+        parts.append(f"{mode}: {len(tests)} test(s) ({names}; measured {', '.join(seen)})")
+    return f"  {spec.id}: " + "; ".join(parts)
 
 
 def run_check(args: argparse.Namespace) -> int:
@@ -90,6 +117,8 @@ def run_check(args: argparse.Namespace) -> int:
     rows: list[list[str]] = []
     notes: list[str] = []
     ids: dict[str, str] = {}
+    modes: list[str] = []
+    specs: list = []
     for f in _files(args.paths, errors):
         try:
             ds = load_specimen(f, sl0=args.sl0)
@@ -103,8 +132,16 @@ def run_check(args: argparse.Namespace) -> int:
             continue
         ids[sid] = str(f)
         rows.append(_row(ds))
+        specs.append(ds)
+        if "test_load_cases" in ds.attrs or len(ds.observed) > 1:
+            modes.append(_mode_line(ds))
         if input_summary(ds):
             notes.append(f"{sid}: {input_summary(ds)}")
+    if getattr(args, "json", False):
+        print(json.dumps({"specimens": [{"id": d.id, "source_file": d.source_file, "points": d.n_points,
+                                         "input": input_summary(d), "tests_by_mode": tests_by_mode(d)}
+                                        for d in specs], "errors": errors}, indent=1))
+        return 2 if errors else 0
     if rows:
         head = ["id", "points", "strain", "peak stress [MPa]", "tests", "time", "input", "provenance", "source"]
         widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
@@ -113,6 +150,10 @@ def run_check(args: argparse.Namespace) -> int:
         print("  ".join("-" * w for w in widths))
         for r in rows:
             print(line(r))
+        if modes:
+            print("tests by mode:")
+            for m in modes:
+                print(m)
         if notes:
             print("converted on loading (dataset: engineering strain, Cauchy stress in MPa):")
             for n in notes:

@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import DataError, HbmWarning
 
 
+from .modes import mode_column
 from .plausibility import describe, implausible, suggest_unit
 
 
@@ -43,7 +44,8 @@ _LEADING_ZERO_RE = re.compile(r"^[+-]?0[0-9]+$")
 _DECIMAL_COMMA_RE = re.compile(r"^(\s*[+-]?[0-9]+),([0-9]+(?:[eE][+-]?[0-9]+)?\s*)$")
 _INT64 = 2 ** 63
 _EXPECTED_COLUMNS = ("strain|strain_percent|stretch|sarcomere_length_um, stress (or stress_MPa|stress_kPa|stress_Pa, "
-                     "nominal_stress[_unit], cauchy_stress[_unit]), time, test")
+                     "nominal_stress[_unit], cauchy_stress[_unit]), time, test, and per test mode, stress_measure, "
+                     "strain_2, stress_2, strain_c, strain_n, strain_f")
 _SEPARATOR_HINT = " (cells are separated by ',', numbers use '.')"
 # headers as labs write them: "Strain (%)", "Nominal stress [kPa]", "Time (s)" -> the canonical names
 _UNIT_SUFFIX_RE = re.compile(r"^(?P<word>[^()\[\]]*?)\s*(?:\((?P<u1>[^()]*)\)|\[(?P<u2>[^\[\]]*)\])$")
@@ -201,7 +203,7 @@ def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
         col = text.lower()
         where = f"{name}: line {lineno}, column {j + 1}"
         if col not in DEFORMATIONS and col not in ("time", "test") and not _STRESS_COL_RE.match(col):
-            col = _canonical_header(text, where) or col
+            col = mode_column(col) or _canonical_header(text, where) or col
         if col in seen:
             raise DataError(f"{where}: duplicate column name {col!r} (also column {seen[col] + 1})")
         seen[col] = j
@@ -211,6 +213,8 @@ def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
         elif m:
             role = "stress"
         elif col in ("time", "test"):
+            role = col
+        elif mode_column(col) is not None:  # tests as data (hbm.data.modes)
             role = col
         else:
             hint = _SEPARATOR_HINT if any(c in text for c in ";\t") else ""
