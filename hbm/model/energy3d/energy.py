@@ -18,6 +18,7 @@ import numpy as np
 
 from ...errors import HbmError, SettingError
 from ...runtime.validation import check_positive
+from ..spec import register_energy
 from ..spyrou import FORMS, NeoHookeanMatrix, model_form
 from .axial import AxialCollagen
 from .base import DEFAULT_COLLAGEN3D, CollagenReading, Sym, get_collagen_reading, is_zero
@@ -205,3 +206,13 @@ def energy_from_model(model, collagen3d: str | None = None) -> Energy3D:
         raise HbmError(f"model {getattr(model, 'name', model)!r}: a 3-D energy exists only for the Spyrou base "
                        "model (its matrix and collagen effects)")
     return Energy3D(matrix[0].iso_factor, form, collagen3d)
+
+
+def _spyrou_principal_energy(p, k_iso: float, l1, l2, l3) -> np.ndarray:
+    """The Spyrou base's export energy (:meth:`hbm.model.spyrou.SpyrouExport.energy`): the energy form
+    with the cone reading at principal stretches (m,), parameter columns (n, 1) -> (n, m)."""
+    D = Sym(*(np.asarray(v, float) ** 2 - 1.0 for v in (l1, l2, l3)))
+    return Energy3D(k_iso, "energy", "cone").energy(p, D)
+
+
+register_energy("spyrou", _spyrou_principal_energy)
