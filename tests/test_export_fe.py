@@ -114,9 +114,9 @@ def subroutine_umat(sub: "ua.Subroutine", frame):
         ainv[2] = 1.0
         for idx in np.ndindex(I1.shape):
             ainv[0] = I1[idx]
-            ainv[sub._i4] = I4[(slice(None),) + idx]
+            ainv[sub.i4] = I4[(slice(None),) + idx]
             ui1 = sub(ainv)[1]
-            w1[idx], w4[(slice(None),) + idx] = ui1[0], ui1[sub._i4]
+            w1[idx], w4[(slice(None),) + idx] = ui1[0], ui1[sub.i4]
         return w1, w4
 
     return InvariantUmat(sub.dirs @ frame.T, derivs)

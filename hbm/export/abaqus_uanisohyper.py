@@ -178,6 +178,13 @@ class Subroutine:
         PROPS (:func:`props`).
     dirs : ndarray (nfib, 3)
         The local directions (:func:`directions`).
+
+    Attributes
+    ----------
+    ninv : int
+        Length of the invariant array.
+    i4 : ndarray (nfib,)
+        Positions of Ī4(αα) in it.
     """
 
     def __init__(self, lib: ctypes.CDLL, pr: dict, dirs: np.ndarray) -> None:
@@ -195,7 +202,7 @@ class Subroutine:
         self._nfib, self._n = ctypes.c_int(nfib), ctypes.c_int(self.ninv)
         self._name = ctypes.create_string_buffer(b"MUSCLE".ljust(80), 80)
         self._views = [np.ctypeslib.as_array(a) for a in (self._ainv, self._ua, self._ui1, self._ui2)]
-        self._i4 = np.array([inv4_index(al) for al in range(1, nfib + 1)])
+        self.i4 = np.array([inv4_index(al) for al in range(1, nfib + 1)])
 
     def __call__(self, ainv) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(UA, UI1, UI2) at invariants ``ainv`` (Abaqus ordering), copies."""
@@ -223,9 +230,9 @@ class Subroutine:
         ui1 = self._views[2]
         for m in range(F.shape[0]):
             ainv[0] = float(np.sum(F[m] * F[m]))
-            ainv[self._i4] = I4[m]
+            ainv[self.i4] = I4[m]
             self._run(ainv)
-            out[m] = 2.0 * ui1[0] * F[m] @ F[m].T + np.einsum("k,ki,kj->ij", 2.0 * ui1[self._i4], Fa[m], Fa[m])
+            out[m] = 2.0 * ui1[0] * F[m] @ F[m].T + np.einsum("k,ki,kj->ij", 2.0 * ui1[self.i4], Fa[m], Fa[m])
         return out
 
 

@@ -96,10 +96,10 @@ def deformation(case: LoadCase, strain: np.ndarray, lateral: Mapping[str, np.nda
     return F
 
 
-def segment_stretch(src, strain: np.ndarray | None = None) -> tuple[float, float]:
-    """The largest helix-segment stretch (cone at the fit's THETA) over every mode at hbm's solution, on the
-    tested range and on 1.5x it: what an energy card's collagen law has to cover."""
-    strain, tested = control_grid(src.strain_range) if strain is None else (strain, src.in_tested(strain))
+def segment_stretch(src) -> tuple[float, float]:
+    """The largest helix-segment stretch (cone at the fit's helix angle, on a 0.25° azimuth grid) over every
+    mode at hbm's solution, on the tested range and on 1.5x it: what an energy card's collagen law covers."""
+    strain, tested = control_grid(src.strain_range)
     p = src.params()
     th = np.deg2rad(theta_of(src))
     n = np.stack([np.full(_PHI.size, np.cos(th)), np.sin(th) * np.cos(_PHI), np.sin(th) * np.sin(_PHI)])
@@ -304,7 +304,7 @@ def tradeoff_line(fmt: str, chosen: int, seen: Mapping[int, list[float]], cost: 
 
 #: what a card that claims to be a 3-D material is (the report's scope line)
 SCOPE_3D = ("3-D material: verified in every loading mode hbm predicts, against hbm's cone reading "
-            "(--collagen3d cone, the exact azimuthal average)")
+            "(collagen3d = cone, the exact azimuthal average)")
 #: what a curve card is
 SCOPE_ALONG = ("along-fibre uniaxial only: not a 3-D material (transverse, shear and multiaxial loading are "
                "outside it; use febio-energy or abaqus-uanisohyper for those)")
