@@ -117,10 +117,10 @@ def test_refusals(tmp_path, change, message):
         load_specimen(f)
 
 
-def test_test_without_measurement_and_measure_conflict(tmp_path):
-    rows = [r if r[2] != "sh" else (r[0], "", *r[2:]) for r in ROWS]
-    with pytest.raises(DataError, match="test 'sh' \\(shear_fc\\) has no measured value"):
-        load_specimen(_write(tmp_path / "a.csv", rows))
+def test_protocol_and_measure_conflict(tmp_path):
+    rows = [r if r[2] != "sh" else (r[0], "", *r[2:]) for r in ROWS]  # a test without values: a protocol
+    s = load_specimen(_write(tmp_path / "a.csv", rows))
+    assert np.isnan(s.observed["stress"].values[6:8]).all() and s.tests[2].load_case == "shear_fc"
     with pytest.raises(DataError, match="test 'across' says nominal but the file declares cauchy"):
         load_specimen(_write(tmp_path / "b.csv", meta="# stress_measure: cauchy\n"))
 

@@ -25,7 +25,7 @@ from ..errors import HbmError, HbmWarning, SettingError
 from ._common import HbmArgumentParser
 
 # subcommand modules, in the order shown by --help
-COMMANDS = ["run", "fit", "optimize", "sobol", "diagnose", "predict", "data", "export", "summary"]
+COMMANDS = ["run", "fit", "optimize", "sobol", "diagnose", "predict", "simulate", "data", "export", "summary"]
 
 DESCRIPTION = """\
 hbm: Bayesian learning of skeletal-muscle model parameters across specimens.

@@ -12,7 +12,8 @@ by the loader's unchanged path.  With them, each row also carries:
 * observed series besides ``stress``: ``stress_2`` (in the file's stress unit) and the lateral engineering
   strains ``strain_c``, ``strain_n``, ``strain_f`` (fractions).
 
-An empty cell means "not measured" (NaN: excluded from the likelihood), also in ``stress``.  A mode that
+An empty cell means "not measured" (NaN: excluded from the likelihood), also in ``stress``; a test
+without any measured value is a protocol to simulate (``hbm simulate``).  A mode that
 does not define an observable refuses a value in its column.
 """
 
@@ -161,7 +162,7 @@ def read_mode_columns(name: str, columns: Mapping[str, str], cells: Mapping[str,
     ------
     DataError
         An unknown mode, a mode or measure changing within a test, an observable or control the mode does
-        not define, a test that measures nothing, a stretch ≤ 0, a per-test measure contradicting the file's.
+        not define, a stretch ≤ 0, a per-test measure contradicting the file's.
     """
     n = len(linenos)
     show = (lambda t: repr(labels[t])) if labels is not None else str  # noqa: E731
@@ -191,12 +192,6 @@ def read_mode_columns(name: str, columns: Mapping[str, str], cells: Mapping[str,
                                 f"(test {tid}) defines no {what} {c}; it predicts "
                                 f"{', '.join(case.observable_names)} from {', '.join(case.inputs)}; leave the "
                                 "cell empty or give the test its mode")
-        measured = ~np.isnan(stress[a:b])
-        for c in series:
-            measured |= ~np.isnan(series[c][a:b])
-        if not measured.any():
-            raise DataError(f"{name}: lines {linenos[a]}-{linenos[b - 1]}: test {tid} ({case.name}) has no measured "
-                            "value (every observable cell is empty); expected at least one")
         s = strain[a:b]
         if case.control == "stretch" and np.any(s <= -1.0):
             i = a + int(np.argmin(s))
