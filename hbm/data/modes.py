@@ -26,9 +26,10 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import DataError, HbmError
+from .specimen import Series, Specimen
 from ..model.loadcases import ALIASES, DEFAULT_LOAD_CASE, LoadCase, get_load_case
 
-__all__ = ["MODE_COLUMNS", "SERIES_COLUMNS", "mode_column", "ModeColumns", "read_mode_columns"]
+__all__ = ["MODE_COLUMNS", "SERIES_COLUMNS", "mode_column", "ModeColumns", "read_mode_columns", "combine_tests"]
 
 #: per-row observed series of the vocabulary -> (unit of the loaded data, long name)
 SERIES_COLUMNS: dict[str, tuple[str, str]] = {
@@ -227,3 +228,61 @@ def read_mode_columns(name: str, columns: Mapping[str, str], cells: Mapping[str,
             if "stress_2" in series and "stress_2" in case.observable_names:
                 series["stress_2"][a:b] = series["stress_2"][a:b] * case.load_stretch("stress_2", s, s2)
     return ModeColumns(tuple(modes), stress, series, strain_2, tuple(measures))
+
+
+def combine_tests(parts, id: str):  # noqa: A002 - the specimen's field name
+    """One specimen from the tests of several (one file per direction, as labs often share them).
+
+    Parameters
+    ----------
+    parts : sequence of (Specimen, mode)
+        Each specimen's tests all take ``mode`` (a name or alias); their test ids are renumbered in order
+        (labels ``<specimen id>:<label or id>``), their time columns kept (each test its own history when a
+        part has none).  The same result as concatenating the CSV files with a ``mode`` column.
+    id : str
+        The new specimen's id.
+
+    Returns
+    -------
+    Specimen
+
+    Raises
+    ------
+    DataError
+        Parts with and without time, a series with different units, an unknown mode.
+    """
+    strain, time, test, labels, cases, observed = [], [], [], [], [], {}
+    has_time = {p.time is not None for p, _ in parts}
+    if len(has_time) > 1:
+        raise DataError(f"{id}: some parts have a time column and some not; expected all or none")
+    offset, n = 0, 0
+    for spec, mode in parts:
+        try:
+            case = get_load_case(mode)
+        except HbmError as exc:
+            raise DataError(f"{id}: {spec.id}: {exc}") from None
+        ids = spec.test if spec.test is not None else np.zeros(spec.n_points, np.int64)
+        for t in spec.tests:
+            labels.append(f"{spec.id}:{t.label if t.label is not None else t.id}")
+            cases.append(case.name)
+        order = {t.id: k for k, t in enumerate(spec.tests)}
+        test.append(np.array([order[int(i)] for i in ids]) + offset)
+        offset += len(spec.tests)
+        strain.append(spec.strain)
+        if spec.time is not None:
+            time.append(spec.time)
+        for k, s in spec.observed.items():
+            if k in observed and observed[k][0] != s.unit:
+                raise DataError(f"{id}: series {k} in {s.unit} in {spec.id}, {observed[k][0]} before")
+            observed.setdefault(k, (s.unit, s.long_name, {}))[2][n] = s.values
+        n += spec.n_points
+    series = {}
+    for k, (unit, long_name, pieces) in observed.items():
+        v = np.full(n, np.nan)
+        for start, values in pieces.items():
+            v[start: start + values.size] = values
+        series[k] = Series(k, v, unit, long_name)
+    attrs = {"id": id, "test_labels": json.dumps(labels), "test_load_cases": json.dumps(cases),
+             "combined_from": json.dumps([p.id for p, _ in parts])}
+    return Specimen(id, np.concatenate(strain), np.concatenate(time) if time else None, np.concatenate(test),
+                    series, attrs)
