@@ -15,6 +15,7 @@ from hbm.data import load_specimen
 from hbm.effects import make_effect
 from hbm.errors import HbmError
 from hbm.fit.modes import fit_modes
+from hbm.likelihood import make_likelihood
 from hbm.likelihood.modes import TEST_SCALE_SD, is_multimode, make_modes_likelihood
 from hbm.model import spyrou_model
 
@@ -91,6 +92,8 @@ def test_refusals(small):
         make_modes_likelihood(ENERGY, small, collagen3d="helix")
     with pytest.raises(HbmError, match="beyond the base"):
         make_modes_likelihood(ENERGY.with_effects(make_effect("offset")), small)
+    with pytest.raises(HbmError, match="this likelihood fits along-fibre stress only; fit the file with 'hbm fit'"):
+        make_likelihood(ENERGY, small)  # never fitted as if every test were along the fibres
     assert is_multimode(small)
     assert not is_multimode(load_specimen(Path(__file__).resolve().parents[1] / "data" / "specimens" /
                                           "calvo2010_rat1.csv"))
