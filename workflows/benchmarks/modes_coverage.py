@@ -9,7 +9,8 @@ T2 in both fits (their ratio: how much the other modes shrink them).
 
 usage (from the repository root)::
 
-    OMP_NUM_THREADS=1 python workflows/benchmarks/modes_coverage.py --seeds 20        # ~15 min CPU
+    OMP_NUM_THREADS=1 python workflows/benchmarks/modes_coverage.py --seeds 20        # ~25 min CPU
+    # or split: --first 0 --seeds 10 --out A & --first 10 --seeds 10 --out B, then --merge A/*.json B/*.json
     python workflows/benchmarks/modes_coverage.py --seeds 1 --samples 300 --max-steps 10   # smoke
 
 Writes ``results/benchmarks/modes_coverage.{md,json}`` (``--out DIR`` to change).
@@ -102,19 +103,31 @@ def table(rows: list[dict], args, commit: str) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=20)
-    ap.add_argument("--samples", type=int, default=500)
-    ap.add_argument("--max-steps", type=int, default=20)
+    ap.add_argument("--samples", type=int, default=600)
+    ap.add_argument("--max-steps", type=int, default=40)
+    ap.add_argument("--first", type=int, default=0, help="first seed (split a run over processes)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="JSON",
+                    help="only merge the rows of earlier runs' JSON files into one table")
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
     args = ap.parse_args(argv)
+    if args.merge:
+        parts = [json.loads(p.read_text()) for p in args.merge]
+        args.samples, args.max_steps = parts[0]["samples"], parts[0]["max_steps"]
+        rows = sorted((r for p in parts for r in p["rows"]), key=lambda r: r["seed"])
+        return _write(args, rows, parts[0]["commit"])
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for seed in range(args.seeds):
+        for seed in range(args.first, args.first + args.seeds):
             rows.append(run_seed(seed, args.samples, args.max_steps, Path(tmp)))
             r = rows[-1]
             print(f"seed {seed}: all {r['all']['cpu_s']:.1f} s inside {sum(r['all']['inside'].values())}/"
                   f"{len(r['all']['inside'])}; along {r['along']['cpu_s']:.1f} s", flush=True)
+    return _write(args, rows, commit)
+
+
+def _write(args, rows, commit) -> int:
     text = table(rows, args, commit)
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
