@@ -23,7 +23,8 @@ Cells of the measured columns may be empty: a file without measurements is a pro
 """
 
 
-def _theta(text: str) -> dict[str, float]:
+def theta_list(text: str) -> dict[str, float]:
+    """``type=`` rule of ``--theta NAME=VALUE,...``: finite values, each name once."""
     out: dict[str, float] = {}
     for item in filter(None, (t.strip() for t in str(text).split(","))):
         name, value = fix_item(item)
@@ -38,7 +39,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("simulate", help="predict every observable of every test (virtual experiments)",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("tests", metavar="TESTS.csv", help="specimen file with the tests (a 'mode' column per test)")
-    p.add_argument("--theta", type=_theta, action="append", required=True, metavar="NAME=VALUE,...",
+    p.add_argument("--theta", type=theta_list, action="append", required=True, metavar="NAME=VALUE,...",
                    help="every model parameter, e.g. VOLF=0.9,EOPT=0.18,...; repeatable")
     add_form_argument(p)
     p.add_argument("--collagen3d", choices=sorted(COLLAGEN_READINGS), default=None,
