@@ -125,8 +125,15 @@ def main(argv=None) -> int:
         for seed in range(args.first, args.first + args.seeds):
             rows.append(run_seed(seed, args.samples, args.max_steps, Path(tmp), args.reading))
             r = rows[-1]
+            width = {k: (r["along"]["intervals"][k][1] - r["along"]["intervals"][k][0])
+                     / (r["all"]["intervals"][k][1] - r["all"]["intervals"][k][0]) for k in r["all"]["intervals"]}
             print(f"seed {seed}: all {r['all']['cpu_s']:.1f} s inside {sum(r['all']['inside'].values())}/"
-                  f"{len(r['all']['inside'])}; along {r['along']['cpu_s']:.1f} s", flush=True)
+                  f"{len(r['all']['inside'])}; along {r['along']['cpu_s']:.1f} s; width ratios along/all "
+                  + ", ".join(f"{k} {v:.1f}" for k, v in width.items()), flush=True)
+            args.out.mkdir(parents=True, exist_ok=True)  # partial rows after every seed (--merge reads them)
+            (args.out / "modes_coverage.partial.json").write_text(json.dumps(
+                {"commit": commit, "samples": args.samples, "max_steps": args.max_steps, "reading": args.reading,
+                 "rows": rows}, indent=1))
     return _write(args, rows, commit)
 
 
