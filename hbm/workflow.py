@@ -130,8 +130,8 @@ class RunConfig:
                                 transforms=self.hier_transforms, sd_range=self.hier_sd_range,
                                 stage1_samples=self.samples, noise=self.noise, fix=self.fix, bounds=self.bounds,
                                 retries=self.retries, progress=self.progress, exact=self.hier_exact,
-                                # a smoke run: the fallback's chains shorter too (a tenth of the draws kept)
-                                **({"exact_burn": 200, "exact_keep": 12} if self.quick else {}))
+                                # a smoke run: the joint sampler's chains shorter too
+                                **({"layer_burn": 100, "layer_keep": 50} if self.quick else {}))
 
 
 def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, options: Mapping,
@@ -338,6 +338,8 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, opt
             _log(f"hierarchical layer over {len(results)} specimens", cfg.progress)
             wres.hierarchical, wres.hierarchical_path = run_population(results, datasets, model, config=pop_cfg,
                                                                        out=out, client=cl)
+            if wres.hierarchical is not None and wres.hierarchical.evaluations is not None:
+                timings["hierarchical_evaluations"] = int(wres.hierarchical.evaluations)  # type: ignore[assignment]
             if wres.hierarchical is not None and wres.hierarchical_path is not None:
                 wres.hierarchical.attrs["content_key"] = hkey
                 io.write_hierarchical(wres.hierarchical, wres.hierarchical_path)

@@ -36,7 +36,8 @@ POOL_MODES = ("auto", POOL_COMBINATIONS, POOL_INFORMED, "all")
 COMBINATION_COLUMNS = tuple(f"log_{c}" for c in COMBINATIONS)
 #: settings that left the layer (issue 25: reference rows and the second pass, superseded by the exact
 #: fallback; code at commit 287c749), folded into the reuse key at their old defaults so that a stored
-#: ``hierarchical.nc`` of an unchanged run keeps its key
+#: ``hierarchical.nc`` of an unchanged run keeps its key (the exact fallback's own settings left with
+#: issue 37: a layer made by it is not reused)
 _RETIRED = {"reference": 0.0, "second_pass": False}
 #: fields that key the reuse only when set (unset: the key of runs from before they existed)
 _KEYED_WHEN_SET = ("groups", "group_by", "sampler_options")
@@ -54,8 +55,8 @@ class PopulationConfig:
     pooled : str, list of str or None
         "auto", "combinations", "informed", "all" or parameter names (:mod:`hbm.population`).
     samples : int
-        Hyper-posterior draws (TMCMC population of the layer).  When the exact fallback runs,
-        the layer's draws are all its chains × kept draws, at least ``samples``.
+        Hyper-posterior draws: of the joint sampler (all its chains × kept draws, at least
+        ``samples``), or the TMCMC population of the reuse layer.
     max_steps : int
         MH steps per TMCMC stage of the layer and of the refinements.
     sampler_options : dict, optional
@@ -82,25 +83,15 @@ class PopulationConfig:
     group_by : str, optional
         The metadata key the groups come from (``group``, ``species`` ...), for the report's words.
     exact : str or None
-        "gibbs" (default): when a specimen's reuse is flagged unreliable (or its ESS collapsed),
-        sample the joint posterior of (population, specimens) by Metropolis-within-Gibbs
-        (:func:`hbm.samplers.hierarchical.joint_gibbs`): flagged specimens with their real
-        likelihoods, the others by their reweighted stage-1 samples; its hyper-posterior and
-        updated individuals replace the reuse ones (:func:`hbm.population.fallbacks.exact_gibbs`;
-        needs the datasets; two-level layer only).  On the gold benchmark it brings every
-        hyper-parameter median within 0.05 and every 5/95 % quantile within 0.21 NUTS sd (reuse:
-        0.41 / 1.21) at max R-hat <= 1.048 (results/benchmarks/hierarchical_gold.md).
-        None: reuse (+ fresh TMCMC refinement of flagged specimens).
-    exact_all : bool
-        With ``exact="gibbs"``, once some specimen is flagged: real likelihoods for every specimen
-        (default; on the gold the unflagged ones' reweighted samples left the medians 0.21 NUTS sd
-        off, real likelihoods 0.19, for +30 % CPU); False: only for the flagged ones.
-    exact_chains, exact_burn, exact_keep, exact_thin : int
-        Chains, adaptive burn-in sweeps, kept draws per chain and sweeps between kept draws.
-    exact_block_rounds : int
-        Cheap rounds per sweep of the amplitude block (:mod:`hbm.population.blocks`: a specimen's
-        linear amplitudes moved given its φ, with the population, at one basis evaluation per
-        sweep); 0: off (the amplitudes move only with the other parameters).
+        "gibbs" (default): the joint posterior of the population and every specimen, each with its real
+        likelihood, by batched Metropolis-within-Gibbs (:mod:`hbm.population.layer`); it needs the
+        datasets and runs for a two-level layer.  None — and without datasets, or with groups —: TMCMC
+        over the population reusing the stage-1 samples (:func:`hbm.samplers.hierarchical.hierarchical`,
+        the hyper-evidence and the reuse diagnostics), specimens whose reuse is unreliable refined by a
+        fresh TMCMC run.
+    layer_chains, layer_burn, layer_keep, layer_thin : int
+        The joint sampler's chains, burn-in rounds, kept draws per chain (at least ``samples`` in all)
+        and rounds per kept draw.
     """
 
     seed: int = 0
@@ -120,14 +111,10 @@ class PopulationConfig:
     groups: dict | None = None
     group_by: str | None = None
     exact: str | None = "gibbs"
-    exact_all: bool = True
-    exact_chains: int = 128
-    # gold benchmark with the amplitude block: 400 + 120 x 10 sweeps gave worst median 0.05 / tail 0.21 NUTS sd
-    # (R-hat <= 1.048); 200 + 60 x 10 did not converge (R-hat 1.08-1.10)
-    exact_burn: int = 400
-    exact_keep: int = 120
-    exact_thin: int = 10
-    exact_block_rounds: int = 4
+    layer_chains: int = 16
+    layer_burn: int = 300
+    layer_keep: int = 250
+    layer_thin: int = 4
 
     def tmcmc_options(self) -> dict:
         """Keyword arguments of every TMCMC run of the layer: the MH step cap, then ``sampler_options``.
@@ -146,14 +133,12 @@ class PopulationConfig:
 
 
 def check_config(cfg: PopulationConfig) -> None:
-    """Bad settings of the exact fallback or of the sampler options (HbmError), before any computation."""
+    """Bad settings of the joint sampler or of the sampler options (HbmError), before any computation."""
     if cfg.sampler_options is not None and not isinstance(cfg.sampler_options, dict):
         raise HbmError(f"sampler_options must be a dict of TMCMC keyword arguments, got {cfg.sampler_options!r}")
     if cfg.exact is None:
         return
     if cfg.exact != "gibbs":
         raise HbmError(f"exact must be 'gibbs' or None, got {cfg.exact!r}")
-    if (min(int(cfg.exact_chains), int(cfg.exact_keep)) < 4 or int(cfg.exact_thin) < 1 or int(cfg.exact_burn) < 0
-            or int(cfg.exact_block_rounds) < 0):
-        raise HbmError("exact='gibbs' needs exact_chains >= 4, exact_keep >= 4, exact_thin >= 1, exact_burn >= 0, "
-                       "exact_block_rounds >= 0")
+    if int(cfg.layer_chains) < 2 or int(cfg.layer_keep) < 4 or int(cfg.layer_thin) < 1 or int(cfg.layer_burn) < 0:
+        raise HbmError("exact='gibbs' needs layer_chains >= 2, layer_keep >= 4, layer_thin >= 1, layer_burn >= 0")
