@@ -12,22 +12,22 @@ The main entry points, by role:
 """
 
 from ._version import __version__
-from ._process import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
+from .runtime.process import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
 from .model import Effect, Loading, Model, Parameter, State, spyrou_model
 from .data import load_specimen, load_specimens, save_specimen, synthetic_specimen
-from .likelihood import Likelihood, make_likelihood
+from .likelihood.core import Likelihood, make_likelihood
 from .samplers.tmcmc import TMCMCResult, tmcmc
 from .samplers.hierarchical import HierarchicalResult, hierarchical
-from .sensitivity import SobolResult, sobol
-from .identify import identifiable_directions, volf_t1_manifold
+from .fit.sensitivity import SobolResult, sobol
+from .identifiability.identify import identifiable_directions, volf_t1_manifold
 from .organ import FusiformGeometry, load_geometry, organ_response
-from .fit import FitResult, fit_specimen
-from .prior import Prior, resolve_prior
-from .workflow import RunConfig, run_workflow
-from .organ_report import predict_organ
+from .fit.specimen import FitResult, fit_specimen
+from .likelihood.prior import Prior, resolve_prior
+from .workflow.run import RunConfig, run_workflow
+from .workflow.organ import predict_organ
 from . import data, effects, errors, io, organ
 from .detective import Diagnosis, diagnose, extend
-from .optimization import OptimizeResult, optimize
+from .fit.optimization import OptimizeResult, optimize
 from .errors import DataError, HbmError, HbmWarning, OutputError, OutputLockedError, SettingError, TooLargeError
 
 _restore_sigint()

@@ -5,14 +5,14 @@ six specimens with likelihoods N(y_i; θ_i, s_i²) (θ a nonlinear column: every
 N(y_i; e^{u_i}, s_i²) with u = log A an amplitude column (quadratic in A: the particle moves), a normal
 population (identity transform, truncated to the box) and the layer's hyperprior (mu uniform, log sd
 uniform).  Also: the compiled particle kernel against quadrature, the combinations' support constraints
-against :func:`hbm.combinations.in_support`, bitwise equality on dask, R-hat/ESS against ArviZ.
+against :func:`hbm.identifiability.combinations.in_support`, bitwise equality on dask, R-hat/ESS against ArviZ.
 """
 
 import numpy as np
 import pytest
 from scipy.stats import norm
 
-from hbm.combinations import combination_box, in_support, support_constraints
+from hbm.identifiability.combinations import combination_box, in_support, support_constraints
 from hbm.errors import HbmError
 from hbm.model import spyrou_model
 from hbm.samplers.hierarchical import HierarchicalModel, PooledFeatures, ShardSpec, batched_gibbs, rhat_ess, one_population

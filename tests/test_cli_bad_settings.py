@@ -82,7 +82,7 @@ def test_out_under_a_file_is_refused_before_fitting(tmp_path, capsys):
 
 
 def test_results_honour_the_umask(tmp_path):
-    from hbm.utils import atomic_write_text
+    from hbm.runtime.files import atomic_write_text
     old = os.umask(0o022)
     try:
         atomic_write_text(tmp_path / "a.txt", "hello")
@@ -96,7 +96,7 @@ def test_results_honour_the_umask(tmp_path):
 
 
 def test_failed_write_leaves_no_temp_file(tmp_path):
-    from hbm.utils import atomic_path
+    from hbm.runtime.files import atomic_path
 
     with pytest.raises(Exception, match="(?i)space|disk"):
         with atomic_path(tmp_path / "r.nc") as tmp:
@@ -106,7 +106,7 @@ def test_failed_write_leaves_no_temp_file(tmp_path):
 
 
 def test_second_run_on_a_locked_out_is_refused(tmp_path, capsys):
-    from hbm.utils import output_lock
+    from hbm.runtime.files import output_lock
     with output_lock(tmp_path):
         rc = main(["run", "--out", str(tmp_path), "--quick"])
     err = capsys.readouterr().err.strip().splitlines()

@@ -25,8 +25,9 @@ import xarray as xr
 import hbm
 import hbm.cli as cli
 from hbm.model import spyrou_model
-from hbm.utils import (LOCK_NAME, atomic_path, atomic_write_text, output_lock, prepare_output_dir,
-                       prepare_output_file, remove_stale_temps)
+from hbm.runtime.files import (
+    LOCK_NAME, atomic_path, atomic_write_text, output_lock, prepare_output_dir, prepare_output_file,
+    remove_stale_temps)
 
 ROOT = Path(__file__).resolve().parents[1]
 GEOMETRY = ROOT / "data" / "geometry" / "fusiform.toml"
@@ -145,7 +146,7 @@ def _failing_to_netcdf(exc):
 ])
 def test_disk_full_while_writing_is_one_line(exc, words, tmp_path, specimen, capsys, monkeypatch):
     monkeypatch.setattr(xr.DataTree, "to_netcdf", _failing_to_netcdf(exc))
-    monkeypatch.setattr("hbm.utils._free_bytes", lambda folder: 0)  # what statvfs says on a full disk
+    monkeypatch.setattr("hbm.runtime.files._free_bytes", lambda folder: 0)  # what statvfs says on a full disk
     out = tmp_path / "res" / "toy.nc"
     line = one_line_error(["fit", specimen, "--out", out] + TINY_FIT, capsys)
     assert f"cannot write {out}" in line
@@ -157,7 +158,7 @@ def test_disk_full_while_writing_is_one_line(exc, words, tmp_path, specimen, cap
 def test_full_disk_aborts_the_specimen_map():
     """OutputError stops map_specimens (every later task would fail the same way); other task
     errors are collected."""
-    from hbm.parallel import map_specimens
+    from hbm.runtime.parallel import map_specimens
 
     calls = []
 
@@ -220,7 +221,7 @@ def test_second_run_into_a_locked_folder_is_refused(tmp_path, capsys, no_engines
     out.mkdir()
     holder = subprocess.Popen([sys.executable, "-c", (
         "import sys, time\n"
-        "from hbm.utils import output_lock\n"
+        "from hbm.runtime.files import output_lock\n"
         f"with output_lock({str(out)!r}):\n"
         "    print('locked', flush=True)\n"
         "    sys.stdin.read()\n")], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)

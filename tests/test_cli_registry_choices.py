@@ -9,7 +9,7 @@ import pytest
 from hbm import cli
 from hbm.cli._common import n_noise_parameters
 from hbm.errors import SettingError
-from hbm.noise import NOISE_REGISTRY, NoiseModel, register_noise
+from hbm.likelihood.noise import NOISE_REGISTRY, NoiseModel, register_noise
 
 COMMANDS = ("fit", "run", "optimize")
 

@@ -234,7 +234,7 @@ def test_valid_settings_reach_the_engine(tmp_path, specimen, capsys, no_engines)
 def test_sizes_refused_from_a_memory_estimate(tmp_path, specimen, capsys, monkeypatch, no_engines):
     """The estimate is a lower bound, computed by hand here: Sobol N*(D+2) rows of (points + all
     parameters + free parameters) float64; a TMCMC population N x (points + parameters + noise)."""
-    monkeypatch.setattr("hbm.utils.available_memory", lambda: 1 << 30)  # a 1 GiB machine
+    monkeypatch.setattr("hbm.runtime.memory.available_memory", lambda: 1 << 30)  # a 1 GiB machine
     n = 2 ** 20  # 8 free parameters, 25 points: 2^20 * 10 rows * (25 + 8 + 8) * 8 B = 3.2 GiB
     line = one_line_error(["sobol", specimen, "--n", str(n)], capsys)
     assert f"--n {n}" in line and "3.2 GiB" in line and "1.0 GiB available" in line
@@ -269,11 +269,11 @@ def test_error_hierarchy_is_exported():
 
 
 def test_require_memory_compares_with_available(monkeypatch):
-    from hbm.utils import require_memory
+    from hbm.runtime.memory import require_memory
 
-    monkeypatch.setattr("hbm.utils.available_memory", lambda: 1000)
+    monkeypatch.setattr("hbm.runtime.memory.available_memory", lambda: 1000)
     require_memory(1000, "x")
     with pytest.raises(hbm.TooLargeError, match="needs at least 1001 B"):
         require_memory(1001, "x")
-    monkeypatch.setattr("hbm.utils.available_memory", lambda: None)  # unknown: no refusal
+    monkeypatch.setattr("hbm.runtime.memory.available_memory", lambda: None)  # unknown: no refusal
     require_memory(1e30, "x")

@@ -19,8 +19,8 @@ import xarray as xr
 from scipy import integrate
 from scipy.special import ndtr
 
-from hbm.collapse import BoxGaussianIntegral, CollapseError, ColumnPrior, Term, box_qp
-from hbm.collapse.likelihood import CollapsedLikelihood, collapse_reason
+from hbm.likelihood.collapsed import BoxGaussianIntegral, CollapseError, ColumnPrior, Term, box_qp
+from hbm.likelihood.collapsed.likelihood import CollapsedLikelihood, collapse_reason
 from hbm.likelihood import make_likelihood
 from hbm.model import spyrou_model
 
@@ -355,7 +355,7 @@ def test_sampling_phi_only_reaches_the_brute_force_evidence():
     """TMCMC over (VOLF, sigma) on the collapsed likelihood + importance finish: log Z against
     the quadrature over φ of the test above's validated collapsed likelihood, and the completed
     posterior has every original parameter inside its box."""
-    from hbm.collapse.sampling import sample_collapsed
+    from hbm.likelihood.collapsed.sampling import sample_collapsed
     lik = _small_box_lik()
     cl = CollapsedLikelihood(lik, BaseStructure(MODEL))
     (v0, v1), (s0, s1) = cl.bounds
@@ -390,7 +390,7 @@ def test_model_structure_agrees_with_the_readme_basis_and_is_used_by_default():
 
 
 def test_tier_choice_auto_full_and_refusals():
-    from hbm.collapse import choose_tier
+    from hbm.likelihood.collapsed import choose_tier
     from hbm.effects import make_effect
     from hbm.errors import SettingError
     ds = _data()

@@ -7,9 +7,10 @@ import pytest
 from scipy.integrate import quad
 from scipy.stats import kstest, qmc, uniform
 
-from hbm.combinations import (COMBINATION_PARAMS, combination_box, combination_features, fibre_point, log_density,
-                              sample_conditional, support_hull, to_features)
-from hbm.combinations import _integrand
+from hbm.identifiability.combinations import (
+    COMBINATION_PARAMS, combination_box, combination_features, fibre_point, log_density, sample_conditional,
+    support_hull, to_features)
+from hbm.identifiability.combinations import _integrand
 from hbm.errors import HbmError
 from hbm.model import spyrou_model
 
@@ -152,7 +153,7 @@ def _sir_specimen(model, centre, seed, n_prior=200_000, n=1500):
 def test_workflow_pool_combinations(tmp_path):
     from hbm.organ import theta_from_samples
     from hbm.population import COMBINATION_COLUMNS, run_population
-    from hbm.views import population_table
+    from hbm.identifiability.views import population_table
 
     model = spyrou_model()
     centres = [np.array([-3.8, -3.0, -2.0]), np.array([-3.5, -2.7, -2.3]), np.array([-4.0, -3.2, -1.8]),

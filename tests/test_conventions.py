@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from hbm import conventions, io
+from hbm.io import conventions
+from hbm import io
 from hbm.fit import fit_quality
 from hbm.model.spyrou import spyrou_model
 
@@ -107,7 +108,7 @@ def test_hierarchical_transform_attribute(tmp_path):
 
 
 def test_salib_settings_recorded():
-    from hbm.fit import run_sobol
+    from hbm.fit.specimen import run_sobol
     from hbm.data import load_specimen
 
     ds = load_specimen("data/specimens/calvo2010_rat1.csv")

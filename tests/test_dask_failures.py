@@ -14,7 +14,7 @@ import pytest
 
 from hbm import io
 from hbm.errors import HbmError
-from hbm.parallel import ALLOWED_FAILURES, map_specimens
+from hbm.runtime.parallel import ALLOWED_FAILURES, map_specimens
 from test_writers import toy_csv
 
 ROOT = Path(__file__).resolve().parents[1]

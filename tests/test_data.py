@@ -12,8 +12,9 @@ import xarray as xr
 from scipy.stats import spearmanr
 
 import hbm
-from hbm.data import (cycle, hold, load_specimen, load_specimens, protocol, provenance, ramp,
-                      save_specimen, specimen_loading, synthetic_specimen)
+from hbm.data import (
+    cycle, hold, load_specimen, load_specimens, protocol, provenance, ramp, save_specimen, specimen_loading,
+    synthetic_specimen)
 from hbm.errors import DataError, HbmError
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -181,7 +181,7 @@ def test_three_rate_curve_with_proportional_noise_is_not_a_false_alarm():
     clean = synthetic_specimen(spyrou_model(), th, prot, 0.0, seed=0)
     mu = clean["stress"].values
     rng = np.random.default_rng(11)
-    sd = np.sqrt((0.03 * mu) ** 2 + 1e-4 ** 2)        # the proportional noise model of hbm.noise
+    sd = np.sqrt((0.03 * mu) ** 2 + 1e-4 ** 2)        # the proportional noise model of hbm.likelihood.noise
     ds = clean.assign(stress=("point", mu + sd * rng.standard_normal(mu.size)))
     dg = diagnose(ds, seed=3, n_samples=300, candidates=["offset", "viscoelastic", "slack"], removal=False)
     assert dg.noise["model"] == "proportional"

@@ -11,8 +11,8 @@ from scipy.optimize import brentq
 
 import hbm
 from hbm.data import cycle, hold, protocol, ramp, specimen_loading
-from hbm.effects import (CONFUSABLE_GROUPS, REGISTRY, SEPARATING_EXPERIMENT, group_of, load_effect, make_effect,
-                         resolve_effect)
+from hbm.effects import (
+    CONFUSABLE_GROUPS, REGISTRY, SEPARATING_EXPERIMENT, group_of, load_effect, make_effect, resolve_effect)
 from hbm.errors import HbmError
 from hbm.model.core import Effect, Loading, Model, Parameter
 

@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 
 import hbm
 from hbm.errors import HbmError
-from hbm.model import (EnergyHelicalCollagen, HelicalCollagen, Loading, collagen_energy, collagen_onset_stretch,
-                       compression_check)
+from hbm.model import (
+    EnergyHelicalCollagen, HelicalCollagen, Loading, collagen_energy, collagen_onset_stretch, compression_check)
 
 NAMES = ("VOLF", "EOPT", "P1", "T1", "T2", "THETA", "GF", "GM")
 BOX = hbm.spyrou_model().bounds

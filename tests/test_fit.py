@@ -12,10 +12,10 @@ from conftest import cli_error
 
 from hbm import io
 from hbm.data import synthetic_specimen
-from hbm import fit as fit_mod
+from hbm.fit import specimen as fit_mod
 from hbm.errors import HbmError, HbmWarning
 from hbm.fit import fit_specimen, pointwise_log_likelihood, posterior_predictive, summarize
-from hbm.seeds import child_ints
+from hbm.runtime.seeds import child_ints
 from hbm.likelihood import make_likelihood
 from hbm.model import identifiable_combinations, spyrou_model
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hbm.quality import _uninformed_combinations, quality_lines
+from hbm.fit.quality import _uninformed_combinations, quality_lines
 from hbm.model.spyrou import spyrou_model
 
 

@@ -219,7 +219,7 @@ from hbm.data import load_specimen, load_specimens, specimen_groups  # noqa: E40
 from hbm.errors import DataError  # noqa: E402
 from hbm.model import spyrou_model  # noqa: E402
 from hbm.population import run_population  # noqa: E402
-from hbm.report import render_report  # noqa: E402
+from hbm.workflow.report import render_report  # noqa: E402
 from hbm.workflow import RunConfig, run_workflow  # noqa: E402
 
 CURVE = "strain,stress\n0.0,0.0\n0.1,0.002\n0.2,0.006\n0.3,0.015\n0.4,0.03\n"
@@ -333,7 +333,7 @@ def test_grouped_run_end_to_end_through_metadata(tmp_path):
     assert lo < want < hi and lo > 0, (lo, want, hi)
     wres = SimpleNamespace(hierarchical=back, results={}, config=RunConfig(), skipped=[], errors={}, timings={},
                            directions={}, manifolds={}, figures=[], out=tmp_path)
-    from hbm.report import _groups
+    from hbm.workflow.report import _groups
     txt = _groups(wres, tmp_path)
     assert "Specimens grouped by `group`" in txt and "**frog** (3: frog0, frog1, frog2)" in txt
     assert "| logit T2 | toad − frog |" in txt and "toad higher" in txt

@@ -8,8 +8,7 @@ import pytest
 from scipy.stats import norm
 
 from hbm.errors import HbmError
-from hbm.samplers.hierarchical import (HierarchicalModel, defensive_log_weights, reuse_diagnostics,
-                                       reuse_unreliable)
+from hbm.samplers.hierarchical import HierarchicalModel, defensive_log_weights, reuse_diagnostics, reuse_unreliable
 
 BOX = np.array([[-10.0, 10.0]])
 

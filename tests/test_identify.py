@@ -6,13 +6,8 @@ import numpy as np
 import pytest
 
 from hbm.errors import HbmError
-from hbm.identify import (
-    VolfT1Manifold,
-    candidate_combinations,
-    compare_manifolds,
-    identifiable_directions,
-    volf_t1_manifold,
-)
+from hbm.identifiability.identify import (
+    VolfT1Manifold, candidate_combinations, compare_manifolds, identifiable_directions, volf_t1_manifold)
 
 NAMES = ["VOLF", "EOPT", "P1", "T1", "T2", "THETA", "GF", "GM"]
 BOUNDS = np.array([[0.5, 0.99], [0, 0.2], [1e-4, 0.5], [0, 20], [0, 200], [55, 60], [1e-4, 0.1], [1e-4, 0.1]])

@@ -1,4 +1,4 @@
-"""Result identity (hbm.identity): a finished result or checkpoint is reused only when its data,
+"""Result identity (hbm.io.identity): a finished result or checkpoint is reused only when its data,
 model and settings are those of the rerun; the run says what changed (issue 14)."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hbm import identity, io
+from hbm.io import identity
+from hbm import io
 from hbm.data import save_specimen, synthetic_specimen
 from hbm.effects import make_effect
 from hbm.model import spyrou_model

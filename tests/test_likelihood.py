@@ -266,7 +266,7 @@ def test_history_effects_see_the_loading_path_and_fd_jacobian_fallback():
 
 def test_noise_model_object_names_and_sd():
     from hbm.likelihood import NOISE_MODELS
-    from hbm.noise import AR1Noise
+    from hbm.likelihood.noise import AR1Noise
 
     assert NOISE_MODELS[:4] == ("iid", "weighted", "proportional", "ar1")
     ds = _dataset()
@@ -283,7 +283,7 @@ def test_noise_model_object_names_and_sd():
 
 
 def test_noise_parameter_names_must_not_clash_with_model_parameters():
-    from hbm.noise import NOISE_REGISTRY, IidNoise, register_noise
+    from hbm.likelihood.noise import NOISE_REGISTRY, IidNoise, register_noise
 
     class Clash(IidNoise):
         name = "test_clash"

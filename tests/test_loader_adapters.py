@@ -216,7 +216,7 @@ def test_largest_int64_test_id_loads(tmp_path):
 
 
 # ------------------------------------------------------------------ plausibility
-# stress per unit strain (secant, Cauchy/strain) of passive muscle: 0.002-3 MPa (hbm.plausibility)
+# stress per unit strain (secant, Cauchy/strain) of passive muscle: 0.002-3 MPa (hbm.data.plausibility)
 @pytest.mark.parametrize("head, meta, values, fragments", [
     ("strain,stress", "", [s for s in S], ["line 7", "stress 48 (no unit declared, read as MPa)",
                                            "at the peak 160 MPa", "add '# units_stress: kPa'"]),

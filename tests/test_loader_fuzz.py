@@ -276,7 +276,7 @@ def meaning(raw: bytes, sl0=None):
 def _too_stiff(strain, stress, at) -> bool:
     """Stress per unit strain above 3 MPa at the peak (largest |stress| over the largest |strain| on
     its side), or in the toe (the point nearest 30 % of that strain, the first of equals), written
-    out independently of hbm.plausibility."""
+    out independently of hbm.data.plausibility."""
     ep = strain[at]
     if ep == 0:
         return False

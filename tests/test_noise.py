@@ -1,4 +1,4 @@
-"""Noise models (hbm.noise) against independent truths: dense Gaussian densities, the AR(1)
+"""Noise models (hbm.likelihood.noise) against independent truths: dense Gaussian densities, the AR(1)
 covariance σ²ρ^|i−j| per history, Monte-Carlo moments of the simulator and of the score, finite
 differences, an lfilter implementation of the recursion, and a user noise model registered
 without touching hbm."""
@@ -15,8 +15,8 @@ from hbm.errors import HbmError
 from hbm.fit import pointwise_log_likelihood, posterior_predictive
 from hbm.likelihood import make_likelihood
 from hbm.model import spyrou_model
-from hbm.noise import (AR1Noise, NOISE_REGISTRY, NoiseModel, eq120_weights, get_noise, make_noise,
-                       noise_model_names, register_noise)
+from hbm.likelihood.noise import (
+    AR1Noise, NOISE_REGISTRY, NoiseModel, eq120_weights, get_noise, make_noise, noise_model_names, register_noise)
 
 P = 25
 STARTS = np.zeros(P, bool)

@@ -10,7 +10,7 @@ import xarray as xr
 from hbm.errors import HbmError
 from hbm.likelihood import make_likelihood
 from hbm.model import identifiable_combinations, spyrou_model
-from hbm.optimization import optimize
+from hbm.fit.optimization import optimize
 
 MODEL = spyrou_model()
 # Hawkins-like truth (DESIGN.md §1): (1−c)·T1 = 3.81e-3 MPa

@@ -12,8 +12,9 @@ from scipy.optimize import brentq
 from hbm.errors import HbmError
 from hbm.model import Effect, Model, Parameter, spyrou_model
 from hbm.model.spyrou import identifiable_combinations
-from hbm.organ import (FusiformGeometry, extrapolation_mask, force_levels, load_geometry, nominal_stress,
-                       organ_response, tendon_strain, theta_from_samples)
+from hbm.organ import (
+    FusiformGeometry, extrapolation_mask, force_levels, load_geometry, nominal_stress, organ_response,
+    tendon_strain, theta_from_samples)
 
 ROOT = Path(__file__).resolve().parents[1]
 GEOMETRY_FILE = ROOT / "data" / "geometry" / "fusiform.toml"

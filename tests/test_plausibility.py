@@ -1,5 +1,5 @@
 """Units judged from the physics (issue 26): stress per unit strain in the toe and at the peak
-against passive muscle (hbm.plausibility), in the loader, `hbm data check`, `hbm fit` and the
+against passive muscle (hbm.data.plausibility), in the loader, `hbm data check`, `hbm fit` and the
 detective's data-problem rule alike.  Test files are the shipped rat curve rescaled."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import hbm.cli as cli
 from hbm.data import load_specimen
 from hbm.detective.inputs import as_data, unit_anomaly
 from hbm.errors import DataError, HbmWarning
-from hbm.plausibility import PLAUSIBLE_MODULUS, edges_suggest_units, secant_moduli
+from hbm.data.plausibility import PLAUSIBLE_MODULUS, edges_suggest_units, secant_moduli
 
 ROOT = Path(__file__).resolve().parents[1]
 RAT = ROOT / "data" / "specimens" / "calvo2010_rat1.csv"

@@ -112,7 +112,7 @@ def test_sampler_options_reach_every_tmcmc_run_of_the_layer(monkeypatch):
 def test_reuse_key_keeps_retired_settings_and_sees_sampler_options():
     """A stored hierarchical.nc of a run from before issue 25 keeps its key (the retired reference rows and
     second pass at their old defaults); the sampler settings change the key only when set."""
-    from hbm.identity import settings_key
+    from hbm.io.identity import settings_key
 
     key = PopulationConfig().key_settings()
     assert key["reference"] == 0.0 and key["second_pass"] is False

@@ -12,7 +12,7 @@ from hbm.errors import HbmError
 
 
 def test_layer_settings_and_combination_coordinates():
-    from hbm.combinations import log_density, support_hull, to_features
+    from hbm.identifiability.combinations import log_density, support_hull, to_features
     from hbm.model import spyrou_model
     from hbm.population import PopulationConfig
     from hbm.population.config import check_config
@@ -76,7 +76,7 @@ def test_chains_and_evaluations_round_trip_and_arviz_reads_them(tmp_path):
 def test_report_says_what_the_sampler_did(tmp_path):
     """The joint sampler's summary in the population section; a file of the exact fallback (before issue
     37) is still reported with its own words."""
-    from hbm.report import _how_sampled, _reuse
+    from hbm.workflow.report import _how_sampled, _reuse
 
     layer = {"chains": 16, "n_keep": 250, "n_burn": 300, "evaluations": 98765, "wall_s": 7.5, "rhat_hyper_max": 1.004,
              "ess_hyper_min": 812.0, "rhat_specimen_max": 1.02}

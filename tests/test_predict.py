@@ -1,4 +1,4 @@
-"""Organ-scale prediction from results folders (hbm.organ_report, hbm predict organ, hbm run --geometry).
+"""Organ-scale prediction from results folders (hbm.workflow.organ, hbm predict organ, hbm run --geometry).
 
 The results folder is built from SpecimenResult/HierarchicalFile objects with known draws (two
 specimens whose posteriors slide along the exact VOLF–T1 / VOLF–P1 / G manifold), so every
@@ -21,7 +21,7 @@ from hbm.errors import HbmError
 from hbm.model import spyrou_model
 from hbm.model.spyrou import identifiable_combinations
 from hbm.organ import load_geometry, nominal_stress, organ_response
-from hbm.organ_report import force_at_tested_strain
+from hbm.workflow.organ import force_at_tested_strain
 
 ROOT = Path(__file__).resolve().parents[1]
 GEOMETRY = ROOT / "data" / "geometry" / "fusiform.toml"
@@ -96,7 +96,7 @@ def results_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def prediction(results_dir, tmp_path_factory):
-    from hbm.organ_report import predict_organ
+    from hbm.workflow.organ import predict_organ
 
     out = tmp_path_factory.mktemp("organ")
     return predict_organ(results_dir[0], GEOMETRY, out=out, **SETTINGS)
@@ -179,7 +179,7 @@ def test_extrapolation_flags_against_independent_check(prediction, results_dir):
         assert share[0] == 0.0 and share[1] == 0.0  # small forces: inside the tested range
         assert share[-1] == 1.0  # the grid ends at 2x the median threshold: all draws extrapolated
         assert ((share > 0) & (share < 1)).any()  # the draws' thresholds spread over the grid
-        # the threshold force per draw (closed form in hbm.organ_report) against nested brentq
+        # the threshold force per draw (closed form in hbm.workflow.organ) against nested brentq
         f_t = force_at_tested_strain(spyrou_model(), theta, geom, TESTED[sid])
         np.testing.assert_allclose(f_t[:6], _f_tested(theta[:6], TESTED[sid]), rtol=1e-8)
         np.testing.assert_allclose(post["tested_range_force"].values, np.quantile(f_t, [0.05, 0.5, 0.95]),
@@ -215,7 +215,7 @@ def test_elongation_at_reference_force(prediction, results_dir):
 
 
 def test_cmaes_optima_on_manifold_give_one_curve(prediction):
-    from hbm.organ_report import optima_spread
+    from hbm.workflow.organ import optima_spread
 
     for sid in ("ratA", "ratB"):
         opt = prediction.organ.curves[sid]["optima"]
@@ -230,7 +230,7 @@ def test_cmaes_optima_on_manifold_give_one_curve(prediction):
 
 def test_off_manifold_optimum_differs(results_dir, tmp_path):
     """With a wide --near the off-manifold set is kept, and its curve differs (the check can fail)."""
-    from hbm.organ_report import optima_spread, predict_organ
+    from hbm.workflow.organ import optima_spread, predict_organ
 
     pred = predict_organ(results_dir[0], GEOMETRY, out=None, samples=20, forces=20, near=100.0, figures=False)
     opt = pred.organ.curves["ratA"]["optima"]
@@ -253,7 +253,7 @@ def test_figures_are_real_pngs(prediction):
 
 
 def test_report_section(prediction):
-    from hbm.organ_report import organ_section
+    from hbm.workflow.organ import organ_section
 
     md = organ_section(prediction, base=prediction.path.parent.parent)
     assert md.startswith("## Organ-scale prediction")

@@ -1,4 +1,4 @@
-"""hbm.prior: user-controlled priors (TOML, widened boxes, loguniform forms) through Likelihood and fit_specimen."""
+"""hbm.likelihood.prior: user-controlled priors (TOML, widened boxes, loguniform forms) through Likelihood and fit_specimen."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hbm.errors import HbmError
 from hbm.fit import fit_specimen
 from hbm.likelihood import make_likelihood
 from hbm.model import spyrou_model
-from hbm.prior import Prior, PriorError, load_prior, resolve_prior
+from hbm.likelihood.prior import Prior, PriorError, load_prior, resolve_prior
 from test_fit import _specimen
 
 TRUTH = {"VOLF": 0.9, "EOPT": 0.15, "P1": 0.06, "T1": 1.0, "T2": 14.0, "THETA": 59.0, "GF": 0.03, "GM": 0.02}
@@ -246,7 +246,7 @@ def test_population_refuses_non_uniform_stage1_priors():
 
 
 def test_wls_optimum_reports_natural_noise_under_a_loguniform_sigma_prior():
-    from hbm.optimization import optimize
+    from hbm.fit.optimization import optimize
 
     data = _specimen(n=16)
     kw = dict(restarts=1, seed=4, objective="wls", maxfevals=300)

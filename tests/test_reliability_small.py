@@ -59,7 +59,7 @@ def test_stale_checkpoint_of_a_finished_specimen_is_removed(tmp_path):
 
 
 def test_predict_warns_about_a_truncated_hierarchical_file(results_dir, tmp_path):  # noqa: F811
-    from hbm.organ_report import predict_organ
+    from hbm.workflow.organ import predict_organ
 
     src = results_dir[0]
     run = tmp_path / "run"
@@ -89,8 +89,8 @@ def test_the_api_refuses_what_the_cli_refuses(call, fragment):
 
 
 def test_workers_capped_with_a_clear_message(capsys):
-    from hbm.parallel import dask_client
-    from hbm.validation import MAX_WORKERS_PER_CORE
+    from hbm.runtime.parallel import dask_client
+    from hbm.runtime.validation import MAX_WORKERS_PER_CORE
 
     with pytest.raises(SettingError, match="worker processes on .* expected at most"):
         with dask_client(100000):
@@ -124,7 +124,7 @@ def _fit(**kw):
 def _optimize(**kw):
     from hbm.data import load_specimen
     from hbm.likelihood import make_likelihood
-    from hbm.optimization import optimize
+    from hbm.fit.optimization import optimize
 
     data = load_specimen(Path(__file__).resolve().parents[1] / "data" / "specimens" / "calvo2010_rat1.csv")
     return optimize(make_likelihood(hbm.spyrou_model(), data), restarts=1, maxfevals=10, **kw)

@@ -1,4 +1,4 @@
-"""The run report (hbm.report), one section at a time, on a synthetic workflow result.
+"""The run report (hbm.workflow.report), one section at a time, on a synthetic workflow result.
 
 The specimen samples are permuted arithmetic sequences, so every mean, sd and 90 % quantile in the
 tables has a closed form; the variability test uses the two-specimen closed form of Cochran's Q
@@ -14,8 +14,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from hbm import io, report
-from hbm.identify import volf_t1_manifold
+from hbm import io
+from hbm.workflow import report
+from hbm.identifiability.identify import volf_t1_manifold
 from hbm.workflow import RunConfig
 
 N = 401  # quantile positions 0.05·400 = 20 and 0.95·400 = 380 fall on samples: no interpolation
@@ -240,7 +241,7 @@ def test_fit_quality_section_rmse_and_edges():
     from hbm.data import synthetic_specimen
     from hbm.fit import fit_specimen, map_prediction
     from hbm.model import spyrou_model
-    from hbm.report import _fit_quality
+    from hbm.workflow.report import _fit_quality
 
     model = spyrou_model()
     theta = dict(VOLF=0.9, EOPT=0.1, P1=0.13, T1=1.5, T2=9.3, THETA=59.9, GF=0.012, GM=0.009)

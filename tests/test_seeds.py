@@ -1,9 +1,9 @@
-"""The seed table (hbm.seeds): named streams, no shared keys, compatibility with spawn()."""
+"""The seed table (hbm.runtime.seeds): named streams, no shared keys, compatibility with spawn()."""
 
 import numpy as np
 import pytest
 
-from hbm import seeds
+from hbm.runtime import seeds
 
 
 def test_no_two_streams_share_a_key():

@@ -7,7 +7,7 @@ import xarray as xr
 
 from hbm.errors import HbmError
 from hbm.model import Effect, Model, Parameter, spyrou_model
-from hbm.sensitivity import relevance_class, sobol
+from hbm.fit.sensitivity import relevance_class, sobol
 
 PI = np.pi
 

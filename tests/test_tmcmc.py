@@ -292,7 +292,7 @@ def test_checkpoint_progress_mid_run(tmp_path):
     with pytest.raises(Boom):
         tmcmc(flaky, b, 300, seed=4, progress=False, n_steps=n_steps, checkpoint=ck)
     assert checkpoint_progress(ck) == (k, ref.stages[k - 1].beta)
-    from hbm.parallel import checkpoint_status
+    from hbm.runtime.parallel import checkpoint_status
     assert checkpoint_status(ck) == f"stage {k} β={ref.stages[k - 1].beta:.3g}"
     # a checkpoint from before StageInfo (keys "cov", "scale", "stage") still resumes
     with np.load(ck) as z:

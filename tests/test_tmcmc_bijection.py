@@ -2,7 +2,7 @@
 
 Truths: a Gaussian likelihood truncated by the prior box has a closed-form evidence and moments
 (products of 1-D truncated normals); a wrong log-Jacobian must visibly bias them (the check can
-fail).  The muscle map of :mod:`hbm.combinations` is checked against central differences.
+fail).  The muscle map of :mod:`hbm.identifiability.combinations` is checked against central differences.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm, truncnorm
 
-from hbm.combinations import CombinationCoordinates, onset_strain
+from hbm.identifiability.combinations import CombinationCoordinates, onset_strain
 from hbm.errors import HbmError
 from hbm.samplers.tmcmc import tmcmc
 from hbm.samplers.coordinates import LogitCoordinates

@@ -38,7 +38,7 @@ def data_dir(tmp_path_factory):
 @pytest.fixture(scope="module")
 def client():
     pytest.importorskip("distributed")
-    from hbm.parallel import dask_client
+    from hbm.runtime.parallel import dask_client
 
     with dask_client(workers=2) as c:
         assert len(c.scheduler_info()["workers"]) == 2
@@ -158,7 +158,7 @@ def test_interrupted_specimen_resumes(first_run, data_dir, monkeypatch, tmp_path
 
 def test_worker_count_does_not_change_results(first_run, data_dir, tmp_path):
     """Serial (no dask) and a 1-worker cluster reproduce the 2-worker results bit for bit."""
-    from hbm.parallel import dask_client
+    from hbm.runtime.parallel import dask_client
     from hbm.workflow import run_workflow
 
     serial = run_workflow(data=str(data_dir), out=str(tmp_path / "serial"), workers=0, figures=False,
@@ -188,7 +188,7 @@ def test_settings_change_refits(first_run, data_dir, tmp_path):
 
 
 def test_map_specimens_seeds_follow_sorted_ids():
-    from hbm.parallel import spawn_specimen_seeds
+    from hbm.runtime.parallel import spawn_specimen_seeds
 
     a = spawn_specimen_seeds(3, ["b", "a", "c"])
     b = spawn_specimen_seeds(3, ["a", "b", "c"])

@@ -20,7 +20,7 @@ from hbm.io.common import _mark_complete as mark_complete
 from hbm import io
 from hbm.errors import OutputError
 from hbm.model import spyrou_model
-from hbm.utils import file_lock, file_lock_path, remove_stale_temps
+from hbm.runtime.files import file_lock, file_lock_path, remove_stale_temps
 from test_cli_files import one_line_error
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,7 +57,7 @@ def test_a_live_writers_temp_file_is_not_swept(tmp_path, capsys):
     out = tmp_path / "toy.nc"
     live = tmp_path / ".toy.nc.abcdefgh.tmp"  # the first fit's temp file, being written
     live.write_text("x")
-    p = holder("import sys\nfrom hbm.utils import file_lock\n"
+    p = holder("import sys\nfrom hbm.runtime.files import file_lock\n"
                f"with file_lock({str(out)!r}, '--out'):")
     try:
         assert remove_stale_temps(tmp_path, recursive=True) == []  # e.g. hbm run's sweep of its folder
@@ -104,7 +104,7 @@ def test_two_fits_into_one_out(tmp_path):
 def test_predict_against_a_running_run_is_refused(tmp_path, capsys):
     run = tmp_path / "run"
     (run / "specimens").mkdir(parents=True)
-    p = holder(f"import sys\nfrom hbm.utils import output_lock\nwith output_lock({str(run)!r}):")
+    p = holder(f"import sys\nfrom hbm.runtime.files import output_lock\nwith output_lock({str(run)!r}):")
     try:
         line = one_line_error(["predict", "organ", run, "--geometry", GEOMETRY, "--no-figures"], capsys)
         assert line == f"hbm: error: {run} is in use by another hbm run (pid {p.pid})"
@@ -159,7 +159,7 @@ def test_one_settings_record_keys_every_fit_argument():
     import inspect
 
     from hbm.fit import fit_specimen
-    from hbm.identity import NOT_KEYED, fit_record, settings_key
+    from hbm.io.identity import NOT_KEYED, fit_record, settings_key
 
     base = {"samples": 100, "seed": 0}
     for name in inspect.signature(fit_specimen).parameters:

@@ -25,7 +25,7 @@ import numpy as np
 
 import hbm
 from hbm.errors import HbmError
-from hbm.utils import atomic_write_text
+from hbm.runtime.files import atomic_write_text
 
 
 class LoadCellDrift(hbm.Effect):

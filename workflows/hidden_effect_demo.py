@@ -29,7 +29,7 @@ from hbm.detective import diagnose, extend
 from hbm.effects import make_effect
 from hbm.model.core import Effect, Parameter
 from hbm.model.spyrou import spyrou_model
-from hbm.utils import atomic_write_text
+from hbm.runtime.files import atomic_write_text
 
 OUT = Path("results/hidden_effect")
 

@@ -24,8 +24,8 @@ from hbm.data import load_specimen
 from hbm.errors import HbmWarning
 from hbm.fit import fit_specimen
 from hbm.model import spyrou_model
-from hbm.prior import resolve_prior
-from hbm.utils import atomic_write_text
+from hbm.likelihood.prior import resolve_prior
+from hbm.runtime.files import atomic_write_text
 
 DATA = Path("data/measured")
 OUT = Path("results/measured")

@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from hbm.model import spyrou_model  # noqa: E402
 from hbm.model.spyrou import identifiable_combinations  # noqa: E402
 from hbm.organ import extrapolation_mask, force_levels, load_geometry, organ_response  # noqa: E402
-from hbm.utils import as_generator, atomic_write_text  # noqa: E402
+from hbm.runtime.seeds import as_generator
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CALVO1 = dict(VOLF=0.9, EOPT=0.184, P1=0.13, T1=1.5, T2=9.3, THETA=60.0, GF=0.012, GM=0.009)

@@ -23,14 +23,14 @@ import numpy as np
 from ..data import load_specimen
 from ..effects import resolve_effect
 from ..errors import DataError, HbmError, HbmWarning, OutputError, SettingError
-from ..identity import changed
+from ..io.identity import changed
 from ..io import read_attrs
-from ..prior import Prior, resolve_prior
+from ..likelihood.prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
-from ..noise import get_noise, noise_model_names
+from ..likelihood.noise import get_noise, noise_model_names
 from ..model.spyrou import PHYSICAL_RANGE
-from ..utils import format_bytes, require_memory
-from ..validation import SEED_LIMIT, check_physical_bounds, check_seed, check_workers
+from ..runtime.memory import format_bytes, require_memory
+from ..runtime.validation import SEED_LIMIT, check_physical_bounds, check_seed, check_workers
 
 
 class RegistryChoices:
@@ -53,7 +53,7 @@ class RegistryChoices:
         return len(tuple(self._names()))
 
 
-#: ``--noise`` choices of every command: the registered noise models (:mod:`hbm.noise`)
+#: ``--noise`` choices of every command: the registered noise models (:mod:`hbm.likelihood.noise`)
 NOISE_CHOICES = RegistryChoices(noise_model_names)
 
 
@@ -65,7 +65,7 @@ def n_noise_parameters(noise: str | None) -> int:
     return len(get_noise(noise).names)
 
 def add_likelihood(p: argparse.ArgumentParser, choices: Sequence[str]) -> None:
-    """``--likelihood``: the tier of every fit of the command (:func:`hbm.collapse.choose_tier`)."""
+    """``--likelihood``: the tier of every fit of the command (:func:`hbm.likelihood.collapsed.choose_tier`)."""
     p.add_argument("--likelihood", default="auto", choices=list(choices),
                    help="auto (default): integrate the linear amplitudes exactly and sample only the nonlinear and "
                         "noise parameters where the model and noise allow it, else the full likelihood"
@@ -129,7 +129,7 @@ sample_size = integer(MIN_SAMPLES, f"a sample size >= {MIN_SAMPLES}")
 
 
 def seed(text: str) -> int:
-    """``type=`` rule of every ``--seed``: :func:`hbm.validation.check_seed` (also the API's)."""
+    """``type=`` rule of every ``--seed``: :func:`hbm.runtime.validation.check_seed` (also the API's)."""
     expected = f"a seed: an integer from 0 to {SEED_LIMIT - 1}"
     try:
         return check_seed(_parse_int(text, expected))
@@ -138,7 +138,7 @@ def seed(text: str) -> int:
 
 
 def workers(text: str) -> int:
-    """``type=`` rule of ``--workers``: :func:`hbm.validation.check_workers` (also the API's)."""
+    """``type=`` rule of ``--workers``: :func:`hbm.runtime.validation.check_workers` (also the API's)."""
     try:
         return check_workers(_parse_int(text, "an integer >= 0"), "--workers")
     except SettingError as exc:
@@ -364,7 +364,7 @@ def check_names(model, names: Iterable[str], option: str) -> None:
 
 
 def prior_file(text: str) -> Prior:
-    """``--prior FILE.toml``: read and checked at parse time (:meth:`hbm.prior.Prior.from_toml`)."""
+    """``--prior FILE.toml``: read and checked at parse time (:meth:`hbm.likelihood.prior.Prior.from_toml`)."""
     try:
         return Prior.from_toml(text)
     except HbmError as exc:
@@ -499,7 +499,7 @@ def check_sobol_memory(setting: str, n: int, n_free: int, n_params: int, points:
 # ----------------------------------------------------------------------- output
 def check_replaceable(path: Path, parts: Mapping[str, str], option: str) -> None:
     """Refuse to replace ``path`` unless it is absent or a result of the same content (``parts``,
-    :func:`hbm.identity.fit_key`).
+    :func:`hbm.io.identity.fit_key`).
 
     A result of another specimen, other data, another model or other settings -- or a file that
     is no hbm result at all -- is kept: :class:`~hbm.errors.OutputError` names what differs and

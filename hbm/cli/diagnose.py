@@ -5,17 +5,18 @@ from __future__ import annotations
 
 import argparse
 
-from ..collapse import TIERS
+from ..likelihood.collapsed import TIERS
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
 from ..detective.caveats import CORRELATED_CHOICES
 from ..effects import resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
-from ..utils import prepare_output_file
-from ._common import (n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
-                      check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points,
-                      name_list, non_negative_int, plot_path, positive_float, print_json, sample_size, workers)
+from ..runtime.files import prepare_output_file
+from ._common import (
+    n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
+    check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points, name_list,
+    non_negative_int, plot_path, positive_float, print_json, sample_size, workers)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800

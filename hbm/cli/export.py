@@ -8,7 +8,7 @@ from pathlib import Path
 from ..export import FORMATS, export
 from ..export.registry import format_module
 from ..export.source import parse_summary
-from ..utils import prepare_output_file
+from ..runtime.files import prepare_output_file
 from ._common import print_json
 
 DESCRIPTION = """\

@@ -9,17 +9,18 @@ from pathlib import Path
 
 from ..errors import HbmWarning
 from ..export.stability import fit_line as stability_line
-from ..fit import fit_specimen, format_at_bounds
-from ..identity import checkpoint_dir, fit_key, set_aside_checkpoints
+from ..fit.specimen import fit_specimen, format_at_bounds
+from ..io.identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
-from ..workflow import DEFAULT_OUT
-from ..plausibility import edges_suggest_units
-from ..utils import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
+from ..workflow.run import DEFAULT_OUT
+from ..data.plausibility import edges_suggest_units
+from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ._common import NOISE_CHOICES, add_likelihood, n_noise_parameters
-from ._common import (check_replaceable,
-                      add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model, build_prior, plot_path, print_json, check_population_memory, check_sobol_memory,
-                      free_parameters, load_specimen_arg, n_points, non_negative_int, positive_int,
-                      power_of_two_or_zero, sample_size, sweep, value_range)
+from ._common import (
+    check_replaceable, add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model,
+    build_prior, plot_path, print_json, check_population_memory, check_sobol_memory, free_parameters,
+    load_specimen_arg, n_points, non_negative_int, positive_int, power_of_two_or_zero, sample_size, sweep,
+    value_range)
 
 DESCRIPTION = """\
 Fit one specimen: CMA-ES optima (restarts and an optional bound sweep), the TMCMC posterior of

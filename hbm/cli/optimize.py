@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-from ..likelihood import make_likelihood
-from ..optimization import optimize
+from ..likelihood.core import make_likelihood
+from ..fit.optimization import optimize
 from ._common import NOISE_CHOICES, n_noise_parameters
-from ._common import (add_model_arguments, add_seed, build_model, build_prior, check_population_memory, format_table,
-                      integer, load_specimen_arg, n_points, positive_int, print_json, sweep, value_range)
+from ._common import (
+    add_model_arguments, add_seed, build_model, build_prior, check_population_memory, format_table, integer,
+    load_specimen_arg, n_points, positive_int, print_json, sweep, value_range)
 
 DESCRIPTION = """\
 Fit the model to one specimen with CMA-ES (the `cma` package) in the unit box of the free

@@ -9,8 +9,9 @@ from pathlib import Path
 
 from ..errors import HbmError, OutputError, OutputLockedError
 from ..organ import load_geometry
-from ..organ_report import format_summary, predict_organ
-from ..utils import file_lock, output_lock, prepare_output_dir, remove_stale_temps, require_memory
+from ..workflow.organ import format_summary, predict_organ
+from ..runtime.files import file_lock, output_lock, prepare_output_dir, remove_stale_temps
+from ..runtime.memory import require_memory
 from ._common import add_seed, integer, positive_float, real, sample_size
 
 DESCRIPTION = """\

@@ -10,15 +10,16 @@ import sys
 
 from ..data import load_specimens, specimen_groups
 from ..errors import SettingError
-from ..organ_report import organ_report_hook
-from ..utils import output_lock, prepare_output_dir, remove_stale_temps
-from ..workflow import DEFAULT_OUT, RunConfig, run_workflow
+from ..workflow.organ import organ_report_hook
+from ..runtime.files import output_lock, prepare_output_dir, remove_stale_temps
+from ..workflow.run import DEFAULT_OUT, RunConfig, run_workflow
 from ..model import BASE_EFFECTS
 from ..population import POOL_MODES
 from ._common import NOISE_CHOICES, add_likelihood, n_noise_parameters
-from ._common import (add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed, build_model, check_population_memory, check_sobol_memory,
-                      free_parameters, n_points, name_list, non_negative_int, positive_int, power_of_two,
-                      sample_size, sweep, workers)
+from ._common import (
+    add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed,
+    build_model, check_population_memory, check_sobol_memory, free_parameters, n_points, name_list,
+    non_negative_int, positive_int, power_of_two, sample_size, sweep, workers)
 
 #: what hbm run writes inside --out (checked before the first fit)
 OUT_FILES = ("report.md", "run.json", "hierarchical.nc", "manifolds.nc")

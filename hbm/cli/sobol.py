@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from ..sensitivity import sobol
-from ._common import (add_model_arguments, add_seed, build_model, build_prior, check_sobol_memory, format_table,
-                      free_parameters, load_specimen_arg, n_points, power_of_two, print_json)
+from ..fit.sensitivity import sobol
+from ._common import (
+    add_model_arguments, add_seed, build_model, build_prior, check_sobol_memory, format_table, free_parameters,
+    load_specimen_arg, n_points, power_of_two, print_json)
 
 DESCRIPTION = """\
 Sobol first-order (S1) and total (ST) indices, with bootstrap confidence half-widths, of a

@@ -8,8 +8,8 @@ import sys
 
 import numpy as np
 
-from ..conventions import parameter_attrs
-from ..fit import chain_rhat, chains_line, summarize
+from ..io.conventions import parameter_attrs
+from ..fit.specimen import chain_rhat, chains_line, summarize
 from ..io import read_specimen_result
 from ..model import identifiable_combinations
 from ._common import format_table

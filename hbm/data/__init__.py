@@ -26,7 +26,7 @@ then decimal commas are read):
   unless ``# stress_measure: nominal`` or the column is ``nominal_stress*`` (``cauchy_stress*``
   declares Cauchy).  Nominal stress P (force / undeformed area) becomes Cauchy stress
   σ = λ·P = (1 + ε)·P (incompressible uniaxial tension).  The loaded dataset always holds
-  Cauchy stress in MPa.  The unit is judged from the physics (:mod:`hbm.plausibility`): a curve
+  Cauchy stress in MPa.  The unit is judged from the physics (:mod:`hbm.data.plausibility`): a curve
   whose stress per unit strain (toe or peak) is stiffer than passive muscle with NO declared unit
   is refused with the declaration that fixes it; with a declared unit (or outside the range on
   the soft side) it loads with a warning.  A cell like ``01`` (leading zero) is refused: it is the

@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import DataError, HbmWarning
 
 
-from ..plausibility import describe, implausible, suggest_unit
+from .plausibility import describe, implausible, suggest_unit
 
 
 STRAIN_RANGE = (-0.5, 2.0)
@@ -366,7 +366,7 @@ def _strain(name: str, raw: np.ndarray, deformation: str, sl0: float | None,
 
 def _check_plausible(name: str, raw: np.ndarray, strain: np.ndarray, stress: np.ndarray, unit: str | None,
                      nominal: bool, cols: _Columns, linenos: Sequence[int]) -> None:
-    """Judge the stress unit from the physics (:mod:`hbm.plausibility`): stress per unit strain in
+    """Judge the stress unit from the physics (:mod:`hbm.data.plausibility`): stress per unit strain in
     the toe and at the peak against passive muscle.  An undeclared unit that makes the curve too
     stiff is refused with the declaration that fixes it; a declared unit is the user's decision:
     outside the range it is a warning (with the same fix), never a refusal."""

@@ -20,7 +20,10 @@ import xarray as xr
 from ..errors import DataError
 
 
-from .columns import GROUP_KEY, MIN_POINTS, STRESS_UNITS, _COLUMNS, _Columns, _DECIMAL_COMMA_RE, _LONG, _MEASURES, _META_RE, _SEPARATOR_HINT, _UNITS, _UNIT_NAMES, _check_plausible, _check_sign, _check_sl0, _columns, _declared, _is_float, _number, _read_text, _record, _reference_sl, _same_labels, _show, _strain, _test_column
+from .columns import (
+    GROUP_KEY, MIN_POINTS, STRESS_UNITS, _COLUMNS, _Columns, _DECIMAL_COMMA_RE, _LONG, _MEASURES, _META_RE,
+    _SEPARATOR_HINT, _UNITS, _UNIT_NAMES, _check_plausible, _check_sign, _check_sl0, _columns, _declared,
+    _is_float, _number, _read_text, _record, _reference_sl, _same_labels, _show, _strain, _test_column)
 
 
 def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:

@@ -18,9 +18,9 @@ import xarray as xr
 from .._version import __version__
 from ..errors import HbmError
 from ..model.core import Loading, Model
-from ..noise import make_noise
+from ..likelihood.noise import make_noise
 
-from ..utils import as_generator
+from ..runtime.seeds import as_generator
 from .loader import _dataset
 from .summary import specimen_loading
 from .writer import _attr_text

@@ -17,7 +17,7 @@ import xarray as xr
 from ..errors import HbmError
 
 
-from ..utils import atomic_path
+from ..runtime.files import atomic_path
 from .columns import _COLUMNS, _KEY_RE
 
 

@@ -42,12 +42,12 @@ try:
 except ImportError:                  # pragma: no cover - Windows
     _resource = None
 
-from .. import seeds as _seeds
+from ..runtime import seeds as _seeds
 from ..errors import HbmError, HbmWarning
-from ..validation import check_workers, usable_cores
-from ..fit import edges, format_at_bounds
+from ..runtime.validation import check_workers, usable_cores
+from ..fit.specimen import edges, format_at_bounds
 from ..model.core import Effect
-from ..noise import noise_model_names
+from ..likelihood.noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
 from .decision import Verdict, decide, gain
 from .fitting import FitInterrupted, Fitter, noise_evidence
@@ -78,7 +78,7 @@ def _stopwatch(timings: dict, key: str):
 
 
 def _seed(seed: int, j: int) -> int:
-    """Child ``j`` of the run's ``detective`` stream (:mod:`hbm.seeds`) as a small int seed (the
+    """Child ``j`` of the run's ``detective`` stream (:mod:`hbm.runtime.seeds`) as a small int seed (the
     optimisers add offsets and CMA-ES needs seeds below 2**32 / 7919)."""
     return int(_seeds.child(_seeds.stream(seed, "detective"), j).generate_state(1)[0] % 400_000)
 

@@ -18,8 +18,8 @@ import numpy as np
 
 from ..model.core import Effect, Model
 from .fitting import Fitter
-from .rules import (COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES, N_CONTROL_REFITS,
-                    TMCMC_MAX_STEPS)
+from .rules import (
+    COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES, N_CONTROL_REFITS, TMCMC_MAX_STEPS)
 
 __all__ = ["cost_estimate", "revised_estimate", "stop_record", "stop_reserve", "fit_evaluations",
            "collapsed_evaluations"]

@@ -15,17 +15,19 @@ from typing import Mapping, Sequence
 import cma
 import numpy as np
 
-from ..blas import one_blas_thread
-from ..collapse import TIERS, CollapsedLikelihood, choose_tier, fit_collapsed, sample_collapsed
+from ..runtime.blas import one_blas_thread
+from ..likelihood.collapsed import TIERS, CollapsedLikelihood, choose_tier, fit_collapsed, sample_collapsed
 from ..errors import HbmError, SettingError
-from ..likelihood import make_likelihood
+from ..likelihood.core import make_likelihood
 from ..model.core import Model
-from ..optimization import optimize
+from ..fit.optimization import optimize
 from ..samplers.tmcmc import tmcmc
 from .inputs import SpecimenData, added_effects
 from .results import FitSummary
-from .rules import (BAND, COLLAPSED_FALLBACK_SAMPLES, COLLAPSED_FALLBACK_STEPS, COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_COLUMNS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES,
-                    TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL, TMCMC_REFINE_STEPS)
+from .rules import (
+    BAND, COLLAPSED_FALLBACK_SAMPLES, COLLAPSED_FALLBACK_STEPS, COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_COLUMNS,
+    COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL,
+    TMCMC_REFINE_STEPS)
 
 __all__ = ["Fitter", "FitInterrupted", "coverage", "laplace_occam", "noise_evidence", "sample_tier"]
 
@@ -128,9 +130,9 @@ def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None,
 
 def sample_tier(cl: CollapsedLikelihood, n_samples: int, seed: int, max_evaluations: int | None = None):
     """The evidence run of the collapsed tier: TMCMC over φ only (the amplitudes integrated out
-    exactly, :class:`hbm.collapse.CollapsedLikelihood`), an importance finish in the same space,
+    exactly, :class:`hbm.likelihood.collapsed.CollapsedLikelihood`), an importance finish in the same space,
     then the full posterior by conditional draws of the amplitudes
-    (:func:`hbm.collapse.sample_collapsed`).
+    (:func:`hbm.likelihood.collapsed.sample_collapsed`).
 
     ``COLLAPSED_SAMPLES`` particles, ≤ ``COLLAPSED_MAX_STEPS`` MH steps per stage, an importance
     finish of ``COLLAPSED_IMPORTANCE_DRAWS`` draws whose resampled draws give ``n_samples``
@@ -410,7 +412,7 @@ class Fitter:
 
     def collapsed(self, lik) -> tuple[CollapsedLikelihood | None, str]:
         """The collapsed likelihood of ``lik`` for the evidence run (None: the full tier) and
-        one line saying which tier and why (:func:`hbm.collapse.choose_tier`).
+        one line saying which tier and why (:func:`hbm.likelihood.collapsed.choose_tier`).
 
         Under ``"auto"`` a model with more than ``COLLAPSED_MAX_COLUMNS`` integrated amplitude
         columns keeps the full tier: its nested quadrature costs ~2 ms per evaluation (an offset

@@ -15,7 +15,7 @@ from ..effects import REGISTRY, family, load_effect, make_effect
 from ..errors import HbmError, HbmWarning
 from ..model.core import Effect, Loading, Model
 from ..model.spyrou import BASE_EFFECTS, spyrou_model
-from ..plausibility import describe, implausible, suggest_unit
+from ..data.plausibility import describe, implausible, suggest_unit
 from .rules import FEW_POINTS, MIN_POINTS
 
 __all__ = ["SpecimenData", "as_data", "unit_anomaly", "resolve_effect", "resolve_model", "resolve_candidates", "added_effects"]
@@ -72,7 +72,7 @@ def as_data(data) -> SpecimenData:
 def unit_anomaly(d: SpecimenData) -> str | None:
     """A stiffness no passive muscle shows: the file is probably in other units.
 
-    The loader's check (:mod:`hbm.plausibility`: stress per unit strain in the toe and at the
+    The loader's check (:mod:`hbm.data.plausibility`: stress per unit strain in the toe and at the
     peak against passive muscle), reported as a data problem with the unit that would bring the
     curve back, not analysed as physics.
     """

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats as _stats
 
-from ..noise import make_noise
+from ..likelihood.noise import make_noise
 from .inputs import SpecimenData
 from .results import FitSummary, jsonable
 from .rules import WINDOW_ALPHA
@@ -108,7 +108,7 @@ def noise_prior_box(model_free: dict, stress: np.ndarray) -> tuple[float, float]
 # =========================================================================================
 # the AR(1) noise process and its whitening
 # =========================================================================================
-#: the AR(1) noise model, for its autocorrelation rho**|lag| (hbm.noise)
+#: the AR(1) noise model, for its autocorrelation rho**|lag| (hbm.likelihood.noise)
 _AR1 = make_noise("ar1", history_starts=np.array([True]))  # autocorrelation needs no curve
 
 
@@ -120,7 +120,7 @@ def _single_history(n: int) -> np.ndarray:
 
 def simulate_ar1(rng: np.random.Generator, shape: tuple[int, ...], rho: float) -> np.ndarray:
     """Stationary AR(1) noise with unit marginal variance along the last axis of ``shape``
-    (rows × points): :meth:`hbm.noise.AR1Noise.standard_draws`, the one implementation.
+    (rows × points): :meth:`hbm.likelihood.noise.AR1Noise.standard_draws`, the one implementation.
 
     x_0 = e_0, x_t = ρ·x_{t−1} + √(1 − ρ²)·e_t with e iid N(0, 1) drawn from ``rng`` (one
     ``standard_normal`` call, also for ρ = 0, so the stream does not depend on ρ).
@@ -133,7 +133,7 @@ def simulate_ar1(rng: np.random.Generator, shape: tuple[int, ...], rho: float) -
 
 def whitener(sd: np.ndarray, rho: float, first: np.ndarray):
     """Function mapping (n,) or (n, k) arrays to noise-whitened units
-    (:meth:`hbm.noise.AR1Noise.whiten` with the given marginal sd).
+    (:meth:`hbm.likelihood.noise.AR1Noise.whiten` with the given marginal sd).
 
     Divides by the marginal sd, then for AR(1) takes innovations (u_t = (z_t − ρ z_{t−1})/√(1−ρ²),
     u = z where the process restarts, ``first``), which makes the noise iid N(0, 1).

@@ -23,8 +23,8 @@ from ..effects import placements
 from ..model.core import Effect, Model
 from .fitting import FitInterrupted, Fitter, cma_maximise, laplace_occam
 from .results import CandidateResult, FitSummary, gain
-from .rules import (DELTA_LOGZ_MIN, EVIDENCE_RUN_MIN_GAIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN,
-                    TMCMC_SE_FACTOR)
+from .rules import (
+    DELTA_LOGZ_MIN, EVIDENCE_RUN_MIN_GAIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN, TMCMC_SE_FACTOR)
 
 __all__ = ["refit_candidates", "primary_parameters", "reoptimise_base", "evidence_gains", "decisive",
            "to_refine", "refine_decisive", "placement_models", "placement_text", "run_in_workers"]

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..fit import format_at_bounds
+from ..fit.specimen import format_at_bounds
 from ..model.core import Effect, Model
 from .rules import BAND, DELTA_LOGZ_MIN, TMCMC_SE_FACTOR
 

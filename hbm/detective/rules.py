@@ -48,7 +48,7 @@ TMCMC_REFINE_STEPS = 50
 TMCMC_REFINE_PROPOSAL = "local"
 # the collapsed tier (issue 27; Fitter.collapsed): where a model's amplitudes integrate exactly, its
 # evidence run samples only the nonlinear and noise parameters: a small TMCMC run and an importance
-# finish (hbm.collapse's pilot settings).  On validation case qlv_0 (three rates, 105 points), base +
+# finish (hbm.likelihood.collapsed's pilot settings).  On validation case qlv_0 (three rates, 105 points), base +
 # viscoelastic, iid, seeds 0-2: the full-space 25-step run gave log Z 493.4 / 500.3 / 496.9 (2 s
 # CPU each), this 502.96 / 502.93 (finish accepted, 1.7 s) and one refusal; qlv_1: full 427.0 /
 # 424.4 / 422.9, this 427.64 / 427.66 / 427.62.  300 particles × 4 steps + 4000 draws was refused

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import HbmError
-from ..utils import atomic_path
+from ..runtime.files import atomic_path
 from .registry import FORMATS, Written, format_module
 from .source import ExportSource, load_source
 from .stability import Stability, check as stability_check

@@ -51,10 +51,9 @@ manifolds and identified combinations (see :func:`write_population_summary`).
 """
 
 from .common import is_complete, json_default, read_attrs
-from .specimen import (SpecimenResult, read_specimen_result, specimen_path, to_inference_data,
-                       write_specimen_result)
-from .population import (HierarchicalFile, read_hierarchical, read_population_summary, write_hierarchical,
-                         write_population_summary)
+from .specimen import SpecimenResult, read_specimen_result, specimen_path, to_inference_data, write_specimen_result
+from .population import (
+    HierarchicalFile, read_hierarchical, read_population_summary, write_hierarchical, write_population_summary)
 from .organ import ORGAN_SOURCES, OrganFile, read_organ, write_organ
 
 __all__ = ["SpecimenResult", "HierarchicalFile", "write_specimen_result", "read_specimen_result",

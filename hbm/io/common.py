@@ -14,7 +14,7 @@ import xarray as xr
 
 from ..errors import HbmError, OutputError
 from ..samplers.types import StageInfo
-from ..utils import atomic_path, write_error
+from ..runtime.files import atomic_path, write_error
 
 
 # netCDF group names (kept here and nowhere else)

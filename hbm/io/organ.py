@@ -22,7 +22,7 @@ from .common import _ds, _dumps, _nc_attrs, _open_tree, _write_tree
 # ``<out>/organ.nc`` (``hbm predict organ``): one group per (specimen, source) of curves,
 # ``specimens/<id>/<source>`` with source in ORGAN_SOURCES, and ``population`` for the
 # new-specimen predictive of the hierarchical layer.  Each group holds one xarray Dataset built
-# by :mod:`hbm.organ_report` (dims quantile, force[, optimum, parameter]); root attributes:
+# by :mod:`hbm.workflow.organ` (dims quantile, force[, optimum, parameter]); root attributes:
 # ``specimen_ids`` (JSON), ``extra`` (JSON: geometry, settings, timings), ``hbm_version``,
 # ``complete`` (set to 1 last).
 G_ORGAN_SPECIMENS = "specimens"

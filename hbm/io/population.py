@@ -11,12 +11,14 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from .. import conventions
+from .conventions import annotate, hyper_attrs
 from .._version import __version__
 from ..errors import HbmError
 from ..samplers.types import StageInfo
 
-from .common import G_COMBOS, G_DIAG, G_GROUPS, G_MANIFOLD, G_NEW, G_POSTERIOR, G_STATS, G_UPDATED, _ds, _dumps, _open_tree, _write_tree
+from .common import (
+    G_COMBOS, G_DIAG, G_GROUPS, G_MANIFOLD, G_NEW, G_POSTERIOR, G_STATS, G_UPDATED, _ds, _dumps, _open_tree,
+    _write_tree)
 from .specimen import _add_stage_stats, _read_stage_stats
 
 
@@ -95,9 +97,9 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
     draws = {"chain": np.arange(nc), "draw": np.arange(n // nc)}
     transforms = dict(h.attrs.get("transforms") or {})
     hyper = h.hyper_samples.reshape(nc, n // nc, -1)
-    post = xr.Dataset({nm: (("chain", "draw"), hyper[:, :, i], conventions.hyper_attrs(nm, transforms))
+    post = xr.Dataset({nm: (("chain", "draw"), hyper[:, :, i], hyper_attrs(nm, transforms))
                        for i, nm in enumerate(h.hyper_names)}, coords=draws)
-    groups: dict[str, xr.Dataset] = {G_POSTERIOR: conventions.annotate(post, "other")}
+    groups: dict[str, xr.Dataset] = {G_POSTERIOR: annotate(post, "other")}
     stats: dict[str, Any] = {"log_marginal_likelihood": (("chain",), [float(h.log_evidence)]),
                              "log_marginal_likelihood_se": (("chain",), [float(h.log_evidence_se)])}
     coords: dict[str, Any] = {"chain": [0]}
@@ -112,7 +114,7 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
             coords={"chain": np.arange(uc), "draw": np.arange(m // uc), "specimen": list(h.specimen_ids)})
     if h.new_specimen is not None:
         m = h.new_specimen.shape[0]
-        groups[G_NEW] = conventions.annotate(xr.Dataset({nm: (("chain", "draw"), h.new_specimen[None, :, i])
+        groups[G_NEW] = annotate(xr.Dataset({nm: (("chain", "draw"), h.new_specimen[None, :, i])
                                                          for i, nm in enumerate(h.pooled_names or h.param_names)},
                                                         coords={"chain": [0], "draw": np.arange(m)}), "parameters")
     diag_vars = _reuse_vars(h)

@@ -11,13 +11,15 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from .. import conventions
+from .conventions import annotate, log_prior, prior_draws
 from .._version import __version__
 from ..errors import HbmError
 from ..samplers.chains import POOLED, Chains
 from ..samplers.types import StageInfo
 
-from .common import G_CONST, G_LOGLIK, G_OBS, G_OPTIMA, G_POSTERIOR, G_PRED, G_PRIOR, G_SOBOL, G_STATS, STAGE_KEYS, _ds, _dumps, _open_tree, _write_tree
+from .common import (
+    G_CONST, G_LOGLIK, G_OBS, G_OPTIMA, G_POSTERIOR, G_PRED, G_PRIOR, G_SOBOL, G_STATS, STAGE_KEYS, _ds, _dumps,
+    _open_tree, _write_tree)
 
 
 def specimen_path(out: str | os.PathLike, specimen_id: str) -> Path:
@@ -49,7 +51,7 @@ class SpecimenResult:
     pointwise_log_likelihood, predictive, predictive_model : ndarray (n, p) or None
         Pointwise log-likelihood, noisy posterior-predictive replicate, noise-free prediction.
     optima : list of dict or None
-        ``{"params": {name: value}, "objective": f, ...}`` as from :mod:`hbm.optimization`.
+        ``{"params": {name: value}, "objective": f, ...}`` as from :mod:`hbm.fit.optimization`.
     sobol : dict or None
         ``{"S1": {name: v}, "ST": ..., "S1_conf": ..., "ST_conf": ..., "relevance": {name: str}}``
         and optionally ``"S1_point"``/``"ST_point"`` as ``{name: array (p,)}`` and ``"qoi"``.
@@ -175,13 +177,13 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
     info = r.parameter_info
     post = xr.Dataset({nm: (("chain", "draw"), cd(r.samples[:, i])) for i, nm in enumerate(r.names)},
                       coords=draws)
-    post = conventions.annotate(post, "parameters", info)
+    post = annotate(post, "parameters", info)
     post.attrs.update(chains.to_attrs())
     groups: dict[str, xr.Dataset] = {G_POSTERIOR: post}
     pd = r.prior_dict()
     if len(pd) == d:  # ArviZ's prior group: draws from the prior box, as many as the posterior's
-        pdraws = conventions.prior_draws(r.names, pd, n, r.seed, r.config.get("seed_spawn_key", ()))
-        groups[G_PRIOR] = conventions.annotate(xr.Dataset(
+        pdraws = prior_draws(r.names, pd, n, r.seed, r.config.get("seed_spawn_key", ()))
+        groups[G_PRIOR] = annotate(xr.Dataset(
             {nm: (("chain", "draw"), cd(pdraws[:, i])) for i, nm in enumerate(r.names)}, coords=draws),
             "parameters", info)
 
@@ -191,10 +193,10 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
              "log_marginal_likelihood_se": (("chain",), [float(r.log_evidence_se)] * nc),
              "log_likelihood_sum": (("chain", "draw"), cd(ll_sum)),
              # ArviZ's lp: log posterior density up to the evidence (log likelihood + log prior)
-             "lp": (("chain", "draw"), cd(ll_sum + conventions.log_prior(r.samples, r.names, pd)))}
+             "lp": (("chain", "draw"), cd(ll_sum + log_prior(r.samples, r.names, pd)))}
     coords = dict(draws)
     _add_stage_stats(stats, coords, r.stages, nc)
-    groups[G_STATS] = conventions.annotate(xr.Dataset(stats, coords=coords), "stats")
+    groups[G_STATS] = annotate(xr.Dataset(stats, coords=coords), "stats")
 
     if r.stress is not None:
         p = len(r.stress)
@@ -205,11 +207,11 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
             pc["time"] = ("point", np.asarray(r.time, float))
         if r.test is not None:
             pc["test"] = ("point", np.asarray(r.test).astype(np.int64))
-        groups[G_OBS] = conventions.annotate(
+        groups[G_OBS] = annotate(
             xr.Dataset({"stress": ("point", np.asarray(r.stress, float))}, coords=pc), "observed")
         dcp = {**draws, **pc}
         if r.pointwise_log_likelihood is not None:
-            groups[G_LOGLIK] = conventions.annotate(xr.Dataset(
+            groups[G_LOGLIK] = annotate(xr.Dataset(
                 {"stress": (("chain", "draw", "point"), cd(r.pointwise_log_likelihood))}, coords=dcp),
                 "log_likelihood")
         pred = {}
@@ -218,10 +220,10 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
         if r.predictive_model is not None:
             pred["stress_model"] = (("chain", "draw", "point"), cd(r.predictive_model))
         if pred:
-            groups[G_PRED] = conventions.annotate(xr.Dataset(pred, coords=dcp), "predictive")
+            groups[G_PRED] = annotate(xr.Dataset(pred, coords=dcp), "predictive")
 
     b = np.asarray(r.bounds, float)
-    groups[G_CONST] = conventions.annotate(
+    groups[G_CONST] = annotate(
         xr.Dataset({"prior_lower": ("parameter", b[:, 0]), "prior_upper": ("parameter", b[:, 1])},
                    coords={"parameter": list(r.names)}), "constant", info)
 

@@ -8,7 +8,7 @@ the amplitudes
 
 and the non-identifiable ridge of the full posterior is exactly the direction these amplitudes
 leave free (DESIGN.md §7).  A fit can integrate the amplitudes out in closed form and sample φ
-only (:mod:`hbm.collapse`); this module says whether a model has that structure and builds
+only (:mod:`hbm.likelihood.collapsed`); this module says whether a model has that structure and builds
 its pieces:
 
 * ``columns`` — the amplitude columns; ``amplitude_parameters`` — the original parameters that

@@ -86,7 +86,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import HbmError
-from ..validation import check_positive
+from ..runtime.validation import check_positive
 from .core import Effect, Loading, Model, Parameter, State
 
 # exp(709) is the largest finite double; T2 up to 200 with λ up to 3 stays far below, but a

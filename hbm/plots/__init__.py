@@ -17,7 +17,7 @@ matplotlib.use("Agg")  # headless: figures are files, never windows
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
 
-from ..utils import atomic_path  # noqa: E402
+from ..runtime.files import atomic_path  # noqa: E402
 
 __all__ = ["plt", "save", "supported_formats", "RELEVANCE_COLORS"]
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fit import FitResult, fit_quality, map_estimate, map_prediction
+from ..fit.specimen import FitResult, fit_quality, map_estimate, map_prediction
 from ..model.core import Loading
 from . import plt, save
 from .tests_view import TEST_COLORS, dense_path, draw_curve, draw_tests, test_ids, toe_axes, wrapped

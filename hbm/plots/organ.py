@@ -59,7 +59,7 @@ def specimen_organ_plot(sid: str, curves: dict, *, geometry_name: str = "", path
     ----------
     sid : str
     curves : {source: Dataset}
-        Band datasets of :mod:`hbm.organ_report` (``"posterior"``, optionally ``"updated"``).
+        Band datasets of :mod:`hbm.workflow.organ` (``"posterior"``, optionally ``"updated"``).
     geometry_name : str
     path : path, optional
         Save there (PNG) and return the path; else return the figure.
@@ -163,7 +163,7 @@ def optima_plot(sid: str, optima, posterior=None, *, difference, spread, path=No
 
     ``difference`` (optimum × force) and ``spread`` ``(within, beyond)`` are the relative differences
     from the best set and their largest magnitudes inside/beyond the tested range
-    (:func:`hbm.organ_report.optima_difference`, :func:`hbm.organ_report.optima_spread`).
+    (:func:`hbm.workflow.organ.optima_difference`, :func:`hbm.workflow.organ.optima_spread`).
     """
     F = optima["force"].values
     E = optima["elongation"].values

@@ -11,7 +11,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from ..model import COMBINATIONS, SHAPE_PARAMETERS
-from ..views import pooled_view, quantity_samples
+from ..identifiability.views import pooled_view, quantity_samples
 from . import plt, save
 
 __all__ = ["manifold_plot", "forest_plot", "hyper_plot", "population_figures", "FOREST_QUANTITIES"]

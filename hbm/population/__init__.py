@@ -15,7 +15,7 @@ TMCMC refinements of collapsed specimens in parallel.  By concept:
 
 Pooling (``PopulationConfig.pooled``): "combinations" (a population over log G, log c·P1,
 log (1−c)·T1, T2, THETA — what a uniaxial curve identifies — with the exact stage-1 prior
-density of the combinations, :mod:`hbm.combinations`), "informed" (the model parameters that
+density of the combinations, :mod:`hbm.identifiability.combinations`), "informed" (the model parameters that
 the posteriors inform, :func:`~hbm.samplers.hierarchical.auto_pool`), "all", a list of names,
 or "auto" (default: "combinations" when VOLF, P1, T1, GF, GM, T2, THETA are free, otherwise
 "informed").
@@ -30,11 +30,12 @@ Reuse diagnostics (issue 15): per specimen PSIS k̂ and the mass beyond the stag
 specimen flagged unreliable, or whose ESS collapsed, goes to a fallback (:mod:`.fallbacks`).
 
 Seeds: the streams ``hierarchical`` (``grouped`` with groups), ``new_specimen``, ``refine`` k and
-``joint`` of :mod:`hbm.seeds`.
+``joint`` of :mod:`hbm.runtime.seeds`.
 """
 
-from .config import (COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES,
-                     PopulationConfig)
+from .config import (
+    COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES,
+    PopulationConfig)
 from .driver import run_population
 from .pooling import COMBINATION_NEEDS
 

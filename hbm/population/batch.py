@@ -34,11 +34,11 @@ from typing import Sequence
 
 import numpy as np
 
-from ..combinations import in_support, support_constraints
+from ..identifiability.combinations import in_support, support_constraints
 from ..errors import HbmError
 from ..model.core import State
 from ..model.linear import structure_of
-from ..noise import IidNoise, WeightedNoise
+from ..likelihood.noise import IidNoise, WeightedNoise
 
 __all__ = ["SpecimenLikelihoods", "amplitude_columns"]
 

@@ -9,11 +9,12 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .. import io, seeds
+from .. import io
+from ..runtime import seeds
 from ..errors import HbmError
 from ..model import spyrou_model
 from ..samplers.hierarchical import GroupedResult, grouped_hierarchical, hierarchical
-from ..utils import log_progress as _log
+from ..runtime.progress import log_progress as _log
 from .config import PopulationConfig, check_config
 from .fallbacks import refine_collapsed, to_refine
 from .layer import sample_layer

@@ -14,11 +14,12 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .. import io, seeds
+from .. import io
+from ..runtime import seeds
 from ..errors import HbmError
-from ..likelihood import make_likelihood
+from ..likelihood.core import make_likelihood
 from ..samplers.hierarchical import GroupedResult, refine_individual
-from ..utils import log_progress as _log
+from ..runtime.progress import log_progress as _log
 from .config import PopulationConfig
 
 __all__ = ["to_refine", "refine_collapsed", "specimen_likelihood"]

@@ -11,7 +11,7 @@ only for its proposal (a Gaussian mixture), its random-walk covariance and its s
 
 Shards: at most :data:`SHARD_SIZE` specimens each, fixed by the number of specimens alone.  With a
 dask client and at least two shards, the shards run as actors on the workers; otherwise in this
-process.  Seeds (:mod:`hbm.seeds`): ``layer`` for the population, ``layer_specimen`` k for
+process.  Seeds (:mod:`hbm.runtime.seeds`): ``layer`` for the population, ``layer_specimen`` k for
 specimen k (k in sorted id order), so the draws are bitwise the same on any number of workers.
 
 Output: the chains' kept draws — hyper-parameters (chain-major, ``chains`` chains), the updated
@@ -28,11 +28,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .. import seeds
+from ..runtime import seeds
 from ..errors import HbmError
 from ..samplers.hierarchical import HierarchicalModel, draw_population
 from ..samplers.hierarchical.batched import PooledFeatures, ShardSpec, batched_gibbs, one_population
-from ..utils import log_progress as _log
+from ..runtime.progress import log_progress as _log
 from .batch import SpecimenLikelihoods, amplitude_columns
 from .config import PopulationConfig
 from .fallbacks import specimen_likelihood

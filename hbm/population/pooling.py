@@ -9,7 +9,7 @@ of the exact fallback and how to draw a new specimen.
   :func:`~hbm.samplers.hierarchical.auto_pool`), "all" or a list of names.
 * :class:`CombinationPooling` -- "combinations": a population over φ = (log G, log c·P1,
   log (1−c)·T1), T2, THETA (+ EOPT when informed), with the exact stage-1 prior density of φ
-  (:mod:`hbm.combinations`).
+  (:mod:`hbm.identifiability.combinations`).
 """
 
 from __future__ import annotations
@@ -20,15 +20,16 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from .. import io, seeds
-from ..combinations import (COMBINATION_PARAMS, combination_box, fibre_point, log_density, sample_conditional,
-                            support_hull, to_features)
+from .. import io
+from ..runtime import seeds
+from ..identifiability.combinations import (COMBINATION_PARAMS, combination_box, fibre_point, log_density,
+                                            sample_conditional, support_hull, to_features)
 from ..errors import HbmError
 from ..model import COMBINATIONS
 from ..samplers.hierarchical import auto_pool
-from ..utils import log_progress as _log
-from .config import (COMBINATION_COLUMNS, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES,
-                     PopulationConfig)
+from ..runtime.progress import log_progress as _log
+from .config import (
+    COMBINATION_COLUMNS, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES, PopulationConfig)
 
 __all__ = ["Stage1Data", "Layout", "ParameterPooling", "CombinationPooling", "pack_results", "pooling_strategy",
            "COMBINATION_NEEDS"]
@@ -223,7 +224,7 @@ class PhiCoordinates:
     the fibre of θ over y integrates to p(y|ψ) ∝ p_pop(x(y)|ψ) on the support of p0(φ), i.e. the
     stage-1 density p0(φ) cancels and is never evaluated (it costs 10× the likelihood).  The
     likelihood is evaluated at one deterministic point of the fibre (:meth:`theta_of`); the
-    output θ are drawn from the box prior given φ (:func:`hbm.combinations.sample_conditional`),
+    output θ are drawn from the box prior given φ (:func:`hbm.identifiability.combinations.sample_conditional`),
     which is the joint posterior's own conditional.
     """
 
@@ -240,7 +241,7 @@ class PhiCoordinates:
         return np.column_stack([np.log(to_features(self.names, theta)), theta[:, self.other]])
 
     def theta_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A θ with combinations φ = y[:, :3] (:func:`hbm.combinations.fibre_point`) and whether one exists."""
+        """A θ with combinations φ = y[:, :3] (:func:`hbm.identifiability.combinations.fibre_point`) and whether one exists."""
         parts, ok = fibre_point(y[:, :3], self.bounds, self.names, box=self.cbox)
         theta = np.empty((y.shape[0], len(self.names)))
         theta[:, self.comb] = parts
@@ -263,7 +264,7 @@ class CombinationPooling:
     (+ EOPT when ``auto_pool`` would pool it), with the exact stage-1 prior density of φ.
 
     The φ columns are appended to the stage-1 samples (the other columns ride along), their
-    stage-1 prior log density goes in as ``log_prior`` (see :mod:`hbm.combinations`), and a new
+    stage-1 prior log density goes in as ``log_prior`` (see :mod:`hbm.identifiability.combinations`), and a new
     specimen's (VOLF, P1, T1, GF, GM) are drawn from the box prior conditioned on its φ; its
     unpooled model parameters (EOPT if not pooled) from their stage-1 (uniform) prior, as the
     population model leaves them.  A specimen whose importance ESS collapses gets a fresh TMCMC

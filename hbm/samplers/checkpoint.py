@@ -19,7 +19,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import HbmError
-from ..utils import atomic_path
+from ..runtime.files import atomic_path
 from .types import StageInfo, TMCMCConfig, TMCMCState
 
 __all__ = ["fingerprint", "save_checkpoint", "load_checkpoint", "checkpoint_progress"]

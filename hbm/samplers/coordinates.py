@@ -7,7 +7,7 @@ Hastings ratio carries, so the tempered target (hence log Ẑ) does not depend o
 * :class:`BoxCoordinates` — u = θ; proposals leaving the box are rejected without evaluation.
 * :class:`LogitCoordinates` — u = logit((θ − lo)/(hi − lo)) (the default): proposals never leave
   the box and multiplicative ridges (T1 ∝ 1/(1 − VOLF), A·exp(T2·x)) become nearly straight.
-* any :class:`Bijection` of the caller (e.g. :class:`hbm.combinations.CombinationCoordinates`).
+* any :class:`Bijection` of the caller (e.g. :class:`hbm.identifiability.combinations.CombinationCoordinates`).
 
 Also here: the sanitised call of the user's log-likelihood (:func:`log_likelihood_of`), which
 every evaluation of a coordinate goes through.
@@ -32,7 +32,7 @@ class Bijection(Protocol):
     """Sampling coordinates u = g(θ) of the random walk, replacing the default logit transform.
 
     The samplers know nothing of the model: a caller that knows the model's degeneracies (e.g.
-    :class:`hbm.combinations.CombinationCoordinates`) passes an object with
+    :class:`hbm.identifiability.combinations.CombinationCoordinates`) passes an object with
 
     * ``name`` : str — identifies the map in checkpoint fingerprints;
     * ``support`` : array (d, 2) — the box of u that g maps the prior box onto (±inf allowed);

@@ -34,7 +34,7 @@ __all__ = ["ImportanceResult", "importance_evidence", "MIN_ESS", "FINISH_MIXTURE
 
 #: smallest accepted effective sample size of the weights: 1/√200 ≈ 7 % relative error of Ẑ
 MIN_ESS = 200.0
-#: the collapsed fit's finish (:func:`hbm.collapse.sample_collapsed`): components of the refitted
+#: the collapsed fit's finish (:func:`hbm.likelihood.collapsed.sample_collapsed`): components of the refitted
 #: mixture proposal and the share of the draws held in reserve.  Measured on the muscle benchmark
 #: (40 pilots, seeds 0–39, 10 000 draws): one refitted t accepted 40/40 but with ESS 370–2000 and a
 #: worst φ mean up to 0.33 gold sd (a few heavy weights in EOPT's thin tail towards 0); a 3-component

@@ -44,8 +44,9 @@ from .coordinates import Bijection, BoxCoordinates, LogitCoordinates, check_boun
 from .linalg import box_covariance, free_covariance, safe_cholesky
 from .moves import Manifold, Move, StageSetup, Tuning, Walkers
 from .resampling import islands, resample, resample_islands
-from .types import (DEFAULT_COV_TARGET, DEFAULT_N_SAMPLES, GradientFIM, LogLikelihood, StageInfo, TMCMCConfig,
-                    TMCMCResult, TMCMCState)
+from .types import (
+    DEFAULT_COV_TARGET, DEFAULT_N_SAMPLES, GradientFIM, LogLikelihood, StageInfo, TMCMCConfig, TMCMCResult,
+    TMCMCState)
 
 __all__ = ["init", "step", "tmcmc", "PRESETS", "checkpoint_progress", "DEFAULT_N_SAMPLES", "DEFAULT_COV_TARGET",
            "TMCMCConfig", "TMCMCState", "StageInfo", "TMCMCResult", "Bijection", "LogitCoordinates"]
@@ -430,7 +431,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         size, ``cov_target`` and the options; explicit arguments override them.
     bijection : Bijection or None
         Sampling coordinates of the random walk replacing the logit transform (see
-        :class:`~.coordinates.Bijection`; e.g. :class:`hbm.combinations.CombinationCoordinates`
+        :class:`~.coordinates.Bijection`; e.g. :class:`hbm.identifiability.combinations.CombinationCoordinates`
         for the muscle model).  None (default): the run is unchanged.
     **options
         Further :class:`~.types.TMCMCConfig` fields (transform, n_islands, min_steps, max_steps,

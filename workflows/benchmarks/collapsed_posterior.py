@@ -4,7 +4,7 @@
 Settings, interleaved seed by seed in one run:
 
 * ``collapsed TMCMC`` -- TMCMC over (VOLF, EOPT, T2, THETA, sigma) on the likelihood with the three
-  amplitudes integrated out (:mod:`hbm.collapse`), N = 1000, at most 10 MH steps per stage; the
+  amplitudes integrated out (:mod:`hbm.likelihood.collapsed`), N = 1000, at most 10 MH steps per stage; the
   full posterior completed by drawing the amplitudes and the original parameters given φ.
 * ``collapsed + IS`` -- N = 500, at most 5 MH steps per stage, and an importance-sampling finish
   (up to 10 000 draws in the sampler's logit coordinates: 30 % from a t proposal fitted to the
@@ -52,12 +52,12 @@ for p in (str(ROOT), str(HERE)):
 
 import muscle_posterior as mp  # noqa: E402
 import xarray as xr  # noqa: E402
-from hbm.blas import single_thread_blas  # noqa: E402
-from hbm.collapse import CollapsedLikelihood, sample_collapsed  # noqa: E402
-from hbm.collapse import sampling as collapse_sampling  # noqa: E402
+from hbm.runtime.blas import single_thread_blas  # noqa: E402
+from hbm.likelihood.collapsed import CollapsedLikelihood, sample_collapsed  # noqa: E402
+from hbm.likelihood.collapsed import sampling as collapse_sampling  # noqa: E402
 from hbm.fit import fit_specimen  # noqa: E402
 from hbm.samplers.tmcmc import tmcmc  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 
 TARGET_LOGZ, TARGET_MEAN = 0.3, 0.3
 BEFORE = "IS, one refitted t (before)"

@@ -46,12 +46,12 @@ for p in (str(ROOT), str(HERE)):
         sys.path.insert(0, p)
 
 import muscle_posterior as mp  # noqa: E402
-from hbm.combinations import CombinationCoordinates  # noqa: E402
+from hbm.identifiability.combinations import CombinationCoordinates  # noqa: E402
 from hbm.samplers.coordinates import LogitCoordinates, log_likelihood_of  # noqa: E402
 from hbm.samplers.linalg import free_covariance, safe_cholesky  # noqa: E402
 from hbm.samplers.moves import RandomWalk, StageSetup, Tuning, Walkers  # noqa: E402
 from hbm.samplers.tmcmc import tmcmc  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 
 MS_PER_ROW = 1e-3
 TARGET_LOGZ, TARGET_MEAN = 0.3, 0.3
@@ -61,7 +61,7 @@ SETTINGS = {
     "default (N=2000, RW)": ({}, None),
     "cov_target 1.5 (N=2000, RW)": ({"cov_target": 1.5}, None),
     "lean preset (N=1500, CoV target 1.5)": ({"preset": "lean"}, None),
-    # sampling coordinates of hbm.combinations.CombinationCoordinates ("coordinates": its theta=):
+    # sampling coordinates of hbm.identifiability.combinations.CombinationCoordinates ("coordinates": its theta=):
     # log c / log(1−c) shear of P1, GF / T1, GM and THETA → log collagen onset strain
     "coords: default (N=2000)": ({"coordinates": "onset"}, 5),
     "coords: lean (N=1500, CoV 1.5)": ({"coordinates": "onset", "preset": "lean"}, None),

@@ -5,18 +5,18 @@ Population (known generator, ``--pop-seed``): six synthetic specimens of the bas
 pooled columns x = (log G, log c·P1, log (1−c)·T1, T2, THETA) are drawn from the population model of
 ``hbm run --pool combinations`` with the hyper-parameters ``TRUTH`` (in the layer's transformed
 coordinates: identity for the logs and THETA, logit on [0, 200] for T2), the other directions from
-the uniform box prior given x (``hbm.combinations.sample_conditional``; EOPT uniform).  c·P1 is
+the uniform box prior given x (``hbm.identifiability.combinations.sample_conditional``; EOPT uniform).  c·P1 is
 small (population median 0.004 MPa), so in several specimens the fibre term is buried in the noise
 and the data bound c·P1 only from above — the case of the issue.  Strain 0–0.44 (45 points), iid
 noise 1.5 % of the maximum stress, as the shipped specimens.
 
-Stage 1: ``hbm.fit.fit_specimen`` as ``hbm run`` calls it (TMCMC N = 2000, common sigma box; CMA-ES
+Stage 1: ``hbm.fit.specimen.fit_specimen`` as ``hbm run`` calls it (TMCMC N = 2000, common sigma box; CMA-ES
 skipped: it only seeds figures), cached in ``--cache``.  Layer: ``hbm.population.run_population``
 (default settings: ``--pool combinations``, 1000 ψ draws), over ``--layer-seeds`` seeds.
 
 Gold: ``hierarchical_gold_peer.py`` in the bench venv (PyMC + nutpie, never imports hbm): the joint
 posterior of (ψ, θ_1..θ_6) with the real likelihoods, 3 chains; first its pytensor p0(φ) is checked
-against ``hbm.combinations.log_density``.  Cached in ``--cache`` (keyed by the spec).
+against ``hbm.identifiability.combinations.log_density``.  Cached in ``--cache`` (keyed by the spec).
 
 Variants (``--variant`` label): ``--exact none`` plain reuse (+ fresh TMCMC of flagged specimens), the
 default the exact fallback (joint Metropolis-within-Gibbs, real likelihoods for all specimens once one is
@@ -48,14 +48,14 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from hbm import io  # noqa: E402
-from hbm.combinations import COMBINATION_PARAMS, log_density, sample_conditional, support_hull  # noqa: E402
+from hbm.identifiability.combinations import COMBINATION_PARAMS, log_density, sample_conditional, support_hull  # noqa: E402
 from hbm.data import synthetic_specimen  # noqa: E402
 from hbm.fit import fit_specimen  # noqa: E402
 from hbm.model import spyrou_model  # noqa: E402
 from hbm.population import COMBINATION_COLUMNS, DEFAULT_SD_RANGE, run_population  # noqa: E402
 from hbm.samplers.hierarchical import HierarchicalModel  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
-from hbm.workflow import _common_sigma_box  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
+from hbm.workflow.run import _common_sigma_box  # noqa: E402
 
 PEER = Path(__file__).with_name("hierarchical_gold_peer.py")
 #: known hyper-parameters (mu, sd) in the layer's coordinates (all sds inside the hyperprior ranges)

@@ -13,7 +13,7 @@ as one joint density over (ψ, θ_1..θ_S):
   z_k = g_k(x_k) (identity, log or logit on the box) and
   p(θ|ψ) = Π_k N_trunc(z_k; mu_k, sd_k)|g_k'| · p0(θ) / p0(x(θ)), where p0(x) is the density that
   the uniform box prior induces on the pooled columns: p0(φ) by the same breakpoint-split
-  Gauss–Legendre quadrature over c as ``hbm/combinations.py`` (re-implemented here in pytensor,
+  Gauss–Legendre quadrature over c as ``hbm/identifiability/combinations.py`` (re-implemented here in pytensor,
   16 nodes × 2 sub-pieces per breakpoint interval), times the uniform densities of T2, THETA;
 * hyperprior: mu_k uniform on its range, log sd_k uniform on [log sd_lo, log sd_hi].
 

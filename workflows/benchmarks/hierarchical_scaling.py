@@ -54,9 +54,9 @@ from hbm.likelihood import make_likelihood  # noqa: E402
 from hbm.model import spyrou_model  # noqa: E402
 from hbm.samplers.tmcmc import tmcmc  # noqa: E402
 from hbm.samplers.hierarchical import HierarchicalModel, hierarchical  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 from hbm.population import DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS  # noqa: E402
-from hbm.workflow import RunConfig, _common_sigma_box  # noqa: E402
+from hbm.workflow.run import RunConfig, _common_sigma_box  # noqa: E402
 
 
 def stage1_samples(n_max: int, seed: int, cache: Path, progress: bool = True) -> tuple[dict, list, np.ndarray]:

@@ -21,7 +21,7 @@ largest R-hat (ArviZ, rank-normalised split R-hat) over the quantities when ther
 Problems: the analytic targets of tests/test_tmcmc.py (9-D Gaussian, banana, 4-D mixture; N =
 1000) and the muscle benchmark posterior (``workflows/benchmarks/muscle_posterior.py``, the lean
 preset N = 1500 and the default N = 2000; ``HBM_BENCH_DIR``), and the collapsed tier's default route
-on it (:func:`hbm.collapse.fit_collapsed`: its importance finish's batches are the chains; "pooled"
+on it (:func:`hbm.likelihood.collapsed.fit_collapsed`: its importance finish's batches are the chains; "pooled"
 there resamples the importance draws together as before).
 
 Usage::
@@ -49,10 +49,10 @@ for p in (str(ROOT), str(HERE)):
         sys.path.insert(0, p)
 
 import muscle_posterior as mp  # noqa: E402
-from hbm.collapse import CollapsedLikelihood, fit_collapsed  # noqa: E402
+from hbm.likelihood.collapsed import CollapsedLikelihood, fit_collapsed  # noqa: E402
 from hbm.samplers import chains as chains_mod  # noqa: E402
 from hbm.samplers.tmcmc import tmcmc  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 
 LOG2PI = math.log(2 * math.pi)
 
@@ -157,12 +157,12 @@ def run(name, prob, variant, seed) -> dict:
 def resampling_only(seeds, repeats: int = 50) -> list[dict]:
     """The importance finish's resampling alone: batch-wise (chains) vs global SIR from the same draws.
 
-    For each seed's accepted importance finish of :func:`hbm.collapse.fit_collapsed` on the muscle
+    For each seed's accepted importance finish of :func:`hbm.likelihood.collapsed.fit_collapsed` on the muscle
     benchmark, ``repeats`` resamplings of 2000 rows each way; the error is the rms over the sampled
     coordinates of (resampled mean − the weighted mean of all draws) in weighted sd: what the
     resampling adds to the importance estimate, with no other difference between the two.
     """
-    from hbm.collapse.sampling import _systematic
+    from hbm.likelihood.collapsed.sampling import _systematic
 
     lik, _, _ = mp.make_problem()
     cl = CollapsedLikelihood(lik)

@@ -47,7 +47,7 @@ for _p in (str(ROOT), str(Path(__file__).resolve().parent)):
 import hbm  # noqa: E402
 from experimental_moves import DifferentialEvolution  # noqa: E402
 from hbm.samplers.tmcmc import tmcmc  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 
 BENCH = Path(os.environ.get("HBM_BENCH_DIR", ROOT.parent / "shared" / "bench"))
 SIGMA_BOUNDS = (1e-4, 0.05)
@@ -114,7 +114,7 @@ def make_problem():
 
     ds = xr.Dataset({"strain": ("point", strain), "stress": ("point", stress)}, attrs={"id": "bench"})
     lik = make_likelihood(hbm.spyrou_model(), ds, noise="iid", sigma_bounds=SIGMA_BOUNDS)
-    return lik, gold, "hbm.likelihood.make_likelihood"
+    return lik, gold, "hbm.likelihood.core.make_likelihood"
 
 
 def summarise(names, samples) -> dict[str, float]:

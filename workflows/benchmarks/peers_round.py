@@ -54,8 +54,8 @@ for p in (str(ROOT), str(HERE)):
 import collapsed_posterior as cp  # noqa: E402
 import evaluations_to_accuracy as eta  # noqa: E402
 import muscle_posterior as mp  # noqa: E402
-from hbm.collapse import CollapsedLikelihood  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
+from hbm.likelihood.collapsed import CollapsedLikelihood  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 
 MS_PER_ROW = eta.MS_PER_ROW
 REACH_SHARE = eta.REACH_SHARE  # as the earlier peer tables: a time to accuracy when the median run reaches the target

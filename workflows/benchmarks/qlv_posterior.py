@@ -37,7 +37,7 @@ from hbm.data import hold, load_specimen, protocol, ramp, save_specimen, synthet
 from hbm.effects import make_effect  # noqa: E402
 from hbm.likelihood import make_likelihood  # noqa: E402
 from hbm.samplers.tmcmc import tmcmc  # noqa: E402
-from hbm.utils import atomic_write_text  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
 
 OUT = ROOT / "results" / "benchmarks"
 CURVE = OUT / "qlv_benchmark.csv"
@@ -117,7 +117,7 @@ def _errors(gold_: dict, names, samples, log_z: float) -> tuple[float, float]:
 
 def gold_collapsed(n: int, steps: int, draws: int, seeds: list[int], path: Path) -> dict:
     """The gold by the collapsed route: TMCMC over φ at large N, importance finish with many draws."""
-    from hbm.collapse import CollapsedLikelihood, sample_collapsed
+    from hbm.likelihood.collapsed import CollapsedLikelihood, sample_collapsed
 
     lik = likelihood()
     cl = CollapsedLikelihood(lik)
@@ -150,7 +150,7 @@ def gold_collapsed(n: int, steps: int, draws: int, seeds: list[int], path: Path)
 
 def compare(seeds: list[int], path: Path) -> list[dict]:
     """Today's default full-space TMCMC against the collapsed tier (TMCMC alone and with the IS finish)."""
-    from hbm.collapse import CollapsedLikelihood, sample_collapsed
+    from hbm.likelihood.collapsed import CollapsedLikelihood, sample_collapsed
 
     gold_ = json.loads(GOLD.read_text())
     lik = likelihood()

@@ -28,8 +28,9 @@ This package is sampler-layer code: it knows nothing about muscles.
 """
 
 from .diagnostics import reuse_diagnostics, reuse_unreliable
-from .grouped import GroupedModel, GroupedResult, group_differences, grouped_hierarchical, truncnorm_ppf, variance_split
-from .convergence import rhat_ess
+from .grouped import (
+    GroupedModel, GroupedResult, group_differences, grouped_hierarchical, truncnorm_ppf, variance_split)
+from ..convergence import rhat_ess
 from .batched import BatchedResult, HyperLevel, PooledFeatures, ShardSpec, batched_gibbs, one_population
 from .model import TRANSFORMS, HierarchicalModel, draw_population, kernel_bandwidth
 from .pooling import PoolChoice, auto_pool, prior_sd_transformed

@@ -27,7 +27,7 @@ columns have a quadratic log-likelihood (:mod:`.amplitudes`).  One *round*:
    a population's spread and the one-sided amplitudes that the data bound from above only.
 
 Every step is an exact Metropolis–Hastings step of the joint target.  The shard partition and all
-random streams depend on the number of specimens only (:func:`hbm.seeds`: the run's stream for ψ and
+random streams depend on the number of specimens only (:mod:`hbm.runtime.seeds`: the run's stream for ψ and
 the amplitudes, one stream per specimen for its evaluated moves), so the draws are bitwise the same
 in-process and on any number of workers.
 
@@ -48,7 +48,7 @@ import numpy as np
 from ...errors import HbmError
 from ..linalg import safe_cholesky
 from .amplitudes import amplitudes_valid, conditional_draw, quadratic_loglik
-from .convergence import rhat_ess
+from ..convergence import rhat_ess
 from .model import HierarchicalModel
 from .shards import TARGET_ACCEPT, RoundInput, ShardState
 

@@ -67,7 +67,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy.special import log_ndtr, ndtri
 
-from ...blas import single_thread_blas
+from ...runtime.blas import single_thread_blas
 from ...errors import HbmError
 
 __all__ = ["HierarchicalModel", "TRANSFORMS", "draw_population", "kernel_bandwidth", "log_norm_mass"]

@@ -1,0 +1,511 @@
+"""Fit one specimen: CMA-ES optima, TMCMC posterior with evidence, posterior predictive, Sobol.
+
+:func:`fit_specimen` is the unit of work of the six-rat workflow (one dask task per specimen)
+and of ``hbm fit``.  Every random stream is spawned from one ``SeedSequence(seed)`` so a fit is
+reproducible bit for bit, wherever it runs:
+
+=========  ======================================================
+child 0    CMA-ES restarts and the bound sweep (hbm.optimize)
+child 1    TMCMC (hbm.samplers.tmcmc)
+child 2    posterior-predictive noise
+child 3    Sobol sampling (hbm.fit.sensitivity)
+=========  ======================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from .sensitivity import sobol as _sobol
+from .._version import __version__
+from ..data import input_line, input_summary
+from ..errors import HbmError, HbmWarning
+from ..runtime import seeds
+from ..io import SpecimenResult, json_default, write_specimen_result
+from ..likelihood.collapsed import choose_tier, fit_collapsed
+from ..likelihood.core import make_likelihood
+from ..model import COMBINATIONS, spyrou_model
+from ..model.spyrou import PHYSICAL_RANGE
+from ..likelihood.prior import Prior, PriorError, load_prior
+from .optimization import optimize as _cma
+from ..samplers.tmcmc import tmcmc as _tmcmc
+from ..runtime.validation import check_physical_bounds, check_seed
+from .quality import (
+    EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, chain_rhat, chains_line, edges, fit_quality,
+    format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
+
+__all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
+           "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
+           "format_at_bounds", "map_prediction", "quality_lines", "tier_line", "EDGE_TOL", "EDGE_MASS",
+           "RIDGE_NOTE", "chain_rhat", "chains_line"]
+
+def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
+    """``"VOLF:0.05"`` -> ("VOLF", 0.05)."""
+    if sweep is None or sweep == "" or sweep is False:
+        return None
+    if isinstance(sweep, (tuple, list)):
+        name, width = sweep
+    else:
+        name, _, width = str(sweep).partition(":")
+        if not width:
+            raise HbmError(f"sweep: expected PARAM:WIDTH (e.g. VOLF:0.05), got {sweep!r}")
+    try:
+        width = float(width)
+    except ValueError:
+        raise HbmError(f"sweep: width must be a number, got {width!r}") from None
+    if not width > 0:
+        raise HbmError(f"sweep: width must be > 0, got {width}")
+    return str(name), width
+
+
+# ----------------------------------------------------------------------------- pieces
+def pointwise_log_likelihood(likelihood, theta: np.ndarray, model_stress: np.ndarray | None = None) -> np.ndarray:
+    """Pointwise log-likelihood (n, p) whose row sums equal ``likelihood(theta)``.
+
+    Delegates to the noise model (:meth:`hbm.likelihood.noise.NoiseModel.pointwise`): for AR(1) noise the
+    pointwise terms are the conditional densities of the innovations p(r_t | r_{t-1}) (the exact
+    factorisation of the joint Gaussian), as PSIS-LOO expects.
+    """
+    m = likelihood.predict(theta) if model_stress is None else model_stress
+    return likelihood.noise_model.pointwise(_natural(likelihood, theta)[:, likelihood.n_model:], m)
+
+
+def _natural(likelihood, theta) -> np.ndarray:
+    """Working rows -> natural units (likelihoods without priors: unchanged)."""
+    conv = getattr(likelihood, "to_natural", None)
+    return np.asarray(theta, float) if conv is None else conv(theta)
+
+
+def posterior_predictive(likelihood, theta: np.ndarray, seed, model_stress: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(noise-free prediction, noisy replicate), both (n, p), one replicate per posterior draw.
+
+    The noise is drawn by the noise model (:meth:`hbm.likelihood.noise.NoiseModel.simulate`, AR(1)
+    correlation included) from ``numpy.random.default_rng(seed)``; ``model_stress`` must be the
+    prediction at ``theta`` when given.  ``theta`` is in the likelihood's working coordinates
+    (as :func:`pointwise_log_likelihood`).
+    """
+    rng = np.random.default_rng(seed)
+    m = likelihood.predict(theta) if model_stress is None else model_stress
+    return m, m + likelihood.noise_model.simulate(rng, _natural(likelihood, theta)[:, likelihood.n_model:], m)
+
+
+def _normalise_optima(res: Any, names: Sequence[str], kind: str) -> list[dict]:
+    """Optima from hbm.optimize in the JSON form {"params": {...}, "objective": f, "kind": ...}."""
+    items = getattr(res, "optima", None)
+    if items is None and isinstance(res, Mapping):
+        items = res.get("optima")
+    if items is None:
+        items = [res]
+    out = []
+    for o in items:
+        if isinstance(o, Mapping):
+            d = dict(o)
+        elif hasattr(o, "to_dict"):
+            d = dict(o.to_dict())
+        else:
+            d = {k: getattr(o, k) for k in ("params", "objective", "theta", "x", "window") if hasattr(o, k)}
+        params = d.get("params")
+        if params is None:
+            x = d.get("theta", d.get("x"))
+            params = {n: float(v) for n, v in zip(names, np.asarray(x, float))}
+        entry = {"params": {k: float(v) for k, v in dict(params).items()},
+                 "objective": float(d.get("objective", d.get("f", np.nan))), "kind": kind}
+        win = d.get("window")
+        if win is not None and len(win) == 2:
+            entry["window_lower"], entry["window_upper"] = float(win[0]), float(win[1])
+        for k in ("window_lower", "window_upper"):
+            if k in d:
+                entry[k] = float(d[k])
+        out.append(entry)
+    return out
+
+
+def run_optima(likelihood, *, restarts: int, seed: int, sweep: tuple[str, float] | None, **options) -> list[dict]:
+    """CMA-ES restarts (+ an optional bound sweep) through :func:`hbm.fit.optimization.optimize`."""
+    names = list(likelihood.names)
+    optima = _normalise_optima(_cma(likelihood, restarts=restarts, seed=seed, **options), names, "restart")
+    if sweep is not None:
+        sw = _cma(likelihood, restarts=1, seed=seed + 1, sweep=sweep, **options)
+        optima += _normalise_optima(sw, names, "sweep")
+    return optima
+
+
+def run_sobol(model, data, *, n: int, seed: int, fix=None, bounds=None, qoi: str = "log_integrated_stress") -> dict:
+    """Sobol indices over the prior box (:func:`hbm.fit.sensitivity.sobol`) as a plain dict for io.
+
+    The QoI is log W (the energy on a log scale): its estimator is stable at N = 1024 where the
+    raw energy's is not (see :mod:`hbm.fit.sensitivity`).
+    """
+    res = _sobol(model, data=data, n=n, seed=seed, fix=fix, bounds=bounds, qoi=qoi, per_point=True)
+    out: dict[str, Any] = {k: {str(a): float(b) for a, b in getattr(res, k).items()}
+                           for k in ("S1", "ST", "S1_conf", "ST_conf")}
+    out["relevance"] = {str(a): str(b) for a, b in res.relevance.items()}
+    if res.per_point is not None:
+        for key in ("S1", "ST"):
+            arr = np.asarray(res.per_point[key], float)  # (n_points, D)
+            out[f"{key}_point"] = {nm: arr[:, j] for j, nm in enumerate(res.names)}
+    out["qoi"] = str(res.qoi)
+    out["n"] = int(res.n)
+    out["n_evaluations"] = int(res.n_evaluations)
+    out.update(res.settings)  # SALib settings: attributes of the file's sobol group
+    return out
+
+
+# ----------------------------------------------------------------------------- driver
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit_specimen`.
+
+    Attributes
+    ----------
+    result : SpecimenResult
+        What is (or would be) stored in the netCDF file.
+    path : Path or None
+        Written file, if ``out`` was given.
+    likelihood : Likelihood
+        The specimen's likelihood (free parameter names, bounds, predict ...).
+    tmcmc : TMCMCResult or None
+        With the collapsed likelihood: the run over the nonlinear parameters (stages, evidence),
+        its ``samples``/``log_likelihood`` replaced by the completed rows of every free parameter.
+    timings : dict
+        Seconds per phase: ``cmaes``, ``tmcmc``, ``predictive``, ``sobol``, ``write``, ``total``.
+    """
+
+    result: SpecimenResult
+    path: Path | None
+    likelihood: Any
+    tmcmc: Any = None
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def samples(self) -> np.ndarray:
+        return self.result.samples
+
+    @property
+    def names(self) -> list[str]:
+        return self.result.names
+
+    @property
+    def log_evidence(self) -> float:
+        return self.result.log_evidence
+
+    @property
+    def log_evidence_se(self) -> float:
+        return self.result.log_evidence_se
+
+    def summary(self, prob: float = 0.9) -> dict:
+        return summarize(self.result, prob=prob)
+
+    def table(self, prob: float = 0.9) -> str:
+        return summary_table(self.result, prob=prob)
+
+    def quality(self, data=None, prob: float = 0.9) -> dict[str, Any]:
+        """:func:`fit_quality` of this fit (with its likelihood)."""
+        return fit_quality(self, data, prob=prob)
+
+    def map(self) -> dict[str, float]:
+        """:func:`map_estimate`: the best fit as a usable parameter set."""
+        return map_estimate(self.result)
+
+    def report(self, prob: float = 0.9) -> str:
+        """Text report: fit quality, noise, MAP, combinations, evidence and edge warnings FIRST,
+        then one line on why raw-parameter means are not a parameter set, then the raw table."""
+        r = self.result
+        head = [f"specimen {r.specimen_id}: {r.n_samples} posterior samples"]
+        if r.config.get("input"):
+            head.append(input_line(r.config["input"]))
+        raw = summarize(r, prob=prob)
+        pc = int(round(prob * 100))
+        rows = [RIDGE_NOTE, f"{'parameter':<14}{'mean':>12}{'sd':>12}{f'{pc}% lower':>12}{f'{pc}% upper':>12}"]
+        rows += [f"{k:<14}{v['mean']:>12.5g}{v['sd']:>12.4g}{v['lower']:>12.5g}{v['upper']:>12.5g}"
+                 for k, v in raw.items() if k not in COMBINATIONS]
+        if r.fixed:
+            rows.append("fixed: " + ", ".join(f"{k}={v:g}" for k, v in r.fixed.items()))
+        rows.append(_prior_line(r))
+        return "\n".join(head + quality_lines(self.quality(prob=prob)) + [tier_line(r), chains_line(r)] + rows)
+
+    def to_json(self, prob: float = 0.9) -> dict[str, Any]:
+        """One JSON-able dict: :func:`fit_quality` plus identification of the run.
+
+        Keys include ``rmse``, ``rmse_rel`` (fraction of peak |stress|), ``coverage90``,
+        ``log_evidence``, ``log_evidence_se``, ``map`` (name -> value), ``combinations``,
+        ``at_bounds`` (list of {parameter, side, edge, fraction, map_at_edge}), ``noise``,
+        ``prior``, ``names``, ``n_samples``, ``summary`` (raw-parameter statistics) and ``path``.
+        """
+        q = self.quality(prob=prob)
+        r = self.result
+        q.update({"names": list(r.names), "n_samples": r.n_samples, "fixed": dict(r.fixed),
+                  "summary": {k: v for k, v in summarize(r, prob=prob).items() if k not in COMBINATIONS},
+                  "input": r.config.get("input", ""),
+                  "likelihood_tier": r.config.get("likelihood_tier", "full"),
+                  "likelihood_note": r.config.get("likelihood_note", ""),
+                  "chains": {"n_chains": r.chains.n_chains, "method": r.chains.method, "note": r.chains.note,
+                             "max_rhat": max((chain_rhat(r, r.samples[:, j]) for j in range(len(r.names))),
+                                             default=float("nan"))},
+                  "path": None if self.path is None else str(self.path)})
+        return json.loads(json.dumps(q, default=json_default))
+
+
+#: above this many points the cost of a fit is measured and said before it starts
+LARGE_CURVE = 2000
+#: TMCMC likelihood evaluations per population member at the default settings (2.43e6 for
+#: N = 2000 on the benchmark posterior, results/benchmarks/evaluations_to_accuracy.md)
+EVALUATIONS_PER_SAMPLE = 1200
+
+
+def check_data_size(sid: str, lik, samples: int, max_evaluations: int | None = None) -> None:
+    """Warn (:class:`~hbm.errors.HbmWarning`) before a fit whose data size makes its result weak
+    or its cost large.
+
+    * Fewer points than twice the free parameters: the posterior of most parameters is the
+      prior box; only the identified combinations and the evidence speak for the data.
+    * More than :data:`LARGE_CURVE` points: the cost of one evaluation is measured on the
+      likelihood itself (no random numbers) and the TMCMC fit's expected time said, with the
+      remedies, when it exceeds two minutes.
+    """
+    n, free = int(lik.n_points), len(lik.names)
+    if n < 2 * free:
+        warnings.warn(f"{sid}: {n} points for {free} free parameters: most parameters are set by the prior "
+                      "box, not the data; read the identified combinations and the evidence", HbmWarning,
+                      stacklevel=2)
+    if n <= LARGE_CURVE:
+        return
+    rows = np.tile(lik.from_unit(np.full(free, 0.5)), (64, 1))
+    t = time.perf_counter()
+    lik(rows)
+    per_row = (time.perf_counter() - t) / 64
+    evaluations = EVALUATIONS_PER_SAMPLE * int(samples)
+    if max_evaluations is not None:
+        evaluations = min(evaluations, int(max_evaluations))
+    if per_row * evaluations > 120.0:
+        warnings.warn(f"{sid}: {n} points: one evaluation costs {1e3 * per_row:.2g} ms, the TMCMC fit about "
+                      f"{per_row * evaluations / 60:.0f} min (~{evaluations:.2g} evaluations); neighbouring points "
+                      "of a dense record are rarely independent: thin the curve or use the ar1 noise, and "
+                      "--max-evaluations caps the cost", HbmWarning, stacklevel=2)
+
+
+def _specimen_id(data) -> str:
+    return str(getattr(data, "attrs", {}).get("id", "specimen"))
+
+
+def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", noise: str = "iid",
+                 fix: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
+                 seed: int | np.random.SeedSequence = 0, restarts: int = 4, sweep: str | tuple | None = None,
+                 sobol_n: int | None = None, checkpoint_dir: str | os.PathLike | None = None,
+                 out: str | os.PathLike | None = None, progress: bool = True,
+                 tmcmc_options: Mapping[str, Any] | None = None,
+                 optimize_options: Mapping[str, Any] | None = None,
+                 sigma_bounds: tuple[float, float] | None = None,
+                 config_extra: Mapping[str, Any] | None = None,
+                 on_phase: Callable[[str], None] | None = None,
+                 prior: Prior | str | os.PathLike | Mapping | None = None,
+                 max_evaluations: int | None = None, likelihood: str = "auto") -> FitResult:
+    """CMA-ES optima, TMCMC posterior, posterior predictive and (optionally) Sobol for one specimen.
+
+    Parameters
+    ----------
+    data : xarray.Dataset
+        A specimen (:func:`hbm.data.load_specimen`); ``attrs["id"]`` names it.
+    model : Model, optional
+        Default :func:`hbm.spyrou_model`.
+    samples : int
+        TMCMC population size N (= posterior draws stored).
+    kernel : {"rw", "manifold"}
+        TMCMC move kernel; "manifold" uses the likelihood's gradient and Fisher information.
+    noise : {"iid", "weighted", "proportional", "ar1"}
+        Noise model (:func:`hbm.likelihood.make_likelihood`).
+    fix, bounds : dict, optional
+        Parameters held fixed / narrowed prior boxes (inside the prior's box; to widen the
+        thesis box pass ``prior=resolve_prior(model, file, bounds)``).
+    seed : int or SeedSequence
+        Root seed; the four phases get spawned children (module docstring).
+    restarts : int
+        CMA-ES restarts (0 skips the optimisation).
+    sweep : "PARAM:WIDTH" or (name, width), optional
+        Thesis §3.1 bound sweep tracing a manifold (e.g. "VOLF:0.05").
+    sobol_n : int or None
+        Sobol base sample size (power of 2); None or 0 skips Sobol.
+    checkpoint_dir : path, optional
+        TMCMC checkpoint ``<dir>/<id>.npz``: an interrupted fit resumes from its last stage.
+        Removed once the result file is written.  It is resumed whatever made it: pass a folder
+        keyed by the fit's content (:func:`hbm.io.identity.checkpoint_dir` of :func:`hbm.io.identity.fit_key`,
+        as ``hbm fit`` and ``hbm run`` do) so that one of other data or settings is never resumed.
+    out : path, optional
+        Write the result netCDF here (atomically; ``complete`` flag last).
+    progress : bool
+        tqdm bar per TMCMC stage.
+    tmcmc_options : dict, optional
+        Extra keyword arguments for :func:`hbm.samplers.tmcmc` (n_steps, max_stages, ...).
+    optimize_options : dict, optional
+        Extra keyword arguments for :func:`hbm.fit.optimization.optimize`; default
+        ``{"maxfevals": 5000}`` per CMA-ES run (the optima only seed figures and the manifold;
+        an unlimited budget costs minutes per specimen for no visible gain).
+    sigma_bounds : (lo, hi), optional
+        Box of the first noise parameter (the workflow uses one box for all specimens so the
+        hierarchical layer sees a common stage-1 prior).
+    config_extra : dict, optional
+        Extra JSON-able entries for the stored ``config`` attribute (e.g. a settings hash).
+    on_phase : callable, optional
+        Called with the phase name when a phase starts (progress reporting).
+    prior : Prior, TOML path or mapping, optional
+        User prior (:mod:`hbm.likelihood.prior`); default the thesis box, uniform (bitwise the outputs of a
+        fit without this argument).  Loguniform parameters are sampled in log coordinates; the
+        stored posterior, optima, predictive and Sobol box are in natural units.
+    max_evaluations : int, optional
+        Cap on TMCMC log-likelihood evaluations (:func:`hbm.samplers.tmcmc`); None = no cap.
+    likelihood : {"auto", "collapsed", "full"}
+        Likelihood tier (:func:`hbm.likelihood.collapsed.choose_tier`).  "auto" (default): where the model's
+        stress is linear in its amplitudes and the noise keeps their integral Gaussian, TMCMC
+        samples only the nonlinear and noise parameters on the likelihood with the amplitudes
+        integrated out exactly (:func:`hbm.likelihood.collapsed.fit_collapsed`: a 500-particle TMCMC run
+        and an importance-sampling finish, or N = ``samples`` with at most 10 MH steps per
+        stage when the finish is refused or ``tmcmc_options`` are given), and the amplitudes
+        and original parameters are drawn given each posterior sample; the
+        stored posterior holds every free parameter as with the full likelihood.  "full":
+        today's sampler over all parameters.  The tier and why are stored in
+        ``config["likelihood_tier"]`` and ``config["likelihood_note"]``; evaluation counts
+        count basis evaluations as model evaluations.
+
+    Returns
+    -------
+    FitResult
+        ``result.prior`` and ``result.at_bounds`` (box-edge warnings, :func:`at_bounds`) are
+        stored in the file too.
+    """
+    t_start = time.perf_counter()
+    model = spyrou_model() if model is None else model
+    if kernel not in ("rw", "manifold"):
+        raise HbmError(f"kernel must be 'rw' or 'manifold', got {kernel!r}")
+    if int(samples) < 4:
+        raise HbmError(f"samples must be >= 4, got {samples}")
+    seed = check_seed(seed)  # the rules of the command line's --seed and --bounds
+    check_physical_bounds(bounds, PHYSICAL_RANGE)
+    sid = _specimen_id(data)
+    prior = load_prior(prior)
+    lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)
+    check_data_size(sid, lik, samples, max_evaluations)
+    collapsed, tier_note = choose_tier(lik, likelihood, kernel=kernel)  # before any long computation
+    s_opt, s_tm, s_pred, s_sob = seeds.child_ints(seed, len(seeds.PHASES))  # the phase streams of hbm.runtime.seeds
+    sweep_t = parse_sweep(sweep)
+    if sweep_t is not None and sweep_t[0] in lik.names and lik.forms[lik.index(sweep_t[0])] == "loguniform":
+        # the sweep's windows are cut in the optimiser's (log) coordinates; a width in natural
+        # units would be misread there
+        raise PriorError(f"sweep: {sweep_t[0]} has a loguniform prior; sweep a uniform parameter")
+    timings: dict[str, float] = {}
+    phase = on_phase or (lambda name: None)
+
+    optima = None
+    if restarts and int(restarts) > 0:
+        phase("cmaes")
+        t = time.perf_counter()
+        oopts = {"maxfevals": 5000, **dict(optimize_options or {})}
+        optima = run_optima(lik, restarts=int(restarts), seed=s_opt, sweep=sweep_t, **oopts)
+        timings["cmaes"] = time.perf_counter() - t
+
+    phase("tmcmc")
+    t = time.perf_counter()
+    ckpt = None
+    if checkpoint_dir is not None:
+        ckpt = Path(checkpoint_dir) / f"{sid}.npz"
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+    opts = dict(tmcmc_options or {})
+    if max_evaluations is not None:
+        opts["max_evaluations"] = int(max_evaluations)
+    if kernel == "manifold":
+        opts.setdefault("gradient_fim", lik.gradient_fim)
+    collapsed_info = None
+    if collapsed is not None:  # sample φ only; the amplitudes are integrated, then drawn given φ
+        cf = fit_collapsed(collapsed, int(samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
+        y, log_lik, n_evaluations = cf.samples, cf.log_likelihood, cf.n_evaluations
+        # FitResult.tmcmc: the φ run's stages and evidence, with the completed full rows as samples
+        tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik, chains=cf.chains)
+        log_z, log_z_se, collapsed_info = cf.log_evidence, cf.log_evidence_se, cf.info
+    else:
+        tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,
+                    progress=progress, **opts)
+        y, log_lik, n_evaluations = tr.samples, tr.log_likelihood, tr.n_evaluations
+        log_z, log_z_se = tr.log_evidence, tr.log_evidence_se
+    timings["tmcmc"] = time.perf_counter() - t
+
+    phase("predictive")
+    t = time.perf_counter()
+    y = np.asarray(y, float)  # sampler (working) coordinates
+    theta = lik.to_natural(y)  # what the user sees: natural units
+    m = lik.predict(y)
+    pll = pointwise_log_likelihood(lik, y, m)
+    pred_model, pred = posterior_predictive(lik, y, s_pred, m)
+    timings["predictive"] = time.perf_counter() - t
+
+    sob = None
+    if sobol_n:
+        phase("sobol")
+        t = time.perf_counter()
+        sbounds = bounds
+        if prior is not None:  # the Sobol input box is the prior's natural box
+            sbounds = {n: tuple(map(float, lik.natural_bounds[j])) for j, n in enumerate(lik.model_names)}
+        sob = run_sobol(model, data, n=int(sobol_n), seed=s_sob, fix=fix, bounds=sbounds)
+        timings["sobol"] = time.perf_counter() - t
+
+    strain = np.asarray(data["strain"].values, float)
+    config = {"samples": int(samples), "kernel": kernel, "noise": noise, "fix": dict(fix or {}) or None,
+              "bounds": {k: list(map(float, v)) for k, v in (bounds or {}).items()} or None,
+              "restarts": int(restarts or 0), "sweep": list(sweep_t) if sweep_t else None,
+              "sobol_n": int(sobol_n or 0), "optimize_options": dict(optimize_options or {}) or None,
+              "sigma_bounds": list(map(float, sigma_bounds)) if sigma_bounds is not None else None,
+              "tmcmc_options": {k: v for k, v in opts.items() if k != "gradient_fim"} or None,
+              "seeds": {"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
+              "n_evaluations": int(n_evaluations), "n_stages": len(tr.stages),
+              "likelihood_tier": "full" if collapsed is None else "collapsed", "likelihood_note": tier_note,
+              "source_file": str(data.attrs.get("source_file", ""))}
+    converted = input_summary(data)
+    if converted:  # the numbers rest on these conversions: keep them with the result
+        config["input"] = converted
+    if prior is not None:
+        config["prior"] = prior.to_dict()
+    if collapsed_info is not None:
+        config["collapsed"] = collapsed_info
+    config.update(dict(config_extra or {}))
+    if isinstance(seed, np.random.SeedSequence):
+        root_seed = int(seed.entropy)
+        config["seed_spawn_key"] = list(map(int, seed.spawn_key))
+    else:
+        root_seed = int(seed)
+    res = SpecimenResult(
+        specimen_id=sid, names=list(lik.names), samples=theta, log_likelihood=np.asarray(log_lik, float),
+        log_evidence=float(log_z), log_evidence_se=float(log_z_se),
+        bounds=np.asarray(lik.natural_bounds, float), stages=list(tr.stages), strain=strain,
+        stress=np.asarray(data["stress"].values, float),
+        time=np.asarray(data["time"].values, float) if "time" in data else None,
+        test=np.asarray(data["test"].values) if "test" in data else None,
+        pointwise_log_likelihood=pll, predictive=pred, predictive_model=pred_model, optima=optima, sobol=sob,
+        model=model.name, effects=list(model.effect_names), config=config, seed=root_seed,
+        fixed=dict(lik.fixed), version=__version__,
+        prior={n: lik.prior[n].to_dict() for n in lik.names},
+        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())},
+        chains=tr.chains)
+    res.at_bounds = at_bounds(res)
+    path = None
+    if out is not None:
+        t = time.perf_counter()
+        res.timings = dict(timings)
+        path = write_specimen_result(res, out)
+        timings["write"] = time.perf_counter() - t
+        if ckpt is not None and ckpt.exists():
+            ckpt.unlink()  # the result file supersedes the checkpoint
+            try:
+                ckpt.parent.rmdir()  # only if empty
+            except OSError:
+                pass
+    timings["total"] = time.perf_counter() - t_start
+    res.timings = dict(timings)
+    return FitResult(result=res, path=path, likelihood=lik, tmcmc=tr, timings=timings)

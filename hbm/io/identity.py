@@ -1,0 +1,165 @@
+"""Result identity: one content key per result, over everything that determines it.
+
+A finished result (or a checkpoint) is reused only when its key matches; otherwise it is
+recomputed and the run says which part changed.  A key is the SHA-256 of named components,
+each itself a hash, so a mismatch can be explained component by component:
+
+``data``
+    the loaded arrays (strain, stress, time, test as float64 bytes) and the attributes that
+    change their meaning (id, units, stress measure, deformation input, reference sarcomere
+    length, test labels);
+``model``
+    the model's name, its effects (id, class, options), parameter names and prior box;
+``settings``
+    everything else the fit depends on (sampler, optimiser and Sobol settings, noise model and
+    box, fixed values, user prior, seed, package version): for a fit, :func:`fit_record` of the
+    very keyword arguments given to :func:`hbm.fit.fit_specimen` -- ONE record, so a new
+    setting is keyed without anyone having to remember a list (only :data:`NOT_KEYED` are left
+    out).
+
+:func:`fit_key` is the key of results AND checkpoints of ``hbm fit`` and ``hbm run``: a
+checkpoint of other data, model or settings is never resumed.
+
+Hashes are computed from canonical JSON (sorted keys, floats by ``repr``) and raw bytes, so
+they are the same in every process and on every run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from .._version import __version__
+
+__all__ = ["MEANING_ATTRS", "NOT_KEYED", "data_key", "model_key", "settings_key", "content_key", "changed",
+           "fit_record", "fit_key", "checkpoint_dir", "set_aside_checkpoints"]
+
+#: dataset attributes that change what the arrays mean (hbm.data records its conversions here)
+MEANING_ATTRS = ("id", "units_stress", "units_stress_original", "stress_measure", "stress_measure_original",
+                 "deformation_input", "reference_sarcomere_length_um", "test_labels")
+
+
+def _canonical(obj: Any) -> Any:
+    """JSON-able, order-independent form (floats by repr, arrays as lists)."""
+    if isinstance(obj, Mapping):
+        return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, (list, tuple)):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _canonical(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return repr(float(obj))
+    if isinstance(obj, (np.integer, int, bool, str)) or obj is None:
+        return obj.item() if isinstance(obj, np.generic) else obj
+    if isinstance(obj, np.random.SeedSequence):
+        return {"entropy": _canonical(obj.entropy), "spawn_key": list(map(int, obj.spawn_key))}
+    if hasattr(obj, "to_dict"):  # a Prior: its content, not its id()
+        return _canonical(obj.to_dict())
+    return repr(obj)
+
+
+def _sha(*parts: bytes) -> str:
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(len(p).to_bytes(8, "little"))  # length-prefixed: no ambiguity between parts
+        h.update(p)
+    return h.hexdigest()[:16]
+
+
+def _json(obj: Any) -> bytes:
+    return json.dumps(_canonical(obj), sort_keys=True, separators=(",", ":")).encode()
+
+
+def data_key(ds) -> str:
+    """Hash of a specimen Dataset: its arrays and the attributes that give them meaning."""
+    names = getattr(ds, "data_vars", ds)
+    arrays = [np.ascontiguousarray(np.asarray(ds[v], dtype=float)).tobytes() if v in names else b"-"
+              for v in ("strain", "stress", "time", "test")]
+    attrs = getattr(ds, "attrs", {}) or {}
+    return _sha(*arrays, _json({k: attrs.get(k) for k in MEANING_ATTRS if k in attrs}))
+
+
+def _effect_description(e) -> dict:
+    options = {k: v for k, v in vars(e).items() if not k.startswith("_")} if hasattr(e, "__dict__") else {}
+    return {"name": getattr(e, "name", type(e).__name__),
+            "class": f"{type(e).__module__}.{type(e).__qualname__}", "options": options}
+
+
+def model_key(model) -> str:
+    """Hash of a model: name, effects (id, class, options), parameter names and prior box."""
+    return _sha(_json({"name": getattr(model, "name", type(model).__name__),
+                       # explicit, so the key does not rely on the name spelling out the form
+                       "form": getattr(model, "form", None),
+                       "effects": [_effect_description(e) for e in getattr(model, "effects", ())],
+                       "parameters": list(getattr(model, "parameter_names", ())),
+                       "bounds": np.asarray(getattr(model, "bounds", []), float)}))
+
+
+def settings_key(settings: Mapping[str, Any]) -> str:
+    """Hash of a settings mapping (canonical JSON)."""
+    return _sha(_json(settings))
+
+
+def content_key(components: Mapping[str, str]) -> str:
+    """The key of a result from its named component hashes."""
+    return _sha(_json(dict(components)))
+
+
+def changed(stored: Mapping[str, str] | None, new: Mapping[str, str]) -> list[str]:
+    """Names of the components that differ (all of them when nothing was stored)."""
+    if not stored:
+        return list(new)
+    return [k for k in new if stored.get(k) != new[k]] + [k for k in stored if k not in new]
+
+
+#: keyword arguments of :func:`hbm.fit.fit_specimen` that do not change its result: the data and
+#: model have their own components; paths, progress display and stored extras do not change numbers
+NOT_KEYED = ("data", "model", "out", "checkpoint_dir", "progress", "on_phase", "config_extra")
+
+
+def fit_record(options: Mapping[str, Any]) -> dict:
+    """The settings record of a fit: every ``fit_specimen`` keyword argument in ``options`` except
+    :data:`NOT_KEYED` (canonical JSON form; a seed as entropy and spawn key), plus the package
+    version.  Unset arguments (None) are left out, so that adding a new optional argument does not
+    change the key of fits that do not use it."""
+    record = {k: _canonical(v) for k, v in options.items() if k not in NOT_KEYED and v is not None}
+    record["version"] = __version__
+    return record
+
+
+def fit_key(data, model, options: Mapping[str, Any]) -> tuple[str, dict[str, str]]:
+    """The content key of a fit of ``data`` with ``model`` and ``fit_specimen(**options)``.
+
+    Returns
+    -------
+    key : str
+    parts : dict
+        Its components ``data``, ``model``, ``settings`` (for :func:`changed`).
+    """
+    parts = {"data": data_key(data), "model": model_key(model), "settings": settings_key(fit_record(options))}
+    return content_key(parts), parts
+
+
+def checkpoint_dir(root: str | Path, specimen_id: str, key: str) -> Path:
+    """The checkpoint folder of one keyed fit: ``<root>/<id>-<key>`` (the file inside is ``<id>.npz``)."""
+    return Path(root) / f"{specimen_id}-{key}"
+
+
+def set_aside_checkpoints(root: str | Path, current: Mapping[str, Path]) -> list[Path]:
+    """Checkpoints in ``root`` of the specimens of ``current`` ({id: keyed folder}) made under
+    another key (other data, model or settings), or unkeyed (``<root>/<id>.npz``, older hbm).
+
+    They are left on disk untouched and never resumed; the caller says so in one notice.
+    """
+    root = Path(root)
+    other: list[Path] = []
+    for sid, folder in current.items():
+        old = [p for p in root.glob(f"{sid}-*/{sid}.npz") if p.parent.name[len(sid) + 1:].isalnum()
+               and p.parent != Path(folder)]
+        other += sorted(old) + [p for p in [root / f"{sid}.npz"] if p.is_file()]
+    return other
+
