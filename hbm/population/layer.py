@@ -10,8 +10,8 @@ evaluation and each of its chains costs two model evaluations per round; its sta
 only for its proposal (a Gaussian mixture), its random-walk covariance and its starting points.
 
 Shards: at most :data:`SHARD_SIZE` specimens each, fixed by the number of specimens alone.  With a
-dask client and at least two shards, the shards run as actors on the workers; otherwise in this
-process.  Seeds (:mod:`hbm.runtime.seeds`): ``layer`` for the population, ``layer_specimen`` k for
+dask client of at least two workers and at least two shards, the shards run as actors on the workers;
+otherwise in this process.  Seeds (:mod:`hbm.runtime.seeds`): ``layer`` for the population, ``layer_specimen`` k for
 specimen k (k in sorted id order), so the draws are bitwise the same on any number of workers.
 
 Output: the chains' kept draws — hyper-parameters (chain-major, ``chains`` chains), the updated
@@ -39,8 +39,9 @@ from .fallbacks import specimen_likelihood
 
 __all__ = ["SHARD_SIZE", "LayerDraws", "sample_layer"]
 
-#: most specimens per shard (the shards, hence the draws, depend on the number of specimens only)
-SHARD_SIZE = 32
+#: most specimens per shard (the shards, hence the draws, depend on the number of specimens only): 96
+#: specimens make four shards, two per worker of a two-worker cluster
+SHARD_SIZE = 24
 #: R-hat and bulk ESS every hyper-parameter should reach (the run warns otherwise)
 RHAT_TARGET, ESS_TARGET = 1.01, 400.0
 #: R-hat above which a specimen column is reported as not converged
@@ -83,6 +84,14 @@ class _Valid:
             inside = np.all((y >= self.box[:, 0]) & (y <= self.box[:, 1]), axis=-1)
         _, ok = self.coords.theta_of(np.where(inside[..., None], y, self.box[:, 0]).reshape(-1, y.shape[-1]))
         return inside & ok.reshape(y.shape[:-1])
+
+
+def _workers(client) -> int:
+    """The cluster's number of workers (0 if the scheduler does not say)."""
+    try:
+        return len(client.scheduler_info().get("workers", {}))
+    except Exception:  # a scheduler that does not answer: run in this process
+        return 0
 
 
 def _start(model: HierarchicalModel, features, rows: Sequence[np.ndarray], chains: int, rng: np.random.Generator,
@@ -171,7 +180,8 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
         batch.check([rows[i] for i in idx])
         shards.append(ShardSpec(batch=batch, rows=[rows[i] for i in idx], init=init[idx], seeds=[spec_seeds[i] for i in idx],
                                 index=idx))
-    use_dask = client is not None and n_shards >= 2
+    # the shards go to the workers when there are two of each at least (the draws are the same either way)
+    use_dask = client is not None and n_shards >= 2 and _workers(client) >= 2
     mode = (f"amplitudes {', '.join(names_y[j] for j in amp)} moved with the population at no evaluation"
             if amp else f"every model parameter evaluated ({why})")
     _log(f"population layer: joint sampling of the population and {S} specimens, {chains} chains, "
@@ -181,7 +191,7 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
                         constraints=shards[0].batch.amplitude_constraints, amp_cols=amp, amp_pool=amp_pool,
                         box=coords.box, seed=root, n_burn=burn, n_keep=keep, thin=thin, client=client if use_dask else None,
                         log=(lambda m: _log(m, cfg.progress)))
-    cpu = time.process_time() - c0
+    cpu = time.process_time() - c0 + float(res.timings.get("shard_cpu", 0.0))  # + the workers' CPU
     x = res.x.reshape(-1, res.x.shape[-1])
     raw = hm.expand(x)
     rng_out = np.random.default_rng(seeds.child(root, 4))

@@ -91,17 +91,19 @@ def _solve(L, x, out) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _valid(u, lo, hi, P, Q, R) -> bool:
-    """u inside its box and some c with P·e^u + Q·c ≤ R."""
+def _valid(u, lo, hi, P, Q, R, A) -> bool:
+    """u inside its box and some c with P·A + Q·c ≤ R, A = e^u (filled in here)."""
     k = u.shape[0]
     for j in range(k):
         if not (lo[j] <= u[j] <= hi[j]):
             return False
+    for j in range(k):
+        A[j] = math.exp(u[j])
     c_lo, c_hi = -math.inf, math.inf
     for i in range(P.shape[0]):
         s = 0.0
         for j in range(k):
-            s += P[i, j] * math.exp(u[j])
+            s += P[i, j] * A[j]
         if Q[i] > 0.0:
             c_hi = min(c_hi, (R[i] - s) / Q[i])
         elif Q[i] < 0.0:
@@ -223,7 +225,7 @@ def _particles(G, b, ll0, mu, sd, pooled, lo, hi, P, Q, R, current, has_current,
                         u[j] = (mu[r, j] if pooled[j] else mode[j]) + psd[j] * Z[r, m, j]
             for j in range(k):
                 parts[r, m, j] = u[j]
-            if not _valid(u, lo, hi, P, Q, R):
+            if not _valid(u, lo, hi, P, Q, R, A):  # fills A = e^u
                 lw[r, m] = -math.inf
                 continue
             # log q: t component and population component
@@ -243,8 +245,6 @@ def _particles(G, b, ll0, mu, sd, pooled, lo, hi, P, Q, R, current, has_current,
             # log π: quadratic log-likelihood plus the population of the pooled columns
             val = ll0[r]
             for i in range(k):
-                A[i] = math.exp(u[i])
-            for i in range(k):
                 s = b[r, i]
                 for j in range(k):
                     s -= 0.5 * G[r, i, j] * A[j]
@@ -257,8 +257,9 @@ def _particles(G, b, ll0, mu, sd, pooled, lo, hi, P, Q, R, current, has_current,
 
 @njit(cache=True, nogil=True)
 def _valid_rows(u, lo, hi, P, Q, R, out) -> None:
+    A = np.empty(u.shape[1])
     for r in range(u.shape[0]):
-        out[r] = _valid(u[r], lo, hi, P, Q, R)
+        out[r] = _valid(u[r], lo, hi, P, Q, R, A)
 
 
 def amplitudes_valid(u: np.ndarray, lo, hi, constraints) -> np.ndarray:

@@ -50,7 +50,7 @@ from ..linalg import safe_cholesky
 from .amplitudes import amplitudes_valid, conditional_draw, quadratic_loglik
 from ..convergence import rhat_ess
 from .model import HierarchicalModel
-from .shards import TARGET_ACCEPT, RoundInput, ShardState
+from .shards import TARGET_ACCEPT, RoundInput, ShardState, partial_map, partial_weights
 
 __all__ = ["HyperLevel", "one_population", "ShardSpec", "BatchedResult", "PooledFeatures", "batched_gibbs"]
 
@@ -260,12 +260,25 @@ class _Master:
         self.nc_other = [kp for kp in range(self.m.d) if kp not in list(self.amp_pool)
                          and len(hyper.nc_coords(kp)) == 2] if features.diagonal else []
         self.nc_scale = None
+        # one population without full covariance or fixed hyper-parameters and a log-uniform sd prior: its
+        # columns move one by one (:meth:`psi_column_moves`)
+        d = self.m.d
+        self.by_column = (self.n_groups_of(hyper) == 1 and features.diagonal and len(self.m.free) == 2 * d
+                          and self.m.sd_prior == "loguniform")
+        self.col_step = np.zeros(d)
+        self.col_L = np.stack([np.diag(np.maximum(np.std(self.x[:, [k, d + k]], axis=0), 1e-3))
+                               for k in range(d)]) if self.by_column else None
+        self.col_window = np.zeros((d, 2))
         self.nco_step = 0.0
         self.window["nco"] = np.zeros(2)
         self.pending = None
         g = np.asarray(hyper.groups, int)
         self.groups, self.n_groups = g, int(g.max()) + 1
         self.onehot = (g[None, :] == np.arange(self.n_groups)[:, None]).astype(float)  # (G, S)
+
+    @staticmethod
+    def n_groups_of(hyper: HyperLevel) -> int:
+        return int(np.max(hyper.groups)) + 1
 
     # -- the population at x ---------------------------------------------------------------------
     def coefficients(self, x: np.ndarray):
@@ -305,8 +318,10 @@ class _Master:
     def scales(self) -> None:
         """Non-centred step scales from the spread of the chains (set in burn-in only, then frozen: a scale
         that followed the chains' current states would make the proposals asymmetric)."""
-        self.nc_scale = {kp: np.std(self.x[:, self.h.nc_coords(kp)], axis=0) + 1e-9
-                         for kp in [kp for _, kp in self.nc_cols] + self.nc_other}
+        kps = [kp for _, kp in self.nc_cols] + self.nc_other
+        self.nc_scale = {kp: np.std(self.x[:, self.h.nc_coords(kp)], axis=0) + 1e-9 for kp in kps}
+        # the population spread that sets how far each specimen follows a non-centred move
+        self.nc_ref = {kp: float(np.median(self.nat[..., self.m.d + kp])) for kp in kps}
 
     def _tally(self, name, acc) -> None:
         a = self.accepted.setdefault(name, np.zeros(2))
@@ -341,6 +356,8 @@ class _Master:
         return np.einsum("gcf,gcf->c", coef, self.SF) + np.einsum("g,gc->c", n_g, cc) + self.Sc + corr
 
     def psi_moves(self, burning: bool) -> None:
+        if self.by_column:
+            return self.psi_column_moves(burning)
         box = self.h.box
         lp = self.psi_target(self.coef, self.cc, self.corr)
         for _ in range(self.psi_steps):
@@ -359,6 +376,37 @@ class _Master:
             if burning:
                 self.window["psi"] += (acc.sum(), acc.size)
 
+    def psi_column_moves(self, burning: bool) -> None:
+        """Random walks of every column's (mu_k, log sd_k) at once, each accepted on its own: given the
+        specimens the population's columns are independent (one group, no full covariance, log-uniform sd
+        prior), so these are d independent 2-D Metropolis steps."""
+        m, d = self.m, self.m.d
+        S = self.groups.size
+        C = self.x.shape[0]
+        box = self.h.box
+        raw = m.expand(self.x)
+        old = m.column_terms(raw, self.SF[0], S)
+        for _ in range(self.psi_steps):
+            z = self.rng_psi.standard_normal((C, d, 2))
+            step = np.exp(self.col_step)[None, :, None] * np.einsum("kij,ckj->cki", self.col_L, z)
+            rawp = raw.copy()
+            rawp[:, :d] += step[..., 0]
+            rawp[:, d:2 * d] += step[..., 1]
+            xp = rawp[:, m.free]
+            inside = (xp >= box[:, 0]) & (xp <= box[:, 1])
+            inside = inside[:, :d] & inside[:, d:2 * d]
+            new = m.column_terms(rawp, self.SF[0], S)
+            with np.errstate(invalid="ignore"):
+                acc = inside & np.isfinite(new) & (np.log(self.rng_psi.random((C, d))) < new - old)
+            raw[:, :d] = np.where(acc, rawp[:, :d], raw[:, :d])
+            raw[:, d:2 * d] = np.where(acc, rawp[:, d:2 * d], raw[:, d:2 * d])
+            old = np.where(acc, new, old)
+            self._tally("psi", acc)
+            if burning:
+                self.col_window += np.column_stack([acc.sum(axis=0), np.full(d, C)])
+        self.x = raw[:, m.free].copy()
+        self.set_population()
+
     def _column_proposal(self, kp: int, step: float):
         """A random walk of the x coordinates of pooled column kp's population (frozen scale × e^step):
         (x', inside the box, coef', cc', natural', prior correction'); outside the box x' = x."""
@@ -372,16 +420,23 @@ class _Master:
         return (xp, inside, *self.coefficients(xp), self.h.log_prior_correction(xp))
 
     def noncentred(self, j: int, kp: int, burning: bool) -> None:
-        """(mu, sd) of pooled amplitude column kp moved with every specimen's u_j along."""
+        """(mu, sd) of pooled amplitude column kp moved with every specimen's u_j along, partially
+        (:func:`partial_weights`; the weights depend on the data and the specimen's nonlinear parameters,
+        which the move does not change)."""
         C, d = self.x.shape[0], self.m.d
         xp, inside, coef, cc, nat, corr = self._column_proposal(kp, self.nc_step)
         g = self.groups
         mu, sd = self.nat[g][..., kp], self.nat[g][..., d + kp]
         mup, sdp = nat[g][..., kp], nat[g][..., d + kp]
+        ll0, G, b = self.quad
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # the data's precision of u_j at the least-squares amplitude (0 where it is not positive: flat)
+            ahat = b[..., j] / G[..., j, j]
+            prec = np.where(ahat > 0, ahat * ahat * G[..., j, j], 0.0)
+        w = partial_weights(prec, self.nc_ref[kp])
         ynew = self.y.copy()
         col = self.amp[j]
-        ynew[..., col] = mup + (sdp / sd) * (self.y[..., col] - mu)
-        ll0, G, b = self.quad
+        ynew[..., col], logjac = partial_map(self.y[..., col], mu, sd, mup, sdp, w)
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             S = ynew.shape[0]
             ok = inside & np.all(amplitudes_valid(ynew[..., self.amp].reshape(S * C, -1), self.lo, self.hi,
@@ -391,7 +446,7 @@ class _Master:
             SF = np.einsum("gs,scf->gcf", self.onehot, F)
             n_g = self.onehot.sum(axis=1)
             new = np.einsum("gcf,gcf->c", coef, SF) + np.einsum("g,gc->c", n_g, cc) + c.sum(axis=0)
-            logr = (np.sum(ll - self.ll + np.log(sdp / sd), axis=0) + new - self.psi_target(self.coef, self.cc, 0.0)
+            logr = (np.sum(ll - self.ll + logjac, axis=0) + new - self.psi_target(self.coef, self.cc, 0.0)
                     + corr - self.corr)
             acc = ok & np.isfinite(logr) & (np.log(self.rng_nc.random(C)) < logr)
         self.x[acc], self.corr[acc] = xp[acc], corr[acc]
@@ -413,7 +468,7 @@ class _Master:
         g = self.groups
         self.pending = {"kp": kp, "x": xp, "coef": coef, "cc": cc, "nat": nat, "inside": inside, "corr": corr}
         return {"kp": kp, "mu": self.nat[g][..., kp], "sd": self.nat[g][..., d + kp], "mu_new": nat[g][..., kp],
-                "sd_new": nat[g][..., d + kp]}
+                "sd_new": nat[g][..., d + kp], "ref": float(self.nc_ref[kp])}
 
     def decide_other(self, y, ll, quad, logjac, burning: bool) -> np.ndarray | None:
         """Accept or reject the pending non-centred proposal over all specimens (per chain); returns the
@@ -465,6 +520,14 @@ class _Master:
         nx = hist.shape[1]
         if hist.shape[0] > 4 * nx:
             self.psi_L = safe_cholesky(np.cov(hist, rowvar=False).reshape(nx, nx)) * (2.38 / np.sqrt(nx))
+            if self.by_column:
+                d = self.m.d
+                self.col_L = np.stack([safe_cholesky(np.cov(hist[:, [k, d + k]], rowvar=False)) * (2.38 / np.sqrt(2))
+                                       for k in range(d)])
+        if self.by_column:
+            rate = self.col_window[:, 0] / np.maximum(self.col_window[:, 1], 1)
+            self.col_step += np.clip(rate - TARGET_ACCEPT, -0.2, 0.2) * 2.0
+            self.col_window[:] = 0
         self.scales()
         for key in ("psi", "nc", "nco"):
             w[key][:] = 0
@@ -481,8 +544,8 @@ class _Master:
         # the shards' arrays are (B, C, ...): specimens first
         return [RoundInput(coef=coef_s[s.index], cc=cc_s[s.index], mu=mu[s.index], sd=sd[s.index],
                            u=None if u is None else u[s.index], burning=burning, refit=refit, nc_accept=nc_accept,
-                           nc=None if nc is None else {"kp": nc["kp"], **{key: nc[key][s.index] for key in
-                                                                          ("mu", "sd", "mu_new", "sd_new")}})
+                           nc=None if nc is None else {"kp": nc["kp"], "ref": nc["ref"],
+                                                       **{key: nc[key][s.index] for key in ("mu", "sd", "mu_new", "sd_new")}})
                 for s in shards]
 
 
@@ -549,6 +612,7 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
     master.set_population()
     inputs = None
     nc_accept = None
+    shard_cpu = 0.0
     t_start, t_last = time.perf_counter(), time.perf_counter()
     for r in range(n_rounds):
         burning = r < n_burn
@@ -564,6 +628,7 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
                 for q, part in zip(quad, o.quad):
                     q[s.index] = part
             evals[s.index] += o.evals
+            shard_cpu += o.cpu
             if not burning:
                 for name, a in o.accepted.items():
                     acc_shard.setdefault(name, np.zeros((S, 2)))[s.index] += a
@@ -611,7 +676,8 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
     per_specimen = {name: (a[:, 0] / np.maximum(a[:, 1], 1)).tolist() for name, a in acc_shard.items()}
     return BatchedResult(x=kept_x, y=kept_y, rhat=rhat, ess=ess, acceptance={**acceptance, "per_specimen": per_specimen},
                          evaluations=evals,
-                         timings={"sampling": t1 - t0, "diagnostics": t2 - t1, "total": t2 - t0},
+                         timings={"sampling": t1 - t0, "diagnostics": t2 - t1, "total": t2 - t0,
+                                  "shard_cpu": shard_cpu if client is not None else 0.0},
                          options={"n_chains": C, "n_burn": int(n_burn), "n_keep": int(n_keep), "thin": int(thin),
                                   "psi_steps": int(psi_steps), "pop_rounds": int(pop_rounds),
                                   "shards": len(shards), "workers": "dask" if client is not None else "in-process"})

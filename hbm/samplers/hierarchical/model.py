@@ -456,6 +456,27 @@ class HierarchicalModel:
         const -= 0.5 * d * _LOG2PI
         return np.concatenate([mu * prec, -0.5 * prec], axis=1), const
 
+    def column_terms(self, raw: np.ndarray, SF: np.ndarray, n: int) -> np.ndarray:
+        """Σ over ``n`` samples of log r split by pooled column, (n_ψ, d), for a population without full
+        covariance: column k's coefficients times its two summed features ``SF`` (n_ψ, n_f) plus n times
+        its constant (the per-sample constants are left out).  Their sum over k is coef·SF + n·cconst of
+        :meth:`coefficients`; given the samples the columns' populations are independent, so a sampler
+        can move each (mu_k, sd_k) alone."""
+        raw = np.atleast_2d(raw)
+        d = self.d
+        mu = (raw[:, :d] - self.c) / self.s
+        sd = raw[:, d : 2 * d]
+        sdt = (np.exp(sd) if self.sd_prior == "loguniform" else sd) / self.s
+        prec = 1.0 / sdt**2
+        lnm = np.zeros(mu.shape)
+        t = self._truncated
+        if t.any():
+            a = (self.zlo[t] - self.c[t]) / self.s[t]
+            b = (self.zhi[t] - self.c[t]) / self.s[t]
+            lnm[:, t] = log_norm_mass((a - mu[:, t]) / sdt[:, t], (b - mu[:, t]) / sdt[:, t])
+        const = -0.5 * mu**2 * prec - np.log(sdt) - lnm - 0.5 * _LOG2PI
+        return mu * prec * SF[:, :d] - 0.5 * prec * SF[:, d : 2 * d] + n * const
+
     def log_ratio_stats(
         self, F: np.ndarray, const: np.ndarray, coef: np.ndarray, cconst: np.ndarray, chunk_bytes: float = 4e6
     ) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,7 @@ This module is sampler-layer code: it knows nothing about muscles.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, Sequence
 
@@ -36,11 +37,26 @@ from ..linalg import safe_cholesky
 from ..mixtures import kmeans_mixture
 from .amplitudes import log_mean_exp, modes, particles, pick
 
-__all__ = ["SpecimenBatch", "ShardState", "RoundInput", "RoundOutput", "TARGET_ACCEPT"]
+__all__ = ["SpecimenBatch", "ShardState", "RoundInput", "RoundOutput", "TARGET_ACCEPT", "partial_weights", "partial_map"]
 
 #: random-walk step multipliers (equal probability)
 _SCALES = np.array([0.3, 1.0, 3.0])
 TARGET_ACCEPT = 0.25
+
+
+def partial_weights(prec: np.ndarray, ref: float) -> np.ndarray:
+    """How far each specimen follows a non-centred move of its population (Papaspiliopoulos, Roberts &
+    Sköld 2007): w = 1/(1 + prec·ref²), 1 (non-centred) where the data say nothing about the column, → 0
+    (centred) where they pin it far more than a population of spread ``ref`` does."""
+    return 1.0 / (1.0 + prec * ref * ref)
+
+
+def partial_map(z: np.ndarray, mu, sd, mu_new, sd_new, w) -> tuple[np.ndarray, np.ndarray]:
+    """z' = w·mu' + (sd'/sd)^w·(z − w·mu): the partially non-centred value z̃ = (z − w·mu)/sd^w kept while
+    the population moves; returns z' and log |dz'/dz| = w·log(sd'/sd)."""
+    ratio = sd_new / sd
+    f = ratio**w
+    return w * mu_new + f * (z - w * mu), w * np.log(ratio)
 
 
 class SpecimenBatch(Protocol):
@@ -119,6 +135,7 @@ class RoundOutput:
     evals: np.ndarray
     accepted: dict
     nc: dict | None = None
+    cpu: float = 0.0
 
 
 class ShardState:
@@ -162,6 +179,9 @@ class ShardState:
         self.fit_rngs = [np.random.default_rng(np.random.SeedSequence(s.entropy, spawn_key=tuple(s.spawn_key) + (0,)))
                          for s in seeds]
         self.stage1_v = [np.asarray(r, float)[:, self.vcols] for r in rows]
+        # the stage-1 posterior variance of every pooled column in its transformed coordinate
+        self.stage1_var = {kp: np.array([np.var(features.to_z(kp, np.asarray(r, float)[:, col])[0]) + 1e-12
+                                         for r in rows]) for kp, col in enumerate(features.pool_y)}
         self._proposals(self.stage1_v)
         m = self.m
         self.rw_step = np.full(B, np.log(2.38 / np.sqrt(m)))
@@ -319,6 +339,7 @@ class ShardState:
     # -- a round -----------------------------------------------------------------------------------
     def advance(self, inp: RoundInput) -> RoundOutput:
         """``inp.sweeps`` sweeps of every move given the population ``inp``; returns the shard's state."""
+        cpu0 = time.process_time()
         self.accepted = {}
         ev0 = self.evals.copy()
         if inp.nc_accept is not None and self._nc_pending is not None:
@@ -370,7 +391,7 @@ class ShardState:
             self.F, self.c = self.features(self.y)
         nc = self._noncentred(inp) if inp.nc is not None else None
         return RoundOutput(y=self.y.copy(), ll=self.ll.copy(), quad=quad, F=self.F.copy(), c=self.c.copy(),
-                           evals=self.evals - ev0, accepted=self.accepted, nc=nc)
+                           evals=self.evals - ev0, accepted=self.accepted, nc=nc, cpu=time.process_time() - cpu0)
 
     def _noncentred(self, inp: RoundInput) -> dict:
         """Evaluate a non-centred proposal of nonlinear pooled column ``kp`` (one evaluation per row): its
@@ -380,10 +401,12 @@ class ShardState:
         nc, f = inp.nc, self.features
         kp = int(nc["kp"])
         col = int(f.pool_y[kp])
-        ratio = nc["sd_new"] / nc["sd"]
         x = self.y[..., col]
         z, jac = f.to_z(kp, x)
-        xn = f.from_z(kp, nc["mu_new"] + ratio * (z - nc["mu"]))
+        # partially non-centred: each specimen follows as far as its stage-1 posterior leaves it free
+        w = partial_weights(1.0 / self.stage1_var[kp][:, None], nc["ref"])
+        zn, logjac = partial_map(z, nc["mu"], nc["sd"], nc["mu_new"], nc["sd_new"], w)
+        xn = f.from_z(kp, zn)
         _, jac_new = f.to_z(kp, xn)
         y_new = self.y.copy()
         y_new[..., col] = xn
@@ -407,4 +430,4 @@ class ShardState:
             ok = inside & self.batch.valid(y_new)
             ll = np.where(ok, self.batch.loglik(prep, y_new), -np.inf)
         self._nc_pending = (y_new, prep)
-        return {"y": y_new, "ll": ll, "quad": quad, "logjac": np.log(ratio) + jac - jac_new}
+        return {"y": y_new, "ll": ll, "quad": quad, "logjac": logjac + jac - jac_new}

@@ -1,0 +1,218 @@
+#!/usr/bin/env python
+"""The population layer on synthetic populations of 6, 24 and 96 specimens (issue 37).
+
+``make``: populations like the shipped six — 50 points up to a largest strain of 0.40–0.45, iid noise of
+1 % of the largest stress — whose specimens are drawn from a known population of the layer's own model
+(``--pool combinations``): log G, log c·P1, log (1−c)·T1 and THETA normal (THETA truncated to its box),
+T2 and EOPT logit-normal on their boxes (``TRUTH``), VOLF, P1, T1, GF, GM from the box prior given the
+combinations (:func:`hbm.identifiability.combinations.sample_conditional`).  The specimens of a smaller
+population are the first ones of the larger (one stream per specimen), written with
+:func:`hbm.data.synthetic_specimen` into ``--data/pop<N>/``.
+
+``run``: ``hbm run`` on each population (``--workers``, default all cores; ``--no-figures`` by default:
+96 specimens' corner plots are not what is measured), then from its files: the wall time of the run and
+of each phase (``run.json``), the layer's model evaluations and CPU seconds (master plus the shards'
+workers, ``hierarchical.nc`` attribute ``layer``), R-hat and bulk ESS of every hyper-parameter computed by
+ArviZ from ``hierarchical.nc``, and the coverage of the generating population: each true hyper-parameter
+against the 5–95 % interval of its hyper-posterior.  A run whose specimens are complete refits nothing
+(the layer reruns when its file is removed: ``--layer-only``).
+
+``dask``: the layer of one population (specimens complete) with ``--workers 1`` and ``--workers 2``,
+interleaved ``--repeats`` times: the draws must be bitwise the same, the wall times are compared.
+
+Writes ``results/benchmarks/population_scaling.md`` and ``.json`` (``run``/``dask`` sections).
+
+    OMP_NUM_THREADS=1 python workflows/benchmarks/population_scaling.py make
+    OMP_NUM_THREADS=1 python workflows/benchmarks/population_scaling.py run --sizes 6,24,96
+    OMP_NUM_THREADS=1 python workflows/benchmarks/population_scaling.py dask --size 96
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from hbm import io  # noqa: E402
+from hbm.data import save_specimen, synthetic_specimen  # noqa: E402
+from hbm.identifiability.combinations import COMBINATION_PARAMS, log_density, sample_conditional, support_hull  # noqa: E402
+from hbm.model import spyrou_model  # noqa: E402
+from hbm.model.core import Loading  # noqa: E402
+from hbm.population import COMBINATION_COLUMNS  # noqa: E402
+from hbm.runtime.files import atomic_write_text  # noqa: E402
+
+#: the generating population: (mu, sd) in the layer's coordinates (log for the combinations, logit on the
+#: box for T2 and EOPT, identity for THETA)
+TRUTH = {"log_G": (np.log(0.02), 0.4), "log_VOLF*P1": (np.log(0.05), 0.5), "log_(1-VOLF)*T1": (np.log(0.3), 0.5),
+         "T2": (np.log(12.0 / 188.0), 0.5), "THETA": (58.5, 0.8), "EOPT": (np.log(0.8 / 0.2), 0.5)}
+ENTROPY = 37_2026
+N_POINTS, NOISE_REL = 50, 0.01
+OUT = ROOT / "results" / "benchmarks"
+
+
+def _logistic(z, lo, hi):
+    return lo + (hi - lo) / (1.0 + np.exp(-z))
+
+
+def specimen(k: int, model):
+    """Specimen k of the population (its own stream: the same in every population that has it)."""
+    rng = np.random.default_rng(np.random.SeedSequence(ENTROPY, spawn_key=(k,)))
+    names, box = list(model.parameter_names), model.bounds
+    cb = np.array([box[names.index(p)] for p in COMBINATION_PARAMS])
+    hull = np.log(support_hull(box, names))
+    while True:  # the population truncated to the box and to the support of the combinations
+        phi = np.array([rng.normal(*TRUTH[c]) for c in COMBINATION_COLUMNS])
+        theta_deg = rng.normal(*TRUTH["THETA"])
+        if (np.all((phi >= hull[:, 0]) & (phi <= hull[:, 1])) and 55.0 <= theta_deg <= 60.0
+                and np.isfinite(log_density(phi[None], cb)[0])):
+            break
+    th = dict(zip(COMBINATION_PARAMS, sample_conditional(phi[None], cb, rng)[0]))
+    th.update(T2=_logistic(rng.normal(*TRUTH["T2"]), *box[names.index("T2")]), THETA=theta_deg,
+              EOPT=_logistic(rng.normal(*TRUTH["EOPT"]), *box[names.index("EOPT")]))
+    eps_max = round(float(rng.uniform(0.40, 0.45)), 3)
+    strain = np.round(np.linspace(0.0, eps_max, N_POINTS), 6)
+    sid = f"syn{k:03d}"
+    ds = synthetic_specimen(model, th, Loading(strain), NOISE_REL, int(rng.integers(2**31)), relative=True,
+                            attrs={"id": sid, "provenance": "synthetic",
+                                   "source": "workflows/benchmarks/population_scaling.py (a known population)",
+                                   "parameters": json.dumps({k: float(v) for k, v in th.items()})})
+    ds["stress"].values[:] = np.round(ds["stress"].values, 7)
+    return sid, ds
+
+
+def make(a) -> int:
+    model = spyrou_model()
+    for n in map(int, a.sizes.split(",")):
+        folder = Path(a.data) / f"pop{n}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for k in range(n):
+            sid, ds = specimen(k, model)
+            save_specimen(ds, folder / f"{sid}.csv")
+        print(f"{folder}: {n} specimens")
+    return 0
+
+
+def _hbm(args: list[str], env_extra: dict | None = None) -> tuple[float, float, str]:
+    """Run ``python -m hbm ARGS``; (wall s, CPU s of it and its descendants, stderr tail)."""
+    import resource
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", **(env_extra or {})}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "hbm", *args], capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if out.returncode != 0:
+        raise SystemExit(f"hbm {' '.join(args)} failed:\n{out.stderr[-3000:]}")
+    return wall, (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime), out.stderr[-2000:]
+
+
+def layer_record(out: Path) -> dict:
+    """What the stored files say about the layer: evaluations, CPU, ArviZ R-hat/ESS, coverage."""
+    import arviz as az
+
+    hf = io.read_hierarchical(out / "hierarchical.nc")
+    run = json.loads((out / "run.json").read_text())
+    post = az.from_netcdf(out / "hierarchical.nc").posterior
+    diag = az.summary(post, kind="diagnostics")
+    lay = hf.attrs.get("layer", {})
+    cover = {}
+    for p in hf.attrs.get("pooled", []):
+        for kind, j in (("mu", 0), ("sd", 1)):
+            name = f"{kind}_{p}"
+            if p in TRUTH and name in hf.hyper_names:
+                lo, hi = np.quantile(hf.hyper(name), [0.05, 0.95])
+                cover[name] = {"truth": float(TRUTH[p][j]), "q05": float(lo), "q95": float(hi),
+                               "inside": bool(lo <= TRUTH[p][j] <= hi)}
+    t = run["timings"]
+    return {"specimens": len(hf.specimen_ids), "evaluations": int(hf.evaluations or 0),
+            "layer_cpu_s": float(lay.get("cpu_s", float("nan"))), "layer_wall_s": float(lay.get("wall_s", float("nan"))),
+            "chains": lay.get("chains"), "draws_per_chain": int(hf.hyper_samples.shape[0] // max(hf.chains, 1)),
+            "rhat_max": float(diag["r_hat"].max()), "ess_bulk_min": float(diag["ess_bulk"].min()),
+            "rhat": diag["r_hat"].to_dict(), "ess_bulk": diag["ess_bulk"].to_dict(),
+            "rhat_specimen_max": lay.get("rhat_specimen_max"), "warnings": hf.attrs.get("warnings", []),
+            "coverage": cover, "timings": {k: v for k, v in t.items() if k != "task_times"}}
+
+
+def run(a) -> int:
+    rows = {}
+    for n in map(int, a.sizes.split(",")):
+        data, out = Path(a.data) / f"pop{n}", Path(a.out_runs) / f"pop{n}"
+        if a.layer_only and (out / "hierarchical.nc").exists():
+            (out / "hierarchical.nc").unlink()
+        args = ["run", "--data", str(data), "--out", str(out), "--no-progress", *(["--no-figures"] if not a.figures else [])]
+        if a.workers is not None:
+            args += ["--workers", str(a.workers)]
+        wall, cpu, _ = _hbm(args)
+        rec = layer_record(out)
+        rec.update(run_wall_s=wall, run_cpu_s=cpu, load=os.getloadavg())
+        rows[str(n)] = rec
+        print(f"{n} specimens: run {wall:.0f} s wall, layer {rec['layer_cpu_s']:.1f} CPU s "
+              f"({rec['layer_cpu_s'] / n:.2f} per specimen), {rec['evaluations']:,} evaluations, max R-hat "
+              f"{rec['rhat_max']:.3f}, min ESS {rec['ess_bulk_min']:.0f}, covered "
+              f"{sum(c['inside'] for c in rec['coverage'].values())}/{len(rec['coverage'])}", flush=True)
+    _save("run", rows)
+    return 0
+
+
+def dask(a) -> int:
+    out = Path(a.out_runs) / f"pop{a.size}"
+    data = Path(a.data) / f"pop{a.size}"
+    rows = []
+    for rep in range(a.repeats):
+        for w in (1, 2):
+            (out / "hierarchical.nc").unlink(missing_ok=True)
+            wall, cpu, _ = _hbm(["run", "--data", str(data), "--out", str(out), "--no-progress", "--no-figures",
+                                 "--workers", str(w)])
+            hf = io.read_hierarchical(out / "hierarchical.nc")
+            shutil.copy(out / "hierarchical.nc", out / f"hierarchical_w{w}.nc")
+            t = json.loads((out / "run.json").read_text())["timings"]
+            rows.append({"repeat": rep, "workers": w, "run_wall_s": wall, "layer_wall_s": t.get("hierarchical"),
+                         "dask": hf.attrs.get("layer", {}).get("dask"), "load": os.getloadavg()})
+            print(rows[-1], flush=True)
+        a1, a2 = (io.read_hierarchical(out / f"hierarchical_w{w}.nc") for w in (1, 2))
+        same = (np.array_equal(a1.hyper_samples, a2.hyper_samples) and np.array_equal(a1.updated, a2.updated)
+                and np.array_equal(a1.new_specimen, a2.new_specimen))
+        rows[-1]["bitwise_same_as_workers_1"] = bool(same)
+        print("bitwise identical:", same, flush=True)
+    _save("dask", {"size": a.size, "rows": rows})
+    return 0
+
+
+def _save(key: str, value) -> None:
+    path = OUT / "population_scaling.json"
+    rec = json.loads(path.read_text()) if path.exists() else {}
+    rec[key] = value
+    atomic_write_text(path, json.dumps(rec, indent=1, default=float))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("make", "run", "dask"):
+        p = sub.add_parser(name)
+        p.add_argument("--data", default=os.environ.get("HBM_POPULATION_DATA", "/tmp/hbm_population_scaling/data"))
+        p.add_argument("--out-runs", default=os.environ.get("HBM_POPULATION_RUNS", "/tmp/hbm_population_scaling/runs"))
+        p.add_argument("--sizes", default="6,24,96")
+        p.add_argument("--workers", type=int, default=None)
+        p.add_argument("--figures", action="store_true")
+        p.add_argument("--layer-only", action="store_true")
+        p.add_argument("--size", type=int, default=96)
+        p.add_argument("--repeats", type=int, default=2)
+    a = ap.parse_args(argv)
+    return {"make": make, "run": run, "dask": dask}[a.cmd](a)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
