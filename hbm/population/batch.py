@@ -120,6 +120,17 @@ class SpecimenLikelihoods:
         # the stage-1 columns that are y columns (by name) and a template row for the others
         self.stage1_names = list(first.names)
         self.cols_from_y = [(self.stage1_names.index(nm), j) for j, nm in enumerate(names_y) if nm in self.stage1_names]
+        # the basis' rows: a fixed row with the nonlinear model columns of y (uniform priors: y holds them
+        # in natural units), else the fibre's point of every row
+        self._template = None
+        model_names = list(self.model.parameter_names)
+        nl = [j for j in self.nonlinear_cols if names_y[j] in model_names]
+        if self.amplitude_cols.size and "loguniform" not in first.forms and len(nl) == len(self.nonlinear_cols):
+            self._template = self.model.bounds.mean(axis=1)
+            for name, v in first.fixed.items():
+                self._template[model_names.index(name)] = v
+            self._nl_y = np.array(nl, int)
+            self._nl_model = np.array([model_names.index(names_y[j]) for j in nl], int)
         self._check_batched()
 
     # -- rows of the model ---------------------------------------------------------------------------
@@ -184,13 +195,24 @@ class SpecimenLikelihoods:
                 return
 
     # -- the protocol ----------------------------------------------------------------------------------
+    def _basis_rows(self, y: np.ndarray) -> np.ndarray:
+        """Model rows for the basis at ``y`` (B, C, n_params): the nonlinear columns of y in a fixed row
+        (the basis does not depend on the amplitude parameters; :meth:`check` verifies that the
+        likelihood is the specimens' at their own rows), or the fibre's point when a column is not in
+        natural units."""
+        if self._template is None:
+            return self._model_rows(y)
+        rows = np.broadcast_to(self._template, y.shape[:2] + self._template.shape).copy()
+        rows[..., self._nl_model] = y[..., self._nl_y]
+        return rows
+
     def prepare(self, y: np.ndarray) -> dict:
         """Sufficient statistics at rows ``y`` (B, C, dy): one model evaluation per row."""
-        rows = self._model_rows(y)
         if self.amplitude_cols.size:
+            rows = self._basis_rows(y)
             Xw = self._basis(rows) * self.iw[:, None, :, None]
             return {"G1": np.einsum("bcnk,bcnl->bckl", Xw, Xw), "b1": np.einsum("bcnk,bn->bck", Xw, self.dw)}
-        s = self._stress(rows)
+        s = self._stress(self._model_rows(y))
         if self.scaled:
             r = (self.data[:, None, :] - s) * self.iw[:, None, :]
             return {"d1": np.einsum("bcn,bcn->bc", r, r)}

@@ -111,10 +111,12 @@ class PopulationConfig:
     groups: dict | None = None
     group_by: str | None = None
     exact: str | None = "gibbs"
-    layer_chains: int = 16
+    # the shipped six: 10 chains × (300 + 2000 × 2) rounds, 0.77 M model evaluations, every hyper-parameter's
+    # R-hat ≤ 1.01 and bulk ESS ≥ 400 (results/benchmarks/population_layer.md)
+    layer_chains: int = 10
     layer_burn: int = 300
-    layer_keep: int = 250
-    layer_thin: int = 4
+    layer_keep: int = 2000
+    layer_thin: int = 2
 
     def tmcmc_options(self) -> dict:
         """Keyword arguments of every TMCMC run of the layer: the MH step cap, then ``sampler_options``.

@@ -42,6 +42,8 @@ __all__ = ["SHARD_SIZE", "LayerDraws", "sample_layer"]
 #: most specimens per shard (the shards, hence the draws, depend on the number of specimens only): 96
 #: specimens make four shards, two per worker of a two-worker cluster
 SHARD_SIZE = 24
+#: most updated-individual draws stored per specimen (96 specimens × 4000 draws × 9 columns: 28 MB)
+UPDATED_DRAWS = 4000
 #: R-hat and bulk ESS every hyper-parameter should reach (the run warns otherwise)
 RHAT_TARGET, ESS_TARGET = 1.01, 400.0
 #: R-hat above which a specimen column is reported as not converged
@@ -150,6 +152,7 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
     -------
     LayerDraws
     """
+    c0 = time.process_time()
     ids = sorted(results)
     missing = [sid for sid in ids if datasets is None or sid not in datasets]
     if missing:
@@ -174,19 +177,18 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
                       [np.random.default_rng(seeds.child(s, 2)) for s in spec_seeds])
     n_shards = max(1, math.ceil(S / SHARD_SIZE))
     parts = np.array_split(np.arange(S), n_shards)
-    shards = []
-    for idx in parts:
-        batch = SpecimenLikelihoods([liks[i] for i in idx], coords, amplitude=bool(amp))
-        batch.check([rows[i] for i in idx])
-        shards.append(ShardSpec(batch=batch, rows=[rows[i] for i in idx], init=init[idx], seeds=[spec_seeds[i] for i in idx],
-                                index=idx))
     # the shards go to the workers when there are two of each at least (the draws are the same either way)
     use_dask = client is not None and n_shards >= 2 and _workers(client) >= 2
     mode = (f"amplitudes {', '.join(names_y[j] for j in amp)} moved with the population at no evaluation"
             if amp else f"every model parameter evaluated ({why})")
     _log(f"population layer: joint sampling of the population and {S} specimens, {chains} chains, "
          f"{n_shards} shard(s) {'on dask' if use_dask else 'in this process'}; {mode}", cfg.progress)
-    c0 = time.process_time()
+    shards = []
+    for idx in parts:
+        batch = SpecimenLikelihoods([liks[i] for i in idx], coords, amplitude=bool(amp))
+        batch.check([rows[i] for i in idx])
+        shards.append(ShardSpec(batch=batch, rows=[rows[i] for i in idx], init=init[idx], seeds=[spec_seeds[i] for i in idx],
+                                index=idx))
     res = batched_gibbs(one_population(hm, S), shards, x0, features=features, valid=valid,
                         constraints=shards[0].batch.amplitude_constraints, amp_cols=amp, amp_pool=amp_pool,
                         box=coords.box, seed=root, n_burn=burn, n_keep=keep, thin=thin, client=client if use_dask else None,
@@ -195,7 +197,10 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
     x = res.x.reshape(-1, res.x.shape[-1])
     raw = hm.expand(x)
     rng_out = np.random.default_rng(seeds.child(root, 4))
-    y = res.y.reshape(-1, S, res.y.shape[-1])
+    # the updated individuals: every chain's draws, thinned to at most UPDATED_DRAWS per specimen (the
+    # hyper-parameters keep all: their chains are what R-hat reads)
+    step = max(1, math.ceil(res.y.shape[0] * res.y.shape[1] / UPDATED_DRAWS))
+    y = res.y[:, ::step].reshape(-1, S, res.y.shape[-1])
     updated = {sid: coords.draw_theta(y[:, i], rng_out) for i, sid in enumerate(ids)}
     predictive = draw_population(hm, raw, raw.shape[0], np.random.default_rng(seeds.child(root, 5)))
     info = _summary(res, ids, names_y, hm, chains, cpu, use_dask)

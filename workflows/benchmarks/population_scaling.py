@@ -46,6 +46,7 @@ if str(ROOT) not in sys.path:
 
 from hbm import io  # noqa: E402
 from hbm.data import save_specimen, synthetic_specimen  # noqa: E402
+from hbm.data.plausibility import implausible  # noqa: E402
 from hbm.identifiability.combinations import COMBINATION_PARAMS, log_density, sample_conditional, support_hull  # noqa: E402
 from hbm.model import spyrou_model  # noqa: E402
 from hbm.model.core import Loading  # noqa: E402
@@ -88,6 +89,9 @@ def specimen(k: int, model):
                                    "source": "workflows/benchmarks/population_scaling.py (a known population)",
                                    "parameters": json.dumps({k: float(v) for k, v in th.items()})})
     ds["stress"].values[:] = np.round(ds["stress"].values, 7)
+    if implausible(ds["strain"].values, ds["stress"].values) is not None:
+        # a stiff draw of the population (the loader would take the stress for kPa): its unit is declared
+        ds.attrs["units_stress"] = "MPa"
     return sid, ds
 
 
@@ -158,11 +162,11 @@ def run(a) -> int:
         rec = layer_record(out)
         rec.update(run_wall_s=wall, run_cpu_s=cpu, load=os.getloadavg())
         rows[str(n)] = rec
+        _save("run", rows, merge=True)
         print(f"{n} specimens: run {wall:.0f} s wall, layer {rec['layer_cpu_s']:.1f} CPU s "
               f"({rec['layer_cpu_s'] / n:.2f} per specimen), {rec['evaluations']:,} evaluations, max R-hat "
               f"{rec['rhat_max']:.3f}, min ESS {rec['ess_bulk_min']:.0f}, covered "
               f"{sum(c['inside'] for c in rec['coverage'].values())}/{len(rec['coverage'])}", flush=True)
-    _save("run", rows)
     return 0
 
 
@@ -190,10 +194,10 @@ def dask(a) -> int:
     return 0
 
 
-def _save(key: str, value) -> None:
+def _save(key: str, value, merge: bool = False) -> None:
     path = OUT / "population_scaling.json"
     rec = json.loads(path.read_text()) if path.exists() else {}
-    rec[key] = value
+    rec[key] = {**rec.get(key, {}), **value} if merge else value
     atomic_write_text(path, json.dumps(rec, indent=1, default=float))
 
 

@@ -150,6 +150,12 @@ class _Shards:
                                   pure=False, **kw) for s in specs]
             self.states = [f.result() for f in futs]
 
+    def cpu(self) -> float:
+        """The shards' CPU seconds (on the workers)."""
+        if self.client is None:
+            return sum(s.cpu() for s in self.states)
+        return float(sum(f.result() for f in [s.cpu() for s in self.states]))
+
     def advance(self, inputs: Sequence[RoundInput]) -> list:
         if self.client is None:
             return [s.advance(i) for s, i in zip(self.states, inputs)]
@@ -270,6 +276,7 @@ class _Master:
                                for k in range(d)]) if self.by_column else None
         self.col_window = np.zeros((d, 2))
         self.nco_step = 0.0
+        self._nc_turn = 0
         self.window["nco"] = np.zeros(2)
         self.pending = None
         g = np.asarray(hyper.groups, int)
@@ -503,8 +510,9 @@ class _Master:
             if self.k:
                 self.amplitude_moves()
             self.psi_moves(burning)
-            for j, kp in self.nc_cols:
-                self.noncentred(j, kp, burning)
+            if self.nc_cols:  # one pooled amplitude column per pop round, in turn
+                self.noncentred(*self.nc_cols[self._nc_turn % len(self.nc_cols)], burning)
+                self._nc_turn += 1
         if burning:
             self.history.append(self.x.copy())
 
@@ -552,7 +560,7 @@ class _Master:
 def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray, *, features: Callable,
                   valid: Callable, constraints, amp_cols, amp_pool, box: np.ndarray,
                   seed: np.random.SeedSequence,
-                  n_burn: int = 300, n_keep: int = 250, thin: int = 4, psi_steps: int = 4, pop_rounds: int = 2,
+                  n_burn: int = 300, n_keep: int = 250, thin: int = 4, psi_steps: int = 3, pop_rounds: int = 2,
                   adapt_every: int = 20, client=None, log: Callable[[str], None] | None = None,
                   shard_options: dict | None = None) -> BatchedResult:
     """Sample the joint posterior of the population and the specimens (module docstring).
@@ -612,7 +620,6 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
     master.set_population()
     inputs = None
     nc_accept = None
-    shard_cpu = 0.0
     t_start, t_last = time.perf_counter(), time.perf_counter()
     for r in range(n_rounds):
         burning = r < n_burn
@@ -628,7 +635,6 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
                 for q, part in zip(quad, o.quad):
                     q[s.index] = part
             evals[s.index] += o.evals
-            shard_cpu += o.cpu
             if not burning:
                 for name, a in o.accepted.items():
                     acc_shard.setdefault(name, np.zeros((S, 2)))[s.index] += a
@@ -653,16 +659,19 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
             kept_x[:, j] = master.x
             kept_y[:, j] = np.swapaxes(master.y, 0, 1)
         now = time.perf_counter()
-        if log is not None and (r == 9 or now - t_last > 10.0):
-            per = (now - t_start) / (r + 1)
+        if r == 1:
+            t_start = now  # the first round loads the compiled kernels: the estimate starts after it
+        if log is not None and (r == 11 or (r > 11 and now - t_last > 10.0)):
+            per = (now - t_start) / (r - 1)
             left = per * (n_rounds - r - 1)
-            if r == 9:
+            if r == 11:
                 log(f"population sampler: {S} specimens x {C} chains, {n_rounds} rounds "
                     f"({n_burn} burn-in), about {int(evals.sum() / (r + 1) * n_rounds):,} model evaluations; "
-                    f"estimated {per * n_rounds:.0f} s")
+                    f"estimated {left:.0f} s")
             else:
                 log(f"population sampler: round {r + 1}/{n_rounds}, {left:.0f} s left")
             t_last = now
+    shard_cpu = ex.cpu() if client is not None else 0.0
     t1 = time.perf_counter()
     rhat, ess = {}, {}
     for j, name in enumerate(hyper.names):

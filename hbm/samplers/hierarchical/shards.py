@@ -135,7 +135,6 @@ class RoundOutput:
     evals: np.ndarray
     accepted: dict
     nc: dict | None = None
-    cpu: float = 0.0
 
 
 class ShardState:
@@ -203,6 +202,11 @@ class ShardState:
         self.sweeps_done = 0
         self.history: list = []  # v of every chain during burn-in, for the refits of the proposals
         self._nc_pending = None  # the last non-centred proposal (y, prepared state) until it is decided
+        self._cpu0 = time.process_time()
+
+    def cpu(self) -> float:
+        """CPU seconds of this process since the shard was made (on a dask worker: the shard's own)."""
+        return time.process_time() - self._cpu0
 
     def _proposals(self, rows: Sequence[np.ndarray]) -> None:
         """Each specimen's mixture of v (k-means clusters, padded to a common number of components) and
@@ -339,7 +343,6 @@ class ShardState:
     # -- a round -----------------------------------------------------------------------------------
     def advance(self, inp: RoundInput) -> RoundOutput:
         """``inp.sweeps`` sweeps of every move given the population ``inp``; returns the shard's state."""
-        cpu0 = time.process_time()
         self.accepted = {}
         ev0 = self.evals.copy()
         if inp.nc_accept is not None and self._nc_pending is not None:
@@ -391,7 +394,7 @@ class ShardState:
             self.F, self.c = self.features(self.y)
         nc = self._noncentred(inp) if inp.nc is not None else None
         return RoundOutput(y=self.y.copy(), ll=self.ll.copy(), quad=quad, F=self.F.copy(), c=self.c.copy(),
-                           evals=self.evals - ev0, accepted=self.accepted, nc=nc, cpu=time.process_time() - cpu0)
+                           evals=self.evals - ev0, accepted=self.accepted, nc=nc)
 
     def _noncentred(self, inp: RoundInput) -> dict:
         """Evaluate a non-centred proposal of nonlinear pooled column ``kp`` (one evaluation per row): its
