@@ -111,11 +111,12 @@ class PopulationConfig:
     groups: dict | None = None
     group_by: str | None = None
     exact: str | None = "gibbs"
-    # the shipped six: 10 chains × (300 + 2000 × 2) rounds, 0.77 M model evaluations, every hyper-parameter's
-    # R-hat ≤ 1.01 and bulk ESS ≥ 400 (results/benchmarks/population_layer.md)
-    layer_chains: int = 10
+    # the shipped six: 6 chains × (300 + 3000 × 2) rounds, 0.68 M model evaluations, every hyper-parameter's
+    # R-hat ≤ 1.01 and bulk ESS ≥ 400 (results/benchmarks/population_layer.md): R-hat needs long chains (its
+    # excess is about the autocorrelation time over the chain's length), so few of them
+    layer_chains: int = 6
     layer_burn: int = 300
-    layer_keep: int = 2000
+    layer_keep: int = 3000
     layer_thin: int = 2
 
     def tmcmc_options(self) -> dict:

@@ -139,9 +139,10 @@ def _arviz(path) -> dict:
         import arviz as az
     except ImportError:  # pragma: no cover - a test extra
         return {}
-    diag = az.summary(az.from_netcdf(path).posterior, kind="diagnostics")
-    return {"rhat_max": float(diag["r_hat"].max()), "ess_bulk_min": float(diag["ess_bulk"].min()),
-            "chains": int(az.from_netcdf(path).posterior.sizes["chain"])}
+    post = az.from_netcdf(path).posterior
+    rhat, ess = az.rhat(post), az.ess(post, method="bulk")  # unrounded (az.summary rounds to 2 decimals)
+    return {"rhat_max": float(max(rhat[v] for v in rhat.data_vars)),
+            "ess_bulk_min": float(min(ess[v] for v in ess.data_vars)), "chains": int(post.sizes["chain"])}
 
 
 def peer_spec(results, datasets, hf) -> dict:

@@ -129,7 +129,8 @@ def layer_record(out: Path) -> dict:
     hf = io.read_hierarchical(out / "hierarchical.nc")
     run = json.loads((out / "run.json").read_text())
     post = az.from_netcdf(out / "hierarchical.nc").posterior
-    diag = az.summary(post, kind="diagnostics")
+    rh, es = az.rhat(post), az.ess(post, method="bulk")  # unrounded (az.summary rounds to 2 decimals)
+    diag = {"r_hat": {v: float(rh[v]) for v in rh.data_vars}, "ess_bulk": {v: float(es[v]) for v in es.data_vars}}
     lay = hf.attrs.get("layer", {})
     cover = {}
     for p in hf.attrs.get("pooled", []):
@@ -143,8 +144,8 @@ def layer_record(out: Path) -> dict:
     return {"specimens": len(hf.specimen_ids), "evaluations": int(hf.evaluations or 0),
             "layer_cpu_s": float(lay.get("cpu_s", float("nan"))), "layer_wall_s": float(lay.get("wall_s", float("nan"))),
             "chains": lay.get("chains"), "draws_per_chain": int(hf.hyper_samples.shape[0] // max(hf.chains, 1)),
-            "rhat_max": float(diag["r_hat"].max()), "ess_bulk_min": float(diag["ess_bulk"].min()),
-            "rhat": diag["r_hat"].to_dict(), "ess_bulk": diag["ess_bulk"].to_dict(),
+            "rhat_max": max(diag["r_hat"].values()), "ess_bulk_min": min(diag["ess_bulk"].values()),
+            "rhat": diag["r_hat"], "ess_bulk": diag["ess_bulk"],
             "rhat_specimen_max": lay.get("rhat_specimen_max"), "warnings": hf.attrs.get("warnings", []),
             "coverage": cover, "timings": {k: v for k, v in t.items() if k != "task_times"}}
 
