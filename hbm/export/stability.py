@@ -1,12 +1,13 @@
 """Drucker stability of the energy form in uniaxial, equibiaxial and planar modes.
 
-The 3-D energy of hbm's energy form (incompressible, fibres along x)::
+The 3-D energy of hbm's energy form (incompressible, fibres along x), evaluated by
+:class:`hbm.model.energy3d.Energy3D` with the collagen's cone reading (DESIGN.md §8)::
 
     W = k_iso·G/2·(I1 − 3) + c·P1/2·⟨λf − 1 − EOPT⟩₊² + (1 − c)·⟨W_c(λH(φ))⟩_φ
 
-with λf the fibre stretch and the helical collagen averaged over its azimuth φ around the fibre
-(λH(φ)² = cos²θ·λ1² + sin²θ·(sin²φ·λ2² + cos²φ·λ3²); in uniaxial tension every azimuth has the
-λH of hbm's uniaxial formula).  Each mode is a one-parameter, volume-preserving path with the
+with λf the fibre stretch and the helical collagen averaged exactly over its azimuth φ around the
+fibre (λH(φ)² = cos²θ·λ1² + sin²θ·(cos²φ·λ2² + sin²φ·λ3²); in uniaxial tension every azimuth has
+the λH of hbm's uniaxial formula).  Each mode is a one-parameter, volume-preserving path with the
 fibre direction loaded::
 
     uniaxial     F = diag(λ, λ^−1/2, λ^−1/2)
@@ -25,12 +26,10 @@ from dataclasses import dataclass, asdict
 import numpy as np
 
 from ..errors import HbmError
-from ..model.spyrou import collagen_energy
+from ..model.energy3d import Energy3D, Sym
 from .source import NAMES, median_draw, parse_model_name
 
 MODES = ("uniaxial", "equibiaxial", "planar")
-#: azimuth quadrature of the helix average
-N_AZIMUTH = 24
 #: strain grid points per mode
 N_GRID = 241
 #: relative tolerance on d²w/dλ² (finite-difference noise)
@@ -51,17 +50,9 @@ def _stretches(mode: str, lam: np.ndarray):
 def energy(theta: np.ndarray, k_iso: float, l1, l2, l3) -> np.ndarray:
     """W (MPa) of parameter sets ``theta`` (n, 8) at principal stretches (m,) -> (n, m)."""
     t = np.atleast_2d(np.asarray(theta, float))
-    c, eopt, p1, t1, t2, th, gf, gm = (t[:, i:i + 1] for i in range(8))
-    G = c * gf + (1 - c) * gm
-    i1 = l1 ** 2 + l2 ** 2 + l3 ** 2
-    w = k_iso * G / 2.0 * (i1 - 3.0)
-    w = w + c * p1 / 2.0 * np.maximum(l1 - 1.0 - eopt, 0.0) ** 2
-    phi = (np.arange(N_AZIMUTH) + 0.5) * 2.0 * np.pi / N_AZIMUTH
-    c2 = np.cos(np.deg2rad(th))[..., None] ** 2  # (n, 1, 1)
-    lh = np.sqrt(c2 * (l1 ** 2)[None, :, None] + (1 - c2) * (np.sin(phi) ** 2 * (l2 ** 2)[:, None]
-                                                            + np.cos(phi) ** 2 * (l3 ** 2)[:, None])[None])
-    wc = collagen_energy(lh, t1[..., None], t2[..., None]).mean(axis=-1)
-    return w + (1 - c) * wc
+    p = {name: t[:, i:i + 1] for i, name in enumerate(NAMES)}
+    D = Sym(*(np.asarray(v, float) ** 2 - 1.0 for v in (l1, l2, l3)))
+    return Energy3D(k_iso, "energy", "cone").energy(p, D)
 
 
 @dataclass
