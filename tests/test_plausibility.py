@@ -83,7 +83,11 @@ def test_shipped_and_measured_curves_load_without_warnings():
             ds = load_specimen(f, sl0=2.0 if "smith2011" in f else None)
             assert unit_anomaly(as_data(ds)) is None, f
             lo, hi = PLAUSIBLE_MODULUS
-            assert all(lo <= m[0] <= hi for m in secant_moduli(ds.strain.values, ds.stress.values).values()), f
+            moduli = secant_moduli(ds.strain.values, ds.stress.values)
+            # the peak within the range; the toe never too stiff, but it may be slack (physics, not a
+            # unit: porcine compression along the fibres has a toe secant of 1.4 kPa at 9 % strain)
+            assert lo <= moduli["peak"][0] <= hi, f
+            assert "toe" not in moduli or moduli["toe"][0] <= hi, f
 
 
 def test_parameters_on_opposite_edges_suggest_a_unit_error():
