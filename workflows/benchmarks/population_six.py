@@ -25,6 +25,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -72,6 +73,12 @@ def _diag(path: str) -> dict:
             "ess_bulk_min": float(min(float(es[v]) for v in es.data_vars))}
 
 
+def _checkouts(a) -> list:
+    """(label, code) pairs in the order they run: the other checkout first unless ``--before none``."""
+    after = [("after", ROOT)]
+    return after if a.before == "none" else [("before", Path(a.before).resolve())] + after
+
+
 def _child_cpu() -> float:
     r = resource.getrusage(resource.RUSAGE_CHILDREN)
     return r.ru_utime + r.ru_stime
@@ -80,7 +87,7 @@ def _child_cpu() -> float:
 def layer(a) -> int:
     rows = []
     for rep in range(a.repeats):
-        for label, code in (("before", Path(a.before).resolve()), ("after", ROOT)):
+        for label, code in _checkouts(a):
             with tempfile.TemporaryDirectory() as tmp:
                 env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
                 c0 = _child_cpu()
@@ -100,21 +107,25 @@ def layer(a) -> int:
 def run(a) -> int:
     rows = []
     for rep in range(a.repeats):
-        for label, code in (("before", Path(a.before).resolve()), ("after", ROOT)):
+        for label, code in _checkouts(a):
             with tempfile.TemporaryDirectory() as tmp:
                 env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
                 args = [sys.executable, "-m", "hbm", "run", "--out", tmp, "--no-progress",
                         "--data", str(ROOT / "data" / "specimens")]
                 if a.geometry:
                     args += ["--geometry", str(ROOT / a.geometry)]
-                t = time.perf_counter()
+                t, c0 = time.perf_counter(), _child_cpu()
                 p = subprocess.run(args, capture_output=True, text=True, env=env, cwd=str(code))
                 wall = time.perf_counter() - t
                 if p.returncode != 0:
                     raise SystemExit(f"{label} failed:\n{p.stderr[-3000:]}")
                 timings = json.loads((Path(tmp) / "run.json").read_text())["timings"]
-                rec = {"label": label, "repeat": rep, "wall_s": wall, "load": os.getloadavg(),
-                       **{k: v for k, v in timings.items() if k != "task_times"}, **_diag(str(Path(tmp) / "hierarchical.nc"))}
+                # CPU of hbm run and every process it waited for (the embedded cluster's workers included)
+                rec = {"label": label, "repeat": rep, "wall_s": wall, "process_cpu_s": _child_cpu() - c0,
+                       "load": os.getloadavg(), **{k: v for k, v in timings.items() if k != "task_times"},
+                       **_diag(str(Path(tmp) / "hierarchical.nc"))}
+                if a.keep:  # the stage-1 results, for the ``layer`` subcommand
+                    shutil.copytree(Path(tmp) / "specimens", Path(a.keep) / f"{label}{rep}", dirs_exist_ok=True)
             rows.append(rec)
             print(json.dumps(rec), flush=True)
     _save("run", rows)
@@ -133,10 +144,11 @@ def main(argv=None) -> int:
     for name in ("layer", "run"):
         p = sub.add_parser(name)
         p.add_argument("--before", default=os.environ.get("HBM_BEFORE", str(ROOT.parent / "before")),
-                       help="checkout to compare with (default $HBM_BEFORE or ../before)")
+                       help="checkout to compare with (default $HBM_BEFORE or ../before; 'none': this checkout only)")
         p.add_argument("--specimens", default="hbm-results/specimens", help="stage-1 results of the six (layer)")
         p.add_argument("--repeats", type=int, default=2)
         p.add_argument("--geometry", default=None, help="e.g. data/geometry/fusiform.toml (run)")
+        p.add_argument("--keep", default=None, help="copy each run's specimens/ to KEEP/<label><repeat> (run)")
     a = ap.parse_args(argv)
     return {"layer": layer, "run": run}[a.cmd](a)
 
