@@ -92,7 +92,8 @@ def layer(a) -> int:
                 env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
                 c0 = _child_cpu()
                 p = subprocess.run([sys.executable, "-c", _LAYER, str(Path(a.specimens).resolve()),
-                                    str(ROOT / "data" / "specimens"), tmp], capture_output=True, text=True, env=env)
+                                    str(ROOT / "data" / "specimens"), tmp], capture_output=True, text=True, env=env,
+                                   cwd=str(code))  # python -c puts the cwd first on sys.path
                 if p.returncode != 0:
                     raise SystemExit(f"{label} failed:\n{p.stderr[-3000:]}")
                 rec = json.loads(p.stdout.strip().splitlines()[-1])

@@ -29,7 +29,7 @@ This package is sampler-layer code: it knows nothing about muscles.
 
 from .diagnostics import reuse_diagnostics, reuse_unreliable
 from .grouped import (
-    GroupedModel, GroupedResult, group_differences, grouped_hierarchical, truncnorm_ppf, variance_split)
+    GroupedModel, GroupedResult, group_differences, grouped_hierarchical, variance_split)
 from ..convergence import rhat_ess
 from .batched import BatchedResult, HyperLevel, PooledFeatures, ShardSpec, batched_gibbs, one_population
 from .model import TRANSFORMS, HierarchicalModel, draw_population, kernel_bandwidth
@@ -37,14 +37,14 @@ from .pooling import PoolChoice, auto_pool, prior_sd_transformed
 from ..psis import K_HAT_THRESHOLD, pareto_khat
 from .refine import refine_individual
 from .result import HierarchicalResult
-from .reuse import ESTIMATORS, defensive_log_weights, mixture_log_weights
+from .reuse import ESTIMATORS
 from .two_level import hierarchical
 
 __all__ = [
     "HierarchicalResult", "HierarchicalModel", "hierarchical", "refine_individual",
     "kernel_bandwidth", "auto_pool", "PoolChoice", "prior_sd_transformed", "TRANSFORMS", "ESTIMATORS",
-    "reuse_diagnostics", "reuse_unreliable", "defensive_log_weights", "mixture_log_weights", "draw_population",
-    "GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences", "variance_split", "truncnorm_ppf",
+    "reuse_diagnostics", "reuse_unreliable", "draw_population",
+    "GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences", "variance_split",
     "BatchedResult", "HyperLevel", "PooledFeatures", "ShardSpec", "batched_gibbs", "one_population", "rhat_ess",
     "K_HAT_THRESHOLD", "pareto_khat",
 ]
