@@ -44,13 +44,16 @@ except ImportError:                  # pragma: no cover - Windows
 
 from ..runtime import seeds as _seeds
 from ..errors import HbmError, HbmWarning
-from ..runtime.validation import check_workers, usable_cores
+from ..settings.fields import renamed_keyword
+from ..settings.rules import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
 from ..model.core import Effect
 from ..likelihood.noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
-from .decision import Verdict, decide, gain
+from .decision import Verdict, decide, gain, shape_preferred
 from .fitting import FitInterrupted, Fitter, noise_evidence
+from .calibration import (
+    Calibration, CalibrationSetting, calibrate, calibrated_check, calibration_record, calibration_setting)
 from .budget import cost_estimate, revised_estimate, stop_record, stop_reserve
 from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_caveats, white_noise_view
 from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
@@ -59,7 +62,7 @@ from .power import detection_power
 from .refits import refit_candidates, run_in_workers
 from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
-from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
+from .rules import CALIBRATION_REPLICATES, DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
 from .screen import local_refit_screen, score_screen, screen_candidates
 
 __all__ = ["diagnose", "extend", "place_as_diagnosed", "Diagnosis", "Extension", "CandidateResult", "FitSummary",
@@ -114,11 +117,12 @@ class _Step:
     controls: list
     skipped: dict
     verdict: Verdict
+    calibration: Calibration | None = None
 
 
 def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, noises: list[str], top: int,
-           seed: int, timings: dict) -> _Step:
-    """Where it fails, what is missing, the decision -- at the current model ``base``."""
+           seed: int, timings: dict, calib: CalibrationSetting | None = None, k: int = 0) -> _Step:
+    """Where it fails, what is missing, the decision -- at the current model ``base`` (round ``k``)."""
     with _stopwatch(timings, "windows"):
         check = check_noise(base, mf, d, seed)
     with _stopwatch(timings, "screen"):
@@ -127,6 +131,17 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
         done = refit_candidates(results, ctrls, base, fitter, noises, top, seed)
         # the windows at the best base found, and what each refit leaves
         check = check_noise(base, mf, d, seed)
+    cal = None
+    if calib is not None:
+        with _stopwatch(timings, "calibration"):
+            # every statistic of the verdict against its null on this file (before windows_after:
+            # the windows a refit leaves are scanned at the calibrated threshold too)
+            cal = calibrate(base, check, [c.effect_instance for c in results], d, calib.seed, k, calib.replicates,
+                            run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
+            check = calibrated_check(check, cal, base, d)
+        fitter.log(f"calibration: {cal.replicates} null replicates in {cal.seconds:.1f} s"
+                   f"{' (cached)' if cal.cached else ''}; smallest family-wise p {cal.p_family:.3g}")
+    with _stopwatch(timings, "refits"):
         for c in done:
             c.windows_after = len(check.remaining_windows(c.fit, d))
             if not c.physical:
@@ -134,8 +149,8 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
                 c.region = c.effect_instance.region(x, d)
                 c.shape_detail = c.effect_instance.describe(x)
     check.noise["preference"] = _noise_preference(base, ctrls)
-    verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d)
-    return _Step(base, check, results, ctrls, skipped, verdict)
+    verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d, cal)
+    return _Step(base, check, results, ctrls, skipped, verdict, cal)
 
 
 def _ar1_absorbs_misfit(step: _Step) -> str | None:
@@ -175,15 +190,15 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
-             correlated: str = "auto", max_time: float | None = None, likelihood: str = "full",
-             workers: int | None = None) -> Diagnosis:
+             correlated: str = "auto", max_time: float | None = None, tier: str = "full",
+             workers: int | None = None, likelihood: str | None = None, calibration: str = "on",
+             replicates: int = CALIBRATION_REPLICATES) -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
     ----------
-    data : xarray.Dataset or path
-        Specimen with ``strain``, ``stress`` and optional ``time``/``test`` (see
-        :func:`hbm.data.load_specimen`).
+    data : Specimen, xarray.Dataset or path
+        The specimen (:func:`hbm.data.load_specimen`; a Dataset is converted once, a path loaded).
     model : None, str, list or Model
         Current model: ``None``/``"base"`` for the Spyrou model, ``"offset,damage"`` for the
         base model plus effects, or any :class:`hbm.Model`.
@@ -191,7 +206,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Effects to screen: ids, ``"path.py:ClassName"`` strings, or :class:`hbm.Effect`
         instances (user-written effects need no edit of hbm).
     fix : dict, optional
-        Parameters held fixed, e.g. ``{"EOPT": 0.1}``.
+        Parameters held fixed, ``{name: value}`` (e.g. EOPT at 0.1 for the Spyrou base).
     seed : int
         Seed of every random step (CMA-ES, TMCMC, window calibration).
     n_samples : int
@@ -227,8 +242,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Wall seconds after which no new fit is started (a fit under way finishes): the verdict
         so far is returned with ``stopped`` saying what was left undecided and why.  ``None``:
         no limit (the command line's default is 300 s).
-    likelihood : {"full", "auto", "collapsed"}
-        Tier of every evidence run (:meth:`.fitting.Fitter.collapsed`); default "full" (every
+    tier : {"full", "auto", "collapsed"}
+        Likelihood tier of every evidence run (:meth:`.fitting.Fitter.collapsed`; ``likelihood=`` is
+        its older, deprecated name); default "full" (every
         fit in full space).  Not yet "auto": a collapsible candidate's converged evidence against
         a non-collapsible competitor's under-mixed full-space one tilts their comparison (library
         case mullins_3: damage 13.0 vs viscoelastic 12.2 gave "group" where "full" names damage;
@@ -243,6 +259,15 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     workers : int, optional
         Processes the candidate refits of a round run in (default: the usable cores; 1: all in
         this process).  The results do not depend on it (each refit has its own seed).
+    calibration : {"on", "off"}
+        "on" (default): every statistic of the verdict (the largest window score, each generic
+        shape's and each candidate's likelihood gain at its optimum, the noise disagreement) is
+        judged against its own null -- ``replicates`` simulations of the fitted model with its
+        fitted noise on this file's design -- at family-wise 5 % (:mod:`.calibration`; the
+        report gives each with its calibrated p-value).  "off": the fixed thresholds of
+        :mod:`.rules` (10 nats for a shape alone, 5 for a named effect, windows at 5 % each).
+    replicates : int
+        Null replicates of each greedy round (Monte-Carlo resolution 1/(replicates + 1)).
 
     Returns
     -------
@@ -261,8 +286,10 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     workers = usable_cores() if workers is None else check_workers(workers, "workers") or 1
+    tier = renamed_keyword(tier, likelihood, "diagnose", "likelihood", "tier")
+    calib = calibration_setting(calibration, replicates, seed)
     # no more processes than a round has refits (+ the base's rerun): the rest would sit idle
-    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, likelihood,
+    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, tier,
                     min(workers, max(0, int(top)) + N_CONTROL_REFITS + 1))
     if max_time is not None:
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
@@ -285,7 +312,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
             rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
         else:
             def run_round(cur, rem, k):
-                return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
+                return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings, calib, k)
             rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
             white = rejected = (_ar1_absorbs_misfit(rounds[0])
                      if noise is None and base.noise == "ar1" and any(n != "ar1" for n in noises) else None)
@@ -314,6 +341,11 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 rounds[0].check.noise["preference"] = "; ".join(
                     [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
         verdict = _final_verdict(rounds, selected)
+        if verdict.verdict == "adequate" and rejected and "prefer white noise" in rejected:
+            # never "adequate" beside a caveat that the data prefer a misfit shape to AR(1) noise
+            last = rounds[-1]
+            verdict = shape_preferred(last.controls, last.check.windows, d, rejected, last.calibration)
+            rounds[-1].verdict = verdict
         first = rounds[0]
         edges_found = _base_at_bounds(first.base, d.name)
         extra = {}
@@ -355,7 +387,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 try:
                     extra["power"] = detection_power(
                         first.base, d, cands, _seed(seed, 91), noise_fit=current,
-                        run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
+                        run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0],
+                        calibration=first.calibration)
                 except FitInterrupted:
                     fitter.skip("the detection-power estimate (--power)", "interrupted at --max-time: no detection "
                                 "limits")
@@ -376,7 +409,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                         window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
                         residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
                         unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
-                        data_problem=problem, named_candidates=_named(rounds, selected), **extra)
+                        data_problem=problem, named_candidates=_named(rounds, selected),
+                        calibration=calibration_record([(r.base, r.calibration) for r in rounds], calib is not None), **extra)
     # the refit workers' CPU, counted once they have exited
     out.timings["cpu"] += _children_cpu() - kids
     return out
@@ -543,7 +577,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            top: int = 3, progress: bool = False, max_steps: int = 4,
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
            max_evaluations: int | None = None, correlated: str = "auto",
-           max_time: float | None = None, likelihood: str = "full", workers: int | None = None) -> Extension:
+           max_time: float | None = None, tier: str = "full", workers: int | None = None,
+           likelihood: str | None = None) -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     One noise-model choice for the whole table, so that its Δlog Z are those of
@@ -558,7 +593,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
 
     Parameters
     ----------
-    data : xarray.Dataset or path
+    data : Specimen, xarray.Dataset or path
         The specimen.
     add : sequence
         Effects to add in this order (ids, ``"path.py:ClassName"`` or Effect instances).
@@ -566,8 +601,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, likelihood, workers
-        As in :func:`diagnose`.
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, tier, workers
+        As in :func:`diagnose` (``likelihood=``: the tier's older, deprecated name).
 
     Returns
     -------
@@ -586,7 +621,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     mf = model_free_noise(d.stress, d.segment)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
-    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, likelihood)
+    tier = renamed_keyword(tier, likelihood, "extend", "likelihood", "tier")
+    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, tier)
     steps: list[FitSummary] = []
     decisions: list = []
     notes: list[str] = []
@@ -623,7 +659,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
                       noise=noise, max_effects=max_steps - len(adds), removal=False,
                       max_evaluations=max_evaluations, correlated=correlated, max_time=max_time,
-                      likelihood=likelihood, workers=workers)
+                      tier=tier, workers=workers)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         # the diagnosis's own fits: the same model as the last given step, fitted (and its noise

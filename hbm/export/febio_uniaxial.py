@@ -15,6 +15,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from . import verify
+from .modes import SCOPE_ALONG
 from ._xml import provenance_lines, sub, to_text, vec
 from .laws import BULK_FACTOR
 from .registry import Written
@@ -27,9 +28,7 @@ VALID = ("homogeneous uniaxial tension/compression along the fibres within the t
 
 def card(src) -> tuple[float, np.ndarray, np.ndarray]:
     """(c1, stretch, fibre stress) of the card: the tabulated stress is hbm's minus the matrix's."""
-    p = src.params()
-    c = p["VOLF"]
-    c1 = src.k_iso * (c * p["GF"] + (1 - c) * p["GM"]) / 2.0
+    c1 = src.k_iso * src.constituents().shear_modulus / 2.0
     strain, stress = src.table()
     lam = 1.0 + strain
     return c1, lam, stress - 2.0 * c1 * (lam ** 2 - 1.0 / lam)
@@ -75,4 +74,4 @@ def write(src) -> Written:
     lines = provenance_lines(src, DESCRIPTION, VALID, [chk])
     lines.append(f"bulk modulus k = {BULK_FACTOR:g} x initial shear modulus (near-incompressible penalty)")
     return Written(text=to_text(build(src), lines), checks=[chk],
-                   card={"c1": card(src)[0], "smax": 1.0, "points": int(src.table()[0].size)})
+                   card={"c1": card(src)[0], "smax": 1.0, "points": int(src.table()[0].size)}, scope=SCOPE_ALONG)
