@@ -20,11 +20,17 @@ against the 5–95 % interval of its hyper-posterior.  A run whose specimens are
 ``dask``: the layer of one population (specimens complete) with ``--workers 1`` and ``--workers 2``,
 interleaved ``--repeats`` times: the draws must be bitwise the same, the wall times are compared.
 
-Writes ``results/benchmarks/population_scaling.md`` and ``.json`` (``run``/``dask`` sections).
+``layer``: the layer alone on ``pop<size>`` (``run_population`` with the run's settings): the stage-1 results of
+``--from-run`` where complete, TMCMC fits without CMA-ES and Sobol otherwise (cached in ``<runs>/stage1``); with
+``--workers 1,2`` each in turn on an embedded dask cluster, the draws compared bitwise.
+
+Writes ``results/benchmarks/population_scaling.json`` (``run``/``dask``/``layer`` sections); the findings are in
+``results/benchmarks/population_layer.md``.
 
     OMP_NUM_THREADS=1 python workflows/benchmarks/population_scaling.py make
     OMP_NUM_THREADS=1 python workflows/benchmarks/population_scaling.py run --sizes 6,24,96
     OMP_NUM_THREADS=1 python workflows/benchmarks/population_scaling.py dask --size 96
+    OMP_NUM_THREADS=1 python workflows/benchmarks/population_scaling.py layer --size 26 --workers 1,2 --from-run RUN
 """
 
 from __future__ import annotations
