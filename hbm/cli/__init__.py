@@ -24,11 +24,10 @@ import signal
 import sys
 import threading
 import warnings
+from typing import Sequence
 
 from .._version import __version__
 from ..errors import HbmError, HbmWarning, SettingError
-from typing import Sequence
-
 from ._parser import HbmArgumentParser
 
 #: the subcommands in the order shown by ``hbm --help``: name -> (module of hbm.cli that registers

@@ -9,7 +9,8 @@ checkout's own code runs), interleaved per repeat so both checkouts see the same
   empty folder so the default output ``hbm-results/specimens/muscle_benchmark.nc`` and its figure are new
 * ``hbm summary`` of that fit's result (each checkout reads the file its own fit wrote)
 
-Wall seconds (median, min and max over ``--repeats``, at least 5) and CPU seconds of the child process
+After one untimed warm-up round (numba compiles into a fresh checkout's cache once), wall seconds
+(median, min and max over ``--repeats``, at least 5) and CPU seconds of the child process
 (user + system, ``resource.getrusage``) -- use the CPU column when the machine is shared.  The 1-minute
 load average is sampled before every run; the report says "quiet" only if it stayed below
 ``--quiet-load`` (default 0.5), otherwise which wall numbers were taken under load.
@@ -83,8 +84,9 @@ def timed(tree: Path, argv: list[str], cwd: Path) -> dict:
 
 
 def run(trees: dict[str, Path], bench: Path, repeats: int) -> list[dict]:
+    """Repeat -1 is an untimed warm-up (numba's on-disk cache of a fresh checkout, the OS file cache)."""
     rows = []
-    for rep in range(repeats):
+    for rep in range(-1, repeats):
         # alternate which checkout goes first, so neither always runs right after the other's cache warm-up
         order = list(trees) if rep % 2 == 0 else list(reversed(trees))
         works = {name: Path(tempfile.mkdtemp(prefix=f"latency-{name}-")) for name in trees}
@@ -92,6 +94,8 @@ def run(trees: dict[str, Path], bench: Path, repeats: int) -> list[dict]:
             for command in COMMANDS:
                 for name in order:
                     row = timed(trees[name], argv_of(command, bench, works[name]), works[name])
+                    if rep < 0:
+                        continue
                     rows.append({"tree": name, "command": command, "repeat": rep, **row})
                     print(f"{rep} {command:10s} {name:8s} wall {row['wall']:6.2f} s  cpu {row['cpu']:6.2f} s  "
                           f"load {row['load1']}", file=sys.stderr)
