@@ -126,10 +126,11 @@ def test_extend_add_guards_against_ar1_absorbing_a_misfit():
     assert plain.step_gain(1)["delta_log_evidence"] > forced.step_gain(1)["delta_log_evidence"] + 3
 
 
-def test_refits_in_worker_processes_match_the_serial_ones():
+def test_refits_in_worker_processes_match_the_serial_ones(monkeypatch):
     """The candidate refits of a round run in forked worker processes: every number of the
     diagnosis is the serial one, bitwise (each refit has its own seed), and a user effect
-    class crosses to the workers."""
+    class crosses to the workers.  Both calibrations are computed (no cache)."""
+    monkeypatch.setenv("HBM_CACHE_DIR", "off")
     ds = _offset_curve(7, n=30)
     kw = dict(seed=2, n_samples=200, candidates=["offset", _SlowOffsetFast()], removal=False, noise="iid",
               max_effects=1)
@@ -168,7 +169,8 @@ class _DiesInWorkers(_SlowOffsetFast):
         return stress + p["DIE_S0"]
 
 
-def test_a_dead_refit_worker_does_not_lose_the_diagnosis():
+def test_a_dead_refit_worker_does_not_lose_the_diagnosis(monkeypatch):
+    monkeypatch.setenv("HBM_CACHE_DIR", "off")  # both calibrations computed (no cache)
     ds = _offset_curve(7, n=30)
     kw = dict(seed=2, n_samples=200, candidates=["offset", _DiesInWorkers()], removal=False, noise="iid",
               max_effects=1)
