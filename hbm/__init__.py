@@ -14,7 +14,8 @@ The main entry points, by role:
 from __future__ import annotations
 
 from ._version import __version__
-from .runtime.process import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
+# first: in the `hbm` command, Ctrl-C while it imports is one line, exit 130 (until hbm.cli.main takes over)
+from .runtime import process as _process  # noqa: F401
 from . import errors
 from .errors import DataError, HbmError, HbmWarning, OutputError, OutputLockedError, SettingError, TooLargeError
 from .runtime.lazy import attach as _attach
@@ -41,7 +42,6 @@ __getattr__, __dir__ = _attach(__name__, {
 }, submodules=["cli", "data", "detective", "effects", "export", "fit", "identifiability", "io", "likelihood", "model",
                "organ", "plots", "population", "runtime", "samplers", "settings", "workflow"])
 
-_restore_sigint()
 
 __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "spyrou_model",
            "load_specimen", "load_specimens", "save_specimen", "synthetic_specimen",

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -108,3 +109,16 @@ def test_lazy_names_are_the_defining_modules_objects():
     from hbm.fit.specimen import fit_specimen
     from hbm.samplers.tmcmc import tmcmc
     assert hbm.fit_specimen is fit_specimen and hbm.tmcmc is tmcmc and hbm.fit.fit_specimen is fit_specimen
+
+
+def test_ctrl_c_guard_lasts_until_main_takes_over():
+    """In the command's process the import guard (one line, exit 130) covers ``import hbm`` and
+    ``import hbm.cli`` without a gap -- the heavy imports now run inside ``main`` -- and ``main`` ends it."""
+    code = ("import signal, sys\nsys.argv[0] = 'hbm'  # what the console script's process looks like\n"
+            "import hbm, hbm.cli\nguarded = signal.getsignal(signal.SIGINT) is not signal.default_int_handler\n"
+            "try:\n    hbm.cli.main(['--version'])\nexcept SystemExit:\n    pass\n"
+            "print(guarded, signal.getsignal(signal.SIGINT) is signal.default_int_handler)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)), preexec_fn=lambda: signal.signal(
+                             signal.SIGINT, signal.SIG_DFL))
+    assert res.stdout.split()[-2:] == ["True", "True"], (res.stdout, res.stderr)

@@ -28,6 +28,7 @@ from typing import Sequence
 
 from .._version import __version__
 from ..errors import HbmError, HbmWarning, SettingError
+from ..runtime.process import restore_sigint
 from ._parser import HbmArgumentParser
 
 #: the subcommands in the order shown by ``hbm --help``: name -> (module of hbm.cli that registers
@@ -132,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None and threading.current_thread() is threading.main_thread():  # the command's own process
         atexit.register(_ignore_late_interrupt)  # runs after the atexit handlers registered during the run
     try:
+        if threading.current_thread() is threading.main_thread():
+            restore_sigint()  # the import guard of hbm.runtime.process ends: from here Ctrl-C is handled below
         return _main(argv)
     except KeyboardInterrupt as exc:  # Ctrl-C in the last moment: while an error or the ending is handled
         print("hbm: interrupted", file=sys.stderr)
