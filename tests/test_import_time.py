@@ -112,8 +112,9 @@ def test_lazy_names_are_the_defining_modules_objects():
 
 
 def test_ctrl_c_guard_lasts_until_main_takes_over():
-    """In the command's process the import guard (one line, exit 130) covers ``import hbm`` and
-    ``import hbm.cli`` without a gap -- the heavy imports now run inside ``main`` -- and ``main`` ends it."""
+    """In the command's process the import guard (one line, exit 130) covers ``import hbm``, ``import
+    hbm.cli`` and -- inside ``main`` -- the invoked command's imports, without a gap; ``main`` then ends it.
+    (A Ctrl-C that interrupts an import as KeyboardInterrupt could end the process by SIGINT, exit -2.)"""
     code = ("import signal, sys\nsys.argv[0] = 'hbm'  # what the console script's process looks like\n"
             "import hbm, hbm.cli\nguarded = signal.getsignal(signal.SIGINT) is not signal.default_int_handler\n"
             "try:\n    hbm.cli.main(['--version'])\nexcept SystemExit:\n    pass\n"

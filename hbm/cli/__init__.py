@@ -133,8 +133,6 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None and threading.current_thread() is threading.main_thread():  # the command's own process
         atexit.register(_ignore_late_interrupt)  # runs after the atexit handlers registered during the run
     try:
-        if threading.current_thread() is threading.main_thread():
-            restore_sigint()  # the import guard of hbm.runtime.process ends: from here Ctrl-C is handled below
         return _main(argv)
     except KeyboardInterrupt as exc:  # Ctrl-C in the last moment: while an error or the ending is handled
         print("hbm: interrupted", file=sys.stderr)
@@ -159,7 +157,11 @@ def _main(argv: list[str] | None) -> int:
     previous_show = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        parser = build_parser(words)
+        parser = build_parser(words)  # imports the invoked command's module: still under the import guard
+        if in_main_thread:
+            # the import guard of hbm.runtime.process ends here, after the command's imports (a Ctrl-C that
+            # interrupts an import as KeyboardInterrupt can end the process by SIGINT although caught)
+            restore_sigint()
         args = parser.parse_args(argv)
         if not getattr(args, "func", None):
             raise SettingError(f"expected a command ({', '.join(args.commands)}); see hbm --help")
