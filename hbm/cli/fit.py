@@ -7,12 +7,13 @@ import contextlib
 import warnings
 from pathlib import Path
 
+from .. import plots  # hbm.plots.fit (matplotlib) loads when a figure is drawn
 from ..errors import HbmWarning
 from ..export.stability import fit_line as stability_line
 from ..fit.specimen import fit_specimen, format_at_bounds
 from ..io.identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
-from ..workflow.run import DEFAULT_OUT
+from ..settings import DEFAULT_OUT
 from ..data.plausibility import edges_suggest_units
 from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ..settings import FitSettings, add_arguments
@@ -123,8 +124,7 @@ def _figure(res, data, figure) -> None:
     if units is not None:
         warnings.warn(f"{res.result.specimen_id}: {units}", HbmWarning, stacklevel=1)
     if figure is not None:
-        from ..plots.fit import fit_plot  # matplotlib is heavy: only when a figure is drawn
-        fit_plot(res, data, path=figure)
+        plots.fit.fit_plot(res, data, path=figure)
 
 
 def _print(args, res, figure) -> int:

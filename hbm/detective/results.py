@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import plots  # plots.diagnose (matplotlib) loads when a figure is drawn
 from ..fit.specimen import format_at_bounds
 from ..model.core import Effect, Model
 from .rules import BAND, DELTA_LOGZ_MIN, TMCMC_SE_FACTOR
@@ -451,9 +452,8 @@ class Extension:
 
 def _figures():
     """:mod:`hbm.plots.diagnose`, imported when a figure is drawn."""
-    # matplotlib is heavy and optional: the detective itself never needs it
-    import hbm.plots.diagnose as figures
-    return figures
+    # matplotlib is heavy and optional: the detective itself never needs it (hbm.plots is lazy)
+    return plots.diagnose
 
 
 def _num(x):
