@@ -21,6 +21,8 @@ from typing import Any, Callable, Iterable, Mapping, NamedTuple, Sequence
 import numpy as np
 
 from ..data import load_specimen
+from ..data.prepare import REDUCE_CHOICES
+from ..data.reduction import DENSE_POINTS
 from ..effects import resolve_effect
 from ..errors import DataError, HbmError, HbmWarning, OutputError, SettingError
 from ..io.identity import changed
@@ -329,6 +331,17 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
                              "(strain = SL/SL0 - 1; a file's '# reference_sarcomere_length_um:' line must agree)")
 
 
+def add_record_arguments(parser: argparse.ArgumentParser) -> None:
+    """--reduce and --drop-artefacts: what a fit does to a raw record first (:mod:`hbm.data.prepare`)."""
+    parser.add_argument("--reduce", choices=list(REDUCE_CHOICES), default=None,
+                        help=f"auto (default): a record above {DENSE_POINTS} rows is fitted as bin means of its "
+                             "readings, each with its variance (the cost of its information, not of its sampling "
+                             "rate; said in the first output line); off: every row")
+    parser.add_argument("--drop-artefacts", dest="artefacts", action="store_const", const="drop", default=None,
+                        help="drop the rows the artefact screen flags (pre-test readings, spikes, dropouts, dips "
+                             "during holds, post-failure tails; listed by 'hbm data check'), recorded in the result")
+
+
 def add_form_argument(parser: argparse.ArgumentParser) -> None:
     """--form thesis|energy: the collagen form of the Spyrou model."""
     parser.add_argument("--form", choices=list(FORMS), default="thesis",
@@ -558,6 +571,6 @@ __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positiv
            "sample_size", "seed", "workers", "power_of_two", "power_of_two_or_zero", "real", "finite_float",
            "positive_float",
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
-           "add_seed", "add_fix", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
+           "add_seed", "add_fix", "add_model_arguments", "add_record_arguments", "check_names", "check_fix_bounds", "free_parameters",
            "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",
            "check_sobol_memory", "check_replaceable", "print_json", "format_table", "format_bytes"]

@@ -14,7 +14,8 @@ from ..errors import SettingError
 from ..model import spyrou_model
 from ..runtime.files import prepare_output_file
 from ._common import (
-    n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
+    n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_record_arguments,
+    add_seed,
     check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points, name_list,
     non_negative_int, plot_path, positive_float, print_json, sample_size, workers)
 
@@ -36,8 +37,11 @@ Compare the model with a specimen, show where it fails and name the missing effe
    time), refits the best, re-optimises the base from every refit (gains against the best base);
 4. verdict: effect (Δlog Z > 5, explains the misfit like the best control and beats it;
    greedy: several effects, in order) | group (with the experiment that separates them) |
-   unexplained (misfit in ε or t ∈ [a, b], with its shape) | data_problem | adequate (only
-   without any sign of misfit).  --power adds the detection limit of every library effect.
+   unexplained (misfit in ε or t ∈ [a, b], with its shape) | data_problem (a unit, or rows
+   that are not the tissue: the artefact screen names them before any fit; --drop-artefacts
+   drops them, --noise student_t keeps them in a robust fit) | adequate (only without any sign
+   of misfit).  --power adds the detection limit of every library effect.  A record above
+   1000 rows is diagnosed as bin means of its readings (--reduce off: every row).
 
 examples:
   hbm diagnose data/specimens/calvo_1.csv
@@ -65,6 +69,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     add_fix(p, "EOPT=0.12")
     add_form_argument(p)
     add_data_arguments(p)
+    add_record_arguments(p)
     add_seed(p, "seed of every random step (default 0)")
     p.add_argument("--samples", type=sample_size, default=None, metavar="N",
                    help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; use fewer for slow models)")
@@ -157,7 +162,8 @@ def _prepare(args, extra: list[str]):
         prepare_output_file(args.plot, "--plot")
     kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,
           "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
-          "likelihood": args.likelihood, "workers": args.workers}
+          "likelihood": args.likelihood, "workers": args.workers, "reduce": args.reduce or "auto",
+          "artefacts": args.artefacts or "flag"}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:
@@ -193,6 +199,7 @@ def run_diagnose(args) -> int:
     dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, **kw)
     if args.plot:
         dg.plot(args.plot)
+    ds = dg.data.ds          # the record as diagnosed (a dense one reduced, artefact rows dropped on request)
     if args.json:
         print_json({**dg.to_dict(), "input": input_summary(ds)})
     else:
@@ -212,6 +219,7 @@ def run_extend(args) -> int:
     ext = extend(ds, add=adds, auto=args.auto, **kw)
     if args.plot:
         ext.plot(args.plot)
+    ds = ext.data.ds          # the record as fitted
     if args.json:
         print_json({**ext.to_dict(), "input": input_summary(ds)})
     else:

@@ -14,10 +14,12 @@ from ..io.identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
 from ..workflow.run import DEFAULT_OUT
 from ..data.plausibility import edges_suggest_units
+from ..data.prepare import prepare_record
 from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ._common import NOISE_CHOICES, add_likelihood, n_noise_parameters
 from ._common import (
-    check_replaceable, add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model,
+    check_replaceable, add_max_evaluations, check_max_evaluations, add_model_arguments, add_record_arguments,
+    add_seed, build_model,
     build_prior, plot_path, print_json, check_population_memory, check_sobol_memory, free_parameters,
     load_specimen_arg, n_points, non_negative_int, positive_int, power_of_two_or_zero, sample_size, sweep,
     value_range)
@@ -50,6 +52,7 @@ def register(subparsers) -> None:
                    help="noise model (default iid Gaussian with unknown sigma)")
     p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
     add_model_arguments(p)
+    add_record_arguments(p)
     add_likelihood(p, ("auto", "collapsed", "full"))
     p.add_argument("--restarts", type=non_negative_int, default=4, metavar="K",
                    help="CMA-ES restarts (0 = skip; default 4)")
@@ -81,7 +84,10 @@ def run(args: argparse.Namespace) -> int:
     """Check settings, sizes and paths, then fit and print the summary."""
     model, fix, bounds = build_model(args)
     prior = build_prior(model, args)
-    data = load_specimen_arg(args.specimen, args.sl0, model)
+    # the record as fitted (a dense one reduced, artefact rows dropped on request): the figure and the
+    # quality lines compare the fit with it
+    data = prepare_record(load_specimen_arg(args.specimen, args.sl0, model), reduce=args.reduce or "auto",
+                          artefacts=args.artefacts or "flag").data
     points = n_points(data)
     check_population_memory(f"--samples {args.samples}", args.samples, points,
                             model.n_params + n_noise_parameters(args.noise))
@@ -100,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
                "sobol_n": args.sobol or None, "optimize_options": {"maxfevals": args.maxfevals},
                "sigma_bounds": args.sigma_bounds,
                "max_evaluations": check_max_evaluations(args.max_evaluations, args.samples),
-               "likelihood": args.likelihood}
+               "likelihood": args.likelihood, "reduce": args.reduce, "artefacts": args.artefacts}
     # the content key of this fit (data, model, settings): keys its checkpoint and is stored with the result
     key, parts = fit_key(data, model, options)
     with contextlib.ExitStack() as held:

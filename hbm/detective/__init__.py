@@ -46,6 +46,7 @@ from ..runtime import seeds as _seeds
 from ..errors import HbmError, HbmWarning
 from ..runtime.validation import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
+from ..effects import applicable
 from ..model.core import Effect
 from ..likelihood.noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
@@ -53,9 +54,11 @@ from .decision import Verdict, decide, gain
 from .fitting import FitInterrupted, Fitter, noise_evidence
 from .budget import cost_estimate, revised_estimate, stop_record, stop_reserve
 from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_caveats, white_noise_view
-from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
+from .inputs import added_effects, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
 from .noise_check import NoiseCheck, check_noise, misfit_windows, model_free_noise, noise_prior_box
 from .power import detection_power
+from .records import artefact_caveats, artefact_problem, record_dict, record_noise
+from .records import prepare as prepare_record
 from .refits import refit_candidates, run_in_workers
 from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
@@ -122,7 +125,9 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
     with _stopwatch(timings, "windows"):
         check = check_noise(base, mf, d, seed)
     with _stopwatch(timings, "screen"):
-        results, ctrls, skipped = screen_candidates(base, cands, check, d, fitter.log)
+        # (a further relaxation time is a candidate only once the model relaxes: effects' ``requires``)
+        results, ctrls, skipped = screen_candidates(base, [e for e in cands if applicable(e, base.model)], check, d,
+                                                    fitter.log)
     with _stopwatch(timings, "refits"):
         done = refit_candidates(results, ctrls, base, fitter, noises, top, seed)
         # the windows at the best base found, and what each refit leaves
@@ -176,7 +181,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
              correlated: str = "auto", max_time: float | None = None, likelihood: str = "full",
-             workers: int | None = None) -> Diagnosis:
+             workers: int | None = None, reduce: str = "auto", artefacts: str = "flag") -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
@@ -243,6 +248,14 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     workers : int, optional
         Processes the candidate refits of a round run in (default: the usable cores; 1: all in
         this process).  The results do not depend on it (each refit has its own seed).
+    reduce : {"auto", "off"}
+        A record above :data:`hbm.data.reduction.DENSE_POINTS` rows is diagnosed as bin means of
+        its readings, each with its variance ("auto"), or row by row ("off").
+    artefacts : {"flag", "drop"}
+        Rows the artefact screen flags (:mod:`hbm.data.artefacts`) give the verdict
+        ``"data_problem"`` naming them and the fix ("flag"; under a robust noise model such as
+        ``noise="student_t"`` they are kept and named in a caveat), or are dropped first with a
+        record in the result ("drop"); :mod:`.records`.
 
     Returns
     -------
@@ -250,12 +263,12 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     """
     t_start, cpu_start = _time.perf_counter(), _time.process_time()
     timings: dict[str, float] = {}
-    d = as_data(data)
+    d, prep, record_notes = prepare_record(data, reduce, artefacts)
     base_model = resolve_model(model)
     cands = resolve_candidates(candidates, base_model)
     fix = _checked_fix(fix, base_model.parameter_names)
     noises = _noise_models(noise, noise_models)
-    mf = model_free_noise(d.stress, d.segment)
+    mf = record_noise(d)
     digitised = digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress)
     noises = correlated_noises(noises, noise, correlated, digitised)
     if sigma_bounds is None:
@@ -268,14 +281,16 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
     kids = _children_cpu()
     with fitter:             # (its worker processes stop at the end, also on an error)
-        timings["estimate"] = cost_estimate(base_model, cands, fitter, noises, top, max_effects)
-        fitter.log(timings["estimate"]["text"])
+        timings["estimate"] = cost_estimate(base_model, [e for e in cands if applicable(e, base_model)], fitter,
+                                            noises, top, max_effects)
+        for line in record_notes + [timings["estimate"]["text"]]:
+            fitter.log(line)
 
         with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
             base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
         fitter.log(revised_estimate(timings["estimate"], timings["base_fit"]))
         fitter.interruptible = True      # from here a fit running past the deadline stops at its next batch
-        problem = unit_anomaly(d)
+        problem = unit_anomaly(d) or artefact_problem(prep, noise)
         rounds: list[_Step] = []
         selected: list[str] = []
         current = base
@@ -332,6 +347,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 resid=last.check.resid, d=d, white=view, digitised=digitised, correlated=correlated,
                 ar1_rejected=rejected if problem is None and noise is None else None,
                 removal=extra.get("removal", []), at_bounds=edges_found, verdict=verdict.verdict)
+            extra["caveats"] += artefact_caveats(prep, noise)
             verdict = replace(verdict, message=verdict.message + caveat_line(extra["caveats"]))
         if fitter.undecided:
             extra["stopped"] = stop_record(fitter, max_time, t_start)
@@ -376,7 +392,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                         window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
                         residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
                         unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
-                        data_problem=problem, named_candidates=_named(rounds, selected), **extra)
+                        data_problem=problem, named_candidates=_named(rounds, selected), record=record_dict(prep),
+                        **extra)
     # the refit workers' CPU, counted once they have exited
     out.timings["cpu"] += _children_cpu() - kids
     return out
@@ -543,7 +560,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            top: int = 3, progress: bool = False, max_steps: int = 4,
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
            max_evaluations: int | None = None, correlated: str = "auto",
-           max_time: float | None = None, likelihood: str = "full", workers: int | None = None) -> Extension:
+           max_time: float | None = None, likelihood: str = "full", workers: int | None = None,
+           reduce: str = "auto", artefacts: str = "flag") -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     One noise-model choice for the whole table, so that its Δlog Z are those of
@@ -566,8 +584,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, likelihood, workers
-        As in :func:`diagnose`.
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, likelihood, workers, reduce, artefacts
+        As in :func:`diagnose` (artefact rows flagged and kept are named in ``notes``).
 
     Returns
     -------
@@ -576,25 +594,28 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         log-evidence ± SE and predictive coverage.
     """
     t_start = _time.perf_counter()
-    d = as_data(data)
+    d, prep, record_notes = prepare_record(data, reduce, artefacts)
     current = resolve_model(model)
     fix = dict(fix or {})
     adds = _effects_to_add(add)
     noise_models = _noise_models(noise, noise_models)
     if not adds and not auto:
         raise HbmError("extend: give effects to add (--add EFFECT[,EFFECT...]) or auto=True (--auto)")
-    mf = model_free_noise(d.stress, d.segment)
+    mf = record_noise(d)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
     fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, likelihood)
     steps: list[FitSummary] = []
     decisions: list = []
-    notes: list[str] = []
+    notes: list[str] = record_notes + [c["text"] for c in artefact_caveats(prep, noise)]
     if adds:
         steps.append(fitter.fit(current, list(noise_models), None, _seed(seed, 0), global_restarts=2))
         for k, e in enumerate(adds):               # the given effects, in order
             if e.name in current.effect_names:
                 raise HbmError(f"extend: effect {e.name!r} is already in the model {current.effect_names}")
+            if not applicable(e, current):
+                raise HbmError(f"extend: effect {e.name!r} goes beside {', '.join(getattr(e, 'requires', ()))}: add "
+                               "that first (e.g. --add viscoelastic,viscoelastic_2)")
             mc = current.with_effects(e)
             starts = fitter.warm_starts(steps[-1], mc, noise_models, [{q.name: q.null for q in e.parameters}])
             steps.append(fitter.fit(mc, list(noise_models), starts, _seed(seed, 1 + k)))
@@ -623,7 +644,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
                       noise=noise, max_effects=max_steps - len(adds), removal=False,
                       max_evaluations=max_evaluations, correlated=correlated, max_time=max_time,
-                      likelihood=likelihood, workers=workers)
+                      likelihood=likelihood, workers=workers, artefacts=artefacts)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         # the diagnosis's own fits: the same model as the last given step, fitted (and its noise

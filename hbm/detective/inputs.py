@@ -34,6 +34,8 @@ class SpecimenData:
     ar_first: np.ndarray         # True where the likelihood's AR(1) noise restarts (history starts)
     loading: Loading
     name: str
+    #: a reduced dense record: the readings' worth of each bin mean (hbm.data.reduction), else None
+    counts: np.ndarray | None = None
 
 
 def as_data(data) -> SpecimenData:
@@ -65,8 +67,9 @@ def as_data(data) -> SpecimenData:
     starts |= loading.history_starts
     segment = np.cumsum(starts) - 1
     attrs = getattr(data, "attrs", {}) or {}
+    counts = np.asarray(data["count"], float).ravel() if "count" in names else None
     return SpecimenData(data, strain, stress, time, test, segment, loading.history_starts.copy(), loading,
-                        str(attrs.get("id", "specimen")))
+                        str(attrs.get("id", "specimen")), counts)
 
 
 def unit_anomaly(d: SpecimenData) -> str | None:

@@ -239,6 +239,9 @@ class Diagnosis:
     #: the candidate result of each named effect, in order, each from the round that named it
     #: (``hbm extend --auto`` tabulates their fits and gains)
     named_candidates: list = field(default_factory=list, repr=False)
+    #: what was done to the record before the diagnosis: artefact rows flagged or dropped, a dense
+    #: record reduced (:func:`hbm.detective.records.record_dict`); None for a record taken as it is
+    record: dict | None = None
 
     @property
     def named_fits(self) -> list:
@@ -274,6 +277,7 @@ class Diagnosis:
             "caveats": jsonable([{k: v for k, v in c.items()} for c in self.caveats]),
             "stopped": jsonable(self.stopped),
             "power": jsonable({k: v for k, v in self.power.items() if k != "text"}) if self.power else None,
+            **({"record": jsonable(self.record)} if self.record else {}),
         }
 
     def to_json(self) -> str:

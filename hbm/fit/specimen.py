@@ -28,11 +28,13 @@ import numpy as np
 from .sensitivity import sobol as _sobol
 from .._version import __version__
 from ..data import input_line, input_summary
+from ..data.prepare import prepare_record
 from ..errors import HbmError, HbmWarning
 from ..runtime import seeds
 from ..io import SpecimenResult, json_default, write_specimen_result
 from ..likelihood.collapsed import choose_tier, fit_collapsed
 from ..likelihood.core import make_likelihood
+from ..likelihood.noise import get_noise
 from ..model import COMBINATIONS, spyrou_model
 from ..model.spyrou import PHYSICAL_RANGE
 from ..likelihood.prior import Prior, PriorError, load_prior
@@ -294,6 +296,19 @@ def check_data_size(sid: str, lik, samples: int, max_evaluations: int | None = N
                       "--max-evaluations caps the cost", HbmWarning, stacklevel=2)
 
 
+def prepared_record(data, sid: str, noise: str, reduce: str | None, artefacts: str | None):
+    """The record a fit uses (:func:`hbm.data.prepare.prepare_record`): a dense one reduced, artefact
+    rows dropped on request; rows flagged and kept are named in one :class:`~hbm.errors.HbmWarning`."""
+    prep = prepare_record(data, reduce=reduce or "auto", artefacts=artefacts or "flag")
+    if prep.artefacts:
+        keep = (f"kept: the {noise} noise is heavy-tailed and down-weights them" if get_noise(noise).robust else
+                "kept, and they pull the fit: drop them with --drop-artefacts (artefacts='drop'; recorded in the "
+                "result) or fit robustly with --noise student_t")
+        warnings.warn(f"{sid}: rows that are not the tissue: {prep.artefact_text()}; {keep}", HbmWarning,
+                      stacklevel=3)
+    return prep.data
+
+
 def _specimen_id(data) -> str:
     return str(getattr(data, "attrs", {}).get("id", "specimen"))
 
@@ -309,7 +324,8 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
                  config_extra: Mapping[str, Any] | None = None,
                  on_phase: Callable[[str], None] | None = None,
                  prior: Prior | str | os.PathLike | Mapping | None = None,
-                 max_evaluations: int | None = None, likelihood: str = "auto") -> FitResult:
+                 max_evaluations: int | None = None, likelihood: str = "auto", reduce: str | None = None,
+                 artefacts: str | None = None) -> FitResult:
     """CMA-ES optima, TMCMC posterior, posterior predictive and (optionally) Sobol for one specimen.
 
     Parameters
@@ -375,6 +391,13 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         today's sampler over all parameters.  The tier and why are stored in
         ``config["likelihood_tier"]`` and ``config["likelihood_note"]``; evaluation counts
         count basis evaluations as model evaluations.
+    reduce : {"auto", "off"}, optional
+        A record above :data:`hbm.data.reduction.DENSE_POINTS` rows is fitted as bin means of its
+        readings ("auto", the default; :mod:`hbm.data.reduction`), or row by row ("off").
+    artefacts : {"flag", "drop"}, optional
+        Rows the artefact screen flags (:mod:`hbm.data.artefacts`) are named in an
+        :class:`~hbm.errors.HbmWarning` and kept ("flag", the default), or dropped with a record
+        in the result ("drop").
 
     Returns
     -------
@@ -391,6 +414,7 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     seed = check_seed(seed)  # the rules of the command line's --seed and --bounds
     check_physical_bounds(bounds, PHYSICAL_RANGE)
     sid = _specimen_id(data)
+    data = prepared_record(data, sid, noise, reduce, artefacts)
     prior = load_prior(prior)
     lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)
     check_data_size(sid, lik, samples, max_evaluations)
@@ -467,6 +491,9 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
               "n_evaluations": int(n_evaluations), "n_stages": len(tr.stages),
               "likelihood_tier": "full" if collapsed is None else "collapsed", "likelihood_note": tier_note,
               "source_file": str(data.attrs.get("source_file", ""))}
+    for key, value in (("reduce", reduce), ("artefacts", artefacts)):
+        if value is not None:     # (an unset option leaves the result as it was before the option existed)
+            config[key] = value
     converted = input_summary(data)
     if converted:  # the numbers rest on these conversions: keep them with the result
         config["input"] = converted

@@ -39,6 +39,7 @@ import numpy as np
 from ..errors import DataError, HbmError
 from ..model.core import Loading, Model
 from ..model.spyrou import compression_check, model_form
+from .binned import BinnedNoise
 from .noise import NoiseModel, eq120_weights, get_noise, noise_model_names
 from .prior import Prior, PriorError, load_prior
 
@@ -129,6 +130,9 @@ class Likelihood:
         if not np.all(self.weights > 0):
             raise DataError(f"{label}: stress is identically zero; the weights of eq. 1.20 are undefined")
         self.noise_model: NoiseModel = noise_cls(observed=stress, history_starts=self.loading.history_starts)
+        if "count" in getattr(data, "data_vars", ()):
+            # a reduced dense record: each point is a bin mean of ``count`` readings (hbm.data.reduction)
+            self.noise_model = BinnedNoise(self.noise_model, np.asarray(data["count"], dtype=float))
 
         names = model.parameter_names
         box = model.bounds.copy()

@@ -86,6 +86,8 @@ class NoiseModel:
         Names of the noise parameters, in column order of ``q`` (class attribute).
     needs_model_stress : bool
         Whether :meth:`sd` depends on the model stress (class attribute).
+    robust : bool
+        Heavy-tailed, so robust to artefact rows (class attribute; :mod:`hbm.likelihood.student_t`).
     observed : ndarray or None
     history_starts : ndarray of bool
     n_points : int
@@ -94,6 +96,8 @@ class NoiseModel:
     name: ClassVar[str] = ""
     names: ClassVar[tuple[str, ...]] = ()
     needs_model_stress: ClassVar[bool] = False
+    #: heavy-tailed: a fit with it is robust to artefact rows (they are kept, and down-weighted)
+    robust: ClassVar[bool] = False
 
     def __init__(self, *, observed=None, history_starts=None) -> None:
         if observed is None and history_starts is None:
@@ -178,6 +182,13 @@ class NoiseModel:
     def variance(self, q, model_stress: np.ndarray | None = None) -> np.ndarray:
         """Marginal variance per point (n, n_points) (default ``sd²``)."""
         return self.sd(q, model_stress) ** 2
+
+    def effective_sd(self, q, residual, model_stress: np.ndarray | None = None) -> np.ndarray:
+        """The sd of the Gaussian whose weight a point gets at this residual (n, n_points): the
+        marginal sd for a Gaussian model; a robust model (:attr:`robust`) gives an outlying point a
+        larger one (its iteratively-reweighted-least-squares weight), so that what whitens residuals
+        with it (the detective's windows and screens) is robust too."""
+        return self.sd(q, model_stress)
 
     def autocorrelation(self, q, lag) -> np.ndarray:
         """Correlation of the noise at points ``lag`` apart within one history (standardised).
