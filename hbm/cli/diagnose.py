@@ -9,7 +9,7 @@ from ..likelihood.collapsed import TIERS
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
 from ..detective.caveats import CORRELATED_CHOICES
-from ..effects import resolve_effect
+from ..effects import applicable, resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..runtime.files import prepare_output_file
@@ -147,12 +147,18 @@ def _prepare(args, extra: list[str]):
     base = spyrou_model(form=args.form)
     model = base.with_effects(*effects) if effects else base
     have = set(model.effect_names)
+    grown = model
     for spec in extra:
-        name = resolve_effect(spec).name
+        effect = resolve_effect(spec)
+        name = effect.name
         if name in have:
             raise SettingError(f"--add {spec}: effect {name!r} is already in the model "
                                f"({', '.join(model.effect_names)}); expected a new effect")
+        if not applicable(effect, grown):
+            raise SettingError(f"--add {spec}: effect {name!r} goes beside {', '.join(effect.requires)}; expected "
+                               "it after that in the list (e.g. --add viscoelastic,viscoelastic_2)")
         have.add(name)
+        grown = grown.with_effects(effect)
     check_fix_bounds(model, dict(args.fix), {})
     ds = load_specimen_arg(args.specimen, args.sl0, model)
     samples = args.samples or DEFAULT_SAMPLES

@@ -119,9 +119,9 @@ def _cross_section(name: str, attrs, meta_line, column: str, where: str) -> tupl
                         "'# area_mm2: <mm2>' (or '# diameter_mm: <mm>' of a cylinder, or '# width_mm:' and "
                         "'# thickness_mm:')")
     if len(ways) > 1:
-        lines = ", ".join(f"line {meta_line[k]}" for k in ("area_mm2", "diameter_mm", "width_mm", "thickness_mm")
-                          if k in attrs)
-        raise DataError(f"{name}: {lines}: the cross-section is given {len(ways)} ways ({', '.join(ways)}), "
+        lines = ", ".join(str(n) for n in sorted(meta_line[k] for k in ("area_mm2", "diameter_mm", "width_mm",
+                                                                          "thickness_mm") if k in attrs))
+        raise DataError(f"{name}: lines {lines}: the cross-section is given {len(ways)} ways ({', '.join(ways)}), "
                         "expected one of '# area_mm2:', '# diameter_mm:', or '# width_mm:' and '# thickness_mm:'")
     if rect:
         missing = [k for k in ("width_mm", "thickness_mm") if k not in attrs]
@@ -203,7 +203,7 @@ def convert_machine(name: str, attrs: Mapping[str, str], meta_line: Mapping[str,
                             "compression the specimen's height)")
         l0 = _positive(name, attrs, meta_line, "gauge_length_mm")
         unit = length[1]
-        raw["deformation"] = sign * raw["deformation"] * LENGTH_UNITS[unit] / l0
+        raw["deformation"] = sign * raw["deformation"] * LENGTH_UNITS[unit] / l0 + 0.0  # (+ 0.0: no -0.0)
         scale = "" if unit == "mm" else " x 0.001 mm/um"
         steps.append(f"strain = {minus}{column}{scale} / gauge_length_mm {attrs['gauge_length_mm'].strip()}{flip}")
     if force is not None:

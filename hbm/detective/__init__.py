@@ -601,6 +601,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     noise_models = _noise_models(noise, noise_models)
     if not adds and not auto:
         raise HbmError("extend: give effects to add (--add EFFECT[,EFFECT...]) or auto=True (--auto)")
+    _check_order(current, adds)
     mf = record_noise(d)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
@@ -613,9 +614,6 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         for k, e in enumerate(adds):               # the given effects, in order
             if e.name in current.effect_names:
                 raise HbmError(f"extend: effect {e.name!r} is already in the model {current.effect_names}")
-            if not applicable(e, current):
-                raise HbmError(f"extend: effect {e.name!r} goes beside {', '.join(getattr(e, 'requires', ()))}: add "
-                               "that first (e.g. --add viscoelastic,viscoelastic_2)")
             mc = current.with_effects(e)
             starts = fitter.warm_starts(steps[-1], mc, noise_models, [{q.name: q.null for q in e.parameters}])
             steps.append(fitter.fit(mc, list(noise_models), starts, _seed(seed, 1 + k)))
@@ -671,6 +669,15 @@ def place_as_diagnosed(model, name: str, moves: Mapping[str, str]):
         if old != name and old in model.effect_names:
             model = model.replacing(old, resolve_effect(new))
     return model, moves.get(name, name)
+
+
+def _check_order(model, adds: Sequence[Effect]) -> None:
+    """Every effect to add goes beside what it needs, in the given order (before any fit)."""
+    for e in adds:
+        if e.name not in model.effect_names and not applicable(e, model):
+            raise HbmError(f"extend: effect {e.name!r} goes beside {', '.join(getattr(e, 'requires', ()))}: add "
+                           "that first (e.g. --add viscoelastic,viscoelastic_2)")
+        model = model.with_effects(e) if e.name not in model.effect_names else model
 
 
 def _effects_to_add(add) -> list[Effect]:
