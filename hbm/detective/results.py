@@ -303,7 +303,9 @@ class Diagnosis:
         else:
             lines.append("misfit windows: none")
         lines.append("")
-        lines.append("Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
+        lines.append("Δlog Z: Laplace difference against the best base (a dense record: narrow, Gaussian posteriors, "
+                     "no sampling SE); intervals: Laplace posterior 95 %" if b.tier == "laplace" else
+                     "Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
                      "(Laplace: the screen's estimate); intervals: TMCMC posterior 95 %")
         lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ ± SE':>15}"
                      f"{'Laplace':>9}{'RMSE before':>12}{'after':>11}  noise  interval of new parameter")

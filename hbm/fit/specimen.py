@@ -291,9 +291,10 @@ def check_data_size(sid: str, lik, samples: int, max_evaluations: int | None = N
         evaluations = min(evaluations, int(max_evaluations))
     if per_row * evaluations > 120.0:
         warnings.warn(f"{sid}: {n} points: one evaluation costs {1e3 * per_row:.2g} ms, the TMCMC fit about "
-                      f"{per_row * evaluations / 60:.0f} min (~{evaluations:.2g} evaluations); neighbouring points "
-                      "of a dense record are rarely independent: thin the curve or use the ar1 noise, and "
-                      "--max-evaluations caps the cost", HbmWarning, stacklevel=2)
+                      f"{per_row * evaluations / 60:.0f} min (~{evaluations:.2g} evaluations); a dense record is "
+                      "fitted as bin means of its readings unless --reduce off (hbm.data.reduction), neighbouring "
+                      "points are rarely independent (the ar1 noise), and --max-evaluations caps the cost",
+                      HbmWarning, stacklevel=2)
 
 
 def prepared_record(data, sid: str, noise: str, reduce: str | None, artefacts: str | None):
