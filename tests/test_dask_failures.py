@@ -17,6 +17,9 @@ from hbm.errors import HbmError
 from hbm.runtime.parallel import ALLOWED_FAILURES, map_specimens
 from test_writers import toy_csv
 
+sys.path.insert(0, str(Path(__file__).resolve().parent / "data"))
+from kill_effect import KILL_STRAIN  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -53,11 +56,15 @@ def test_a_worker_killed_three_times_fails_its_specimen_within_a_minute(tmp_path
     data.mkdir()
     toy_csv(data / "s1.csv", "s1")
     toy_csv(data / "s2.csv", "s2", 1.1)
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "HBM_TEST_KILL_WORKER": "s1"}
+    # s1 reaches the strain at which the test effect kills the worker that fits it
+    s1 = (data / "s1.csv").read_text().replace("0.420000,", f"{KILL_STRAIN:.6f},")
+    (data / "s1.csv").write_text(s1)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     t = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "hbm", "run", "--data", str(data), "--out", str(tmp_path / "out"),
                         "--samples", "40", "--restarts", "0", "--sweep", "none", "--no-sobol", "--no-hierarchical",
-                        "--no-figures", "--workers", "2", "--no-progress"],
+                        "--no-figures", "--workers", "2", "--no-progress",
+                        "--effect", f"{ROOT / 'tests' / 'data' / 'kill_effect.py'}:KillWorker"],
                        capture_output=True, text=True, env=env, timeout=120)
     wall = time.perf_counter() - t
     errors = [ln for ln in p.stderr.splitlines() if ln.startswith("hbm: error:")]

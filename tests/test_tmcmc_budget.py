@@ -24,15 +24,15 @@ def _capture(*args, **kwargs):
     raise Captured(kwargs)
 
 
-def test_fit_passes_the_budget(monkeypatch):
+def test_fit_passes_the_budget(monkeypatch, tmp_path):
     monkeypatch.setenv("HBM_DEBUG", "1")
     monkeypatch.setattr(cli_fit, "fit_specimen", _capture)
     with pytest.raises(Captured) as exc:
         cli.main(["fit", SPECIMEN, "--samples", "500", "--max-evaluations", "40000", "--no-plot",
-                  "--out", "/tmp/hbm-test-budget-never-written.nc"])
+                  "--out", str(tmp_path / "never-written.nc")])
     assert exc.value.args[0]["max_evaluations"] == 40000
     with pytest.raises(Captured) as exc:
-        cli.main(["fit", SPECIMEN, "--no-plot", "--out", "/tmp/hbm-test-budget-never-written.nc"])
+        cli.main(["fit", SPECIMEN, "--no-plot", "--out", str(tmp_path / "never-written.nc")])
     assert exc.value.args[0]["max_evaluations"] is None
 
 

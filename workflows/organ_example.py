@@ -11,7 +11,7 @@ Calvo-1-like values of DESIGN.md §1, with a few percent scatter), the other par
 
 Run::
 
-    PYTHONPATH=/work/main python workflows/organ_example.py [--samples 2000] [--forces 200]
+    python workflows/organ_example.py [--samples 2000] [--forces 200]
         [--sections 64] [--seed 1] [--out results/organ_example]
 
 With ``--out`` a JSON summary (timings, bands at a few force levels) is written atomically.

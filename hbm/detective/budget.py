@@ -19,7 +19,7 @@ import numpy as np
 from ..model.core import Effect, Model
 from .fitting import Fitter
 from .rules import (
-    COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES, N_CONTROL_REFITS, TMCMC_MAX_STEPS)
+    COLLAPSED_ROUTE, N_CONTROL_REFITS, TMCMC_MAX_STEPS)
 
 __all__ = ["cost_estimate", "revised_estimate", "stop_record", "stop_reserve", "fit_evaluations",
            "collapsed_evaluations"]
@@ -48,7 +48,8 @@ _COLLAPSED_STAGES = 8
 def collapsed_evaluations(n_samples: int) -> int:
     """Evaluations (rows of the collapsed likelihood) of one collapsed evidence run whose
     importance finish is accepted: the small TMCMC run, the finish, the completion."""
-    return int(COLLAPSED_SAMPLES * COLLAPSED_MAX_STEPS * _COLLAPSED_STAGES + COLLAPSED_IMPORTANCE_DRAWS + n_samples)
+    r = COLLAPSED_ROUTE
+    return int(r.pilot_samples * r.pilot_steps * _COLLAPSED_STAGES + r.importance_draws + n_samples)
 
 
 def _fit_seconds(fitter: Fitter, model: Model, noise: str, n_noises: int) -> float:

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..data.reduction import DENSE_POINTS
 from ..runtime.blas import one_blas_thread
-from ..likelihood.collapsed import TIERS, CollapsedLikelihood, choose_tier, fit_collapsed, sample_collapsed
+from ..likelihood.collapsed import TIERS, CollapsedLikelihood, choose_tier, fit_collapsed
 from ..errors import HbmError, SettingError
 from ..likelihood.core import make_likelihood
 from ..model.core import Model
@@ -27,8 +27,7 @@ from .dense import laplace_fit, polish
 from .inputs import SpecimenData, added_effects
 from .results import FitSummary
 from .rules import (
-    BAND, COLLAPSED_FALLBACK_SAMPLES, COLLAPSED_FALLBACK_STEPS, COLLAPSED_IMPORTANCE_DRAWS, COLLAPSED_MAX_COLUMNS,
-    COLLAPSED_MAX_STEPS, COLLAPSED_SAMPLES, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL,
+    BAND, COLLAPSED_MAX_COLUMNS, COLLAPSED_ROUTE, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL,
     TMCMC_REFINE_STEPS)
 
 __all__ = ["Fitter", "FitInterrupted", "coverage", "laplace_occam", "noise_evidence", "sample_tier"]
@@ -133,16 +132,12 @@ def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None,
 def sample_tier(cl: CollapsedLikelihood, n_samples: int, seed: int, max_evaluations: int | None = None):
     """The evidence run of the collapsed tier: TMCMC over φ only (the amplitudes integrated out
     exactly, :class:`hbm.likelihood.collapsed.CollapsedLikelihood`), an importance finish in the same space,
-    then the full posterior by conditional draws of the amplitudes
-    (:func:`hbm.likelihood.collapsed.sample_collapsed`).
-
-    ``COLLAPSED_SAMPLES`` particles, ≤ ``COLLAPSED_MAX_STEPS`` MH steps per stage, an importance
-    finish of ``COLLAPSED_IMPORTANCE_DRAWS`` draws whose resampled draws give ``n_samples``
-    posterior rows.  When the finish is refused (k̂ > 0.7 or a low ESS, e.g. a relaxation time
-    the protocol hardly identifies) TMCMC runs again over φ with ``COLLAPSED_FALLBACK_SAMPLES``
-    particles (at most ``n_samples``) and ≤ ``COLLAPSED_FALLBACK_STEPS`` steps per stage, and its
-    evidence is used (both runs' evaluations counted).  With ``max_evaluations``: one TMCMC run of
-    ``n_samples`` particles under the cap.
+    then the full posterior by conditional draws of the amplitudes: :func:`hbm.likelihood.collapsed.fit_collapsed`
+    on the detective's route (:data:`~hbm.detective.rules.COLLAPSED_ROUTE`: 500 particles, ≤ 5 MH steps per
+    stage, 10 000 importance draws; when the finish is refused (k̂ > 0.7 or a low ESS, e.g. a relaxation
+    time the protocol hardly identifies) a TMCMC run over φ with 400 particles (at most ``n_samples``) and
+    ≤ 25 steps per stage, whose evidence is used, both runs' evaluations counted).  With
+    ``max_evaluations``: one TMCMC run of ``n_samples`` particles under the cap.
 
     Returns
     -------
@@ -151,19 +146,8 @@ def sample_tier(cl: CollapsedLikelihood, n_samples: int, seed: int, max_evaluati
     """
     if max_evaluations:
         return fit_collapsed(cl, int(n_samples), seed=int(seed), max_evaluations=int(max_evaluations),
-                             max_steps=COLLAPSED_FALLBACK_STEPS)
-    out = sample_collapsed(cl, COLLAPSED_SAMPLES, seed=int(seed), max_steps=COLLAPSED_MAX_STEPS,
-                           importance_draws=COLLAPSED_IMPORTANCE_DRAWS, n_out=int(n_samples))
-    if out.evidence_source == "importance":
-        out.info["route"] = (f"TMCMC N={COLLAPSED_SAMPLES} (≤ {COLLAPSED_MAX_STEPS} steps/stage) + importance "
-                             f"finish ({COLLAPSED_IMPORTANCE_DRAWS} draws)")
-        return out
-    n2 = min(int(n_samples), COLLAPSED_FALLBACK_SAMPLES)
-    second = sample_collapsed(cl, n2, seed=int(seed) + 1, max_steps=COLLAPSED_FALLBACK_STEPS)
-    second.n_evaluations += out.n_evaluations
-    second.info["route"] = (f"importance finish of the small run refused ({out.importance.reason}); TMCMC "
-                            f"N={n2} (≤ {COLLAPSED_FALLBACK_STEPS} steps/stage)")
-    return second
+                             max_steps=COLLAPSED_ROUTE.fallback_steps)
+    return fit_collapsed(cl, int(n_samples), seed=int(seed), route=COLLAPSED_ROUTE)
 
 
 def laplace_occam(lik, x, all_names: Sequence[str], names: Sequence[str], samples: np.ndarray | None = None) -> float:

@@ -1,10 +1,12 @@
 """The detective's fixed numbers: decision thresholds, false-alarm rate, band, budgets.
 
-One leaf module that every step reads, so that a threshold is changed in one place
+One module that every step reads, so that a threshold is changed in one place
 (DESIGN.md §2 explains each value).
 """
 
 from __future__ import annotations
+
+from ..likelihood.collapsed.sampling import CollapsedRoute
 
 # --- decision (DESIGN.md §2: ΔBIC ≈ 6 raised false alarms on AR(1) noise, ≈ 10 did not)
 DELTA_LOGZ_MIN = 5.0      # evidence gain needed to name anything (≈ ΔBIC 10)
@@ -53,15 +55,15 @@ TMCMC_REFINE_PROPOSAL = "local"
 # CPU each), this 502.96 / 502.93 (finish accepted, 1.7 s) and one refusal; qlv_1: full 427.0 /
 # 424.4 / 422.9, this 427.64 / 427.66 / 427.62.  300 particles × 4 steps + 4000 draws was refused
 # in 7 of 9 such runs.  A refused finish (k̂ > 0.7 or ESS < 200) is followed by a collapsed TMCMC run
-# of COLLAPSED_FALLBACK_SAMPLES particles with ≤ COLLAPSED_FALLBACK_STEPS steps per stage.  On the
+# of fallback_samples particles with ≤ fallback_steps steps per stage.  On the
 # 90-point QLV case of tests/test_detective_tiers.py (finish refused in 3/3 seeds; long full-space
 # runs, N 2000 ≤ 100 steps: 420.8, 419.7): N 400 ≤ 10 steps 418.5 / 418.7 / 417.3 (low), N 400
 # ≤ 25 steps 420.3 / 420.3 (7.5 s CPU), N 800 ≤ 25 steps 420.7 / 420.2 (15 s)
-COLLAPSED_SAMPLES = 500
-COLLAPSED_MAX_STEPS = 5
-COLLAPSED_IMPORTANCE_DRAWS = 10_000
-COLLAPSED_FALLBACK_SAMPLES = 400
-COLLAPSED_FALLBACK_STEPS = 25
+COLLAPSED_ROUTE = CollapsedRoute(
+    pilot_samples=500, pilot_capped=False, pilot_steps=5, importance_draws=10_000, draws_per_sample=0,
+    fallback_samples=400, fallback_steps=25, fallback_seed_offset=1, keep_pilot_info=False,
+    accepted_route="TMCMC N={pilot} (≤ {steps} steps/stage) + importance finish ({draws} draws)",
+    refused_route="importance finish of the small run refused ({reason}); TMCMC N={n} (≤ {steps} steps/stage)")
 #: integrated columns above which "auto" keeps the full tier (3: ~0.07 ms per evaluation of the
 #: 150-point record; 4, e.g. base + offset: ~2 ms, a minute per run against a second in full)
 COLLAPSED_MAX_COLUMNS = 3

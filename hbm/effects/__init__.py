@@ -31,8 +31,9 @@ candidate only beside the effects it names (:func:`applicable`).  ``CONFUSABLE_G
 
 from __future__ import annotations
 
-import importlib.util
+import copyreg
 import hashlib
+import importlib.util
 import sys
 from pathlib import Path
 
@@ -126,37 +127,60 @@ def load_effect(spec: str, **kwargs) -> Effect:
 
     The file is imported with :mod:`importlib` (it may ``import hbm``); no edit of hbm is
     needed.  Raises :class:`HbmError` if the file or class is missing or the class is not an
-    :class:`hbm.Effect` subclass.
+    :class:`hbm.Effect` subclass.  Instances cross to worker processes (dask, spawned pools) as
+    "import the class from its file, restore the attributes": the file must be readable there
+    (always on one machine; on a cluster, from a shared file system).
     """
     if not isinstance(spec, str) or ":" not in spec:
         raise HbmError(f"effect spec {spec!r}: expected 'path/to/file.py:ClassName'")
     file, cls_name = spec.rsplit(":", 1)
-    path = Path(file).expanduser()
+    cls = _user_effect_class(Path(file).expanduser(), cls_name, spec)
+    try:
+        effect = cls(**kwargs)
+    except Exception as exc:
+        raise HbmError(f"{spec!r}: cannot instantiate {cls_name}: {type(exc).__name__}: {exc}") from None
+    return effect
+
+
+def _user_effect_class(path: Path, cls_name: str, spec: str) -> type:
+    """The class ``cls_name`` of the user file ``path``, its module imported once per process."""
     if not cls_name.isidentifier():
         raise HbmError(f"effect spec {spec!r}: {cls_name!r} is not a class name (expected 'file.py:ClassName')")
     if not path.is_file():
         raise HbmError(f"effect file {str(path)!r} not found (from {spec!r})")
     digest = hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:12]
     mod_name = f"hbm_user_effect_{path.stem}_{digest}"
-    try:
-        module_spec = importlib.util.spec_from_file_location(mod_name, path)
-        module = importlib.util.module_from_spec(module_spec)
-        sys.modules[mod_name] = module  # dataclasses/pickling look the module up by name
-        module_spec.loader.exec_module(module)
-    except Exception as exc:  # any error in user code becomes one clear line
-        sys.modules.pop(mod_name, None)
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        raise HbmError(f"effect file {str(path)!r}: import failed: {type(exc).__name__}: {msg}") from None
+    module = sys.modules.get(mod_name)
+    if module is None:
+        try:
+            module_spec = importlib.util.spec_from_file_location(mod_name, path)
+            module = importlib.util.module_from_spec(module_spec)
+            sys.modules[mod_name] = module  # dataclasses/pickling look the module up by name
+            module_spec.loader.exec_module(module)
+        except Exception as exc:  # any error in user code becomes one clear line
+            sys.modules.pop(mod_name, None)
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            raise HbmError(f"effect file {str(path)!r}: import failed: {type(exc).__name__}: {msg}") from None
     cls = getattr(module, cls_name, None)
     if cls is None:
         raise HbmError(f"effect file {str(path)!r} has no class {cls_name!r}")
     if not (isinstance(cls, type) and issubclass(cls, Effect)):
         raise HbmError(f"{spec!r}: {cls_name} is not a subclass of hbm.Effect")
-    try:
-        effect = cls(**kwargs)
-    except Exception as exc:
-        raise HbmError(f"{spec!r}: cannot instantiate {cls_name}: {type(exc).__name__}: {exc}") from None
-    return effect
+    # worker processes cannot import the module by its made-up name: pickle instances by file and class
+    copyreg.pickle(cls, _reduce_user_effect)
+    return cls
+
+
+def _reduce_user_effect(effect: Effect):
+    cls = type(effect)
+    return _new_user_effect, (sys.modules[cls.__module__].__file__, cls.__qualname__), dict(vars(effect))
+
+
+def _new_user_effect(file: str, cls_name: str) -> Effect:
+    """An uninitialised instance of the user effect class ``cls_name`` of ``file`` (the unpickler then
+    restores its attributes)."""
+    cls = _user_effect_class(Path(file), cls_name, f"{file}:{cls_name}")
+    return cls.__new__(cls)
 
 
 def resolve_effect(spec: str, **kwargs) -> Effect:

@@ -27,7 +27,6 @@ the likelihood, the posterior predictive, the synthetic data and the diagnosis a
 
 from __future__ import annotations
 
-import math
 from typing import ClassVar
 
 import numpy as np
@@ -288,12 +287,33 @@ class NoiseModel:
         ndarray (shape of ``a``)
             W a with W Σ Wᵀ = I for the noise covariance Σ; independent noise: a / sd.
         """
+        m = None if model_stress is None else np.asarray(model_stress, dtype=float)[None, :]
+        s = None if sd is None else np.asarray(sd, dtype=float)[None, :]
+        return self.whiten_rows(np.asarray(a, dtype=float)[None], _rows(q), sd=s, model_stress=m)[0]
+
+    def whiten_rows(self, a, q, *, sd=None, model_stress=None) -> np.ndarray:
+        """:meth:`whiten` for a population: row i of ``a`` whitened with its own noise parameters.
+
+        Parameters
+        ----------
+        a : array (n, n_points) or (n, n_points, ...)
+            Residuals or Jacobian columns per row, the points along the second axis.
+        q : array (n, k)
+            Noise parameters, one row per row of ``a``.
+        sd : array (n, n_points), optional
+            Marginal sd per row instead of the one implied by ``q``.
+        model_stress : array (n, n_points), optional
+            Model stress per row, when the sd implied by ``q`` depends on it.
+
+        Returns
+        -------
+        ndarray (shape of ``a``)
+        """
         if sd is None:
-            m = None if model_stress is None else np.asarray(model_stress, dtype=float)[None, :]
-            sd = self.sd(_rows(q), m)[0]
+            sd = self.sd(_rows(q), model_stress)
         sd = np.asarray(sd, dtype=float)
         a = np.asarray(a, dtype=float)
-        return a / (sd if a.ndim == 1 else sd.reshape((-1,) + (1,) * (a.ndim - 1)))
+        return a / sd.reshape(sd.shape + (1,) * (a.ndim - 2))
 
     # -- starting values -----------------------------------------------------------------------
     def moment_guess(self, residual) -> dict[str, float]:
@@ -557,17 +577,19 @@ class AR1Noise(NoiseModel):
                 z[:, t] = rho * z[:, t - 1] + innov * z[:, t]
         return z
 
-    def whiten(self, a, q, *, sd=None, model_stress=None) -> np.ndarray:
+    def whiten_rows(self, a, q, *, sd=None, model_stress=None) -> np.ndarray:
         """Divide by the marginal sd, then take scaled innovations
-        u_t = (z_t − ρ z_{t−1})/√(1−ρ²) (u = z at history starts): iid N(0, 1) noise."""
-        z = super().whiten(a, q, sd=sd, model_stress=model_stress)
-        rho = float(np.asarray(q, dtype=float).ravel()[1])
-        if rho == 0.0:
+        u_t = (z_t − ρ z_{t−1})/√(1−ρ²) (u = z at history starts), row by row with each row's ρ:
+        iid N(0, 1) noise."""
+        z = super().whiten_rows(a, q, sd=sd, model_stress=model_stress)
+        rho = _rows(q)[:, 1]
+        if not np.any(rho != 0.0):
             return z
-        c = math.sqrt(max(1.0 - rho * rho, 1e-12))
+        c = np.sqrt(np.maximum(1.0 - rho * rho, 1e-12))
+        shape = (-1,) + (1,) * (z.ndim - 1)
         out = np.empty_like(z)
-        out[1:] = (z[1:] - rho * z[:-1]) / c
-        out[self.history_starts] = z[self.history_starts]
+        out[:, 1:] = (z[:, 1:] - rho.reshape(shape) * z[:, :-1]) / c.reshape(shape)
+        out[:, self.history_starts] = z[:, self.history_starts]
         return out
 
     def moment_guess(self, residual) -> dict[str, float]:

@@ -66,9 +66,8 @@ class Walkers(NamedTuple):
 class MoveStep(NamedTuple):
     """Outcome of one MH step: new walkers, acceptance per particle, evaluations (particles).
 
-    ``alternative`` marks particles that used a move's second kind of proposal (their acceptance is
-    reported as ``StageInfo.de_acceptance`` and left out of the scale adaptation); ``metric_ok`` the
-    share of particles whose metric was usable (manifold move).
+    ``alternative`` marks particles that used a move's second kind of proposal (left out of the
+    scale adaptation); ``metric_ok`` the share of particles whose metric was usable (manifold move).
     """
 
     walkers: Walkers

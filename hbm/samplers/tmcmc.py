@@ -293,7 +293,7 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
     min_steps = int(config.n_steps) if fixed else int(config.min_steps)
     decorrelation = _Decorrelation(u)
     n_eval, acc_total, n_done, mix, mix_at = 0, 0.0, 0, 1.0, -1
-    acc_alt, oks = [], []
+    oks = []
     for k in range(max_steps):
         if remaining is not None and n_eval + n > remaining:
             budget_hit = True  # the next step could exceed the budget: stop moving here
@@ -303,8 +303,6 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         n_eval += res.n_evaluations
         acc_total += float(res.accepted.mean())
         n_done += 1
-        if res.alternative is not None and res.alternative.any():
-            acc_alt.append(float(res.accepted[res.alternative].mean()))
         if res.metric_ok is not None:
             oks.append(res.metric_ok)
         if config.adapt_scale:
@@ -323,7 +321,7 @@ def step(state: TMCMCState, log_likelihood: LogLikelihood, bounds, config: TMCMC
         beta=float(beta), dbeta=float(dbeta), log_evidence_increment=float(log_z_new - state.log_evidence),
         log_evidence_increment_var=float(var_inc), cov_weights=float(cov), ess=float(n / (1.0 + cov * cov)),
         acceptance_rate=acc_total / max(n_done, 1),
-        de_acceptance=float(np.mean(acc_alt)) if acc_alt else float("nan"), proposal_scale=tuning.scale,
+        proposal_scale=tuning.scale,
         epsilon=tuning.epsilon if move.adapts == "epsilon" else float("nan"), n_steps=n_done,
         evaluations=int(n_eval), mixing=float(mix), metric_ok=float(np.mean(oks)) if oks else float("nan"),
         capped=bool(capped))

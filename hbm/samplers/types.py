@@ -231,9 +231,6 @@ class StageInfo(NamedTuple):
         Effective sample size of the incremental weights.
     acceptance_rate : float
         Mean MH acceptance over the stage's steps.
-    de_acceptance : float
-        Acceptance of a move's second kind of proposal (``MoveStep.alternative``; NaN for the
-        shipped moves; the name is that of the differential-evolution moves it was made for).
     proposal_scale : float
         Random-walk scale (relative to the population covariance) after the stage's adaptation.
     epsilon : float
@@ -258,7 +255,6 @@ class StageInfo(NamedTuple):
     cov_weights: float
     ess: float
     acceptance_rate: float
-    de_acceptance: float
     proposal_scale: float
     epsilon: float
     n_steps: int

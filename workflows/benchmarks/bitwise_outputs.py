@@ -6,7 +6,9 @@ Runs, with the checkout given by ``--tree`` (default: this repository), in fresh
 * ``hbm fit`` at defaults on every shipped file (``data/specimens/*.csv``, ``data/measured/*.csv`` with
   ``--sl0 2.0``);
 * ``hbm diagnose --json`` on every shipped file;
-* ``hbm export`` of every fitted specimen to every card format hbm writes without a compiler.
+* ``hbm export`` of every fitted specimen to every card format hbm writes without a compiler;
+* (``extra``) the energy form: ``hbm fit --form energy`` of one specimen and its ``febio-energy`` card, and
+  ``fit`` and ``diagnose`` of the other curves the repository ships (``results/**/*.csv``).
 
 and writes a manifest ``{output: digest}`` where a digest covers the *content*: every variable of every
 netCDF group (dtype, shape and bytes) and its attributes, JSON after dropping wall/CPU times, text after
@@ -106,8 +108,19 @@ def digest_file(path: Path, work: Path) -> dict | str:
             return hashlib.sha256(json.dumps(_scrub(json.loads(text)), sort_keys=True).encode()).hexdigest()[:16]
         except ValueError:
             pass
-    lines = [DURATION.sub("<t>", ln) for ln in text.splitlines() if not re.search(r"\btime\b|timings?|wall", ln)]
-    return hashlib.sha256("\n".join(lines).encode()).hexdigest()[:16]
+    return hashlib.sha256("\n".join(_text_lines(text)).encode()).hexdigest()[:16]
+
+
+def _text_lines(text: str) -> list[str]:
+    """The lines of a text output that hold results: durations masked, dates and timing sections dropped."""
+    out, skip = [], False
+    for ln in text.splitlines():
+        if ln.startswith("#"):
+            skip = bool(re.search(r"timings?", ln, re.I))
+        if skip or ln.startswith("Generated ") or re.search(r"\btime\b|timings?|wall", ln):
+            continue
+        out.append(DURATION.sub("<t>", ln))
+    return out
 
 
 def hbm(tree: Path, args: list[str], cwd: Path) -> subprocess.CompletedProcess:
@@ -129,6 +142,7 @@ def run_all(tree: Path, work: Path, full: bool, which: set[str]) -> dict:
     if work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True)
+    (work / "fits").mkdir()
     manifest: dict = {}
     data = work / "data"
     shutil.copytree(tree / "data", data)  # the same input paths for every checkout
@@ -159,7 +173,6 @@ def run_all(tree: Path, work: Path, full: bool, which: set[str]) -> dict:
         record("run", hbm(tree, ["run", "--out", str(out), "--no-progress", "--data", str(data / "specimens")], work),
                [out])
     fits = work / "fits"
-    fits.mkdir()
     for path, extra in files:
         if "fit" in which:
             nc = fits / f"{path.stem}.nc"
@@ -177,6 +190,24 @@ def run_all(tree: Path, work: Path, full: bool, which: set[str]) -> dict:
         if "diagnose" in which:
             record(f"diagnose {path.name} --json",
                    hbm(tree, ["diagnose", str(path), *extra, "--json", "--no-progress", "--workers", "1"], work))
+    if "extra" in which:
+        spec = data / "specimens" / "calvo2010_rat1.csv"
+        nc = fits / "calvo2010_rat1_energy.nc"
+        record("fit calvo2010_rat1.csv --form energy", hbm(tree, ["fit", str(spec), "--form", "energy", "--out", str(nc),
+                                                                  "--no-progress", "--no-plot", "--json"], work), [nc])
+        card = work / "export" / "calvo2010_rat1_energy_febio-energy.feb"
+        card.parent.mkdir(exist_ok=True)
+        record("export calvo2010_rat1_energy febio-energy --json",
+               hbm(tree, ["export", str(nc), "--to", "febio-energy", "--out", str(card), "--json"], work), [card])
+        for src in sorted((tree / "results").rglob("*.csv")):
+            path = work / "results-data" / src.name
+            path.parent.mkdir(exist_ok=True)
+            shutil.copy(src, path)
+            out = fits / f"{path.stem}.nc"
+            record(f"fit {path.name}", hbm(tree, ["fit", str(path), "--out", str(out), "--no-progress", "--no-plot",
+                                                  "--json"], work), [out])
+            record(f"diagnose {path.name} --json",
+                   hbm(tree, ["diagnose", str(path), "--json", "--no-progress", "--workers", "1"], work))
     return manifest
 
 
@@ -197,10 +228,21 @@ def main(argv=None) -> int:
     p.add_argument("--tree", default=str(REPO), help="checkout whose hbm runs (default: this repository)")
     p.add_argument("--work", default=str(Path(tempfile.gettempdir()) / "hbm-bitwise"))
     p.add_argument("--full", action="store_true", help="also the default hbm run (minutes)")
-    p.add_argument("--only", default="quick,full,fit,export,diagnose", help="comma-separated subset")
+    p.add_argument("--only", default="quick,full,fit,export,diagnose,extra", help="comma-separated subset")
     p.add_argument("--manifest", help="write the manifest here (default: stdout)")
     p.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two manifests")
+    p.add_argument("--redigest", metavar="MANIFEST", help="recompute the file digests of MANIFEST from the outputs "
+                   "still in --work (after a change of this script's masking; stdout digests are kept)")
     args = p.parse_args(argv)
+    if args.redigest:
+        WORK[0] = str(Path(args.work))
+        manifest = json.loads(Path(args.redigest).read_text())
+        for key in [k for k in manifest if " :: " in k]:
+            f = Path(args.work) / key.split(" :: ", 1)[1]
+            if f.is_file():
+                manifest[key] = digest_file(f, Path(args.work))
+        Path(args.redigest).write_text(json.dumps(manifest, indent=1, sort_keys=True))
+        return 0
     if args.compare:
         a, b = (json.loads(Path(x).read_text()) for x in args.compare)
         diffs = compare(a, b)

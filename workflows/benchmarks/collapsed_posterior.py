@@ -28,7 +28,7 @@ to ``results/benchmarks/collapsed_posterior.json``.
 
 Usage::
 
-    HBM_BENCH_DIR=/work/shared/bench nice -n 10 python workflows/benchmarks/collapsed_posterior.py [--seeds 10]
+    HBM_BENCH_DIR=../shared/bench nice -n 10 python workflows/benchmarks/collapsed_posterior.py [--seeds 10]
 """
 
 from __future__ import annotations

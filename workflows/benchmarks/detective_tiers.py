@@ -2,12 +2,12 @@
 item 2, issue 27 item 4), interleaved case by case so that both see the same machine load.
 
 Cases: the shipped 150-point three-rate relaxation record (``results/multirate_relaxation``), the
-measured curves given with ``--measured`` (e.g. /work/shared/realdata/*.csv), and the cases of the
+measured curves given with ``--measured`` (e.g. ../shared/realdata/*.csv), and the cases of the
 hidden-effect demo (``workflows/hidden_effect_demo.py``, its seeds).  Each diagnosis is the
 default one (CLI defaults: ``--max-time 300``) with ``likelihood=`` each tier in turn.
 
     PYTHONPATH=. nice -n 10 python workflows/benchmarks/detective_tiers.py --json /tmp/tiers.json \\
-        --measured /work/shared/realdata/*.csv --demo viscoelastic clean
+        --measured ../shared/realdata/*.csv --demo viscoelastic clean
 
 CPU is the process time of the diagnosis (what one free core would take); wall includes waiting
 for a shared machine.

@@ -20,7 +20,7 @@ run to the ``.json`` next to it.
 
 Usage (pin one core)::
 
-    HBM_BENCH_DIR=/work/shared/bench OMP_NUM_THREADS=1 taskset -c 0 \\
+    HBM_BENCH_DIR=../shared/bench OMP_NUM_THREADS=1 taskset -c 0 \\
         python workflows/benchmarks/evaluations_to_accuracy.py [--seeds 5] [--preset-seeds 10] [--peers]
 """
 

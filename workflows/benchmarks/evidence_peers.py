@@ -3,7 +3,7 @@
 
 pocoMC, nautilus and dynesty are *not* hbm dependencies: ``evaluations_to_accuracy.py --peers``
 calls this file with the bench environment's python (``$HBM_PEER_PYTHON``, else
-``/work/bench-venv/bin/python``).  It imports numpy, scipy and the peer package only — never hbm.
+``../bench-venv/bin/python`` next to the repository).  It imports numpy, scipy and the peer package only — never hbm.
 
 The likelihood is the base Spyrou model (iso_factor 1) with iid Gaussian noise of unknown sd
 ``sigma``, written here in numpy term by term as in ``pymc_peer.py`` (same numerics: expm1, the

@@ -17,7 +17,7 @@ setting kept uses them; ``git show 287c749:hbm/samplers/tmcmc.py`` has the code.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Optional
 
 import numpy as np
@@ -47,14 +47,15 @@ class DifferentialEvolution(RandomWalk):
     increment is then symmetric and independent of u, so the plain Metropolis ratio is exact;
     γ = 1 with probability ``jump`` (jumps between modes), else ``gamma`` (None = 2.38/√(2d)).
     Otherwise (or when no valid pair is found in a few redraws) the Gaussian random walk.  DE pairs
-    span the islands, so the island SE can be optimistic.  Acceptance of the DE proposals is
-    reported as ``StageInfo.de_acceptance``.
+    span the islands, so the island SE can be optimistic.  The acceptance of the DE proposals of each
+    step is appended to ``de_acceptance`` (the sampler's per-stage statistics do not know this move).
     """
 
     fraction: float = 0.5
     gamma: Optional[float] = None
     jump: float = 0.1
     noise: float = 0.05
+    de_acceptance: list = field(default_factory=list, compare=False, repr=False)
 
     name = "de"
 
@@ -87,6 +88,8 @@ class DifferentialEvolution(RandomWalk):
             prop[rows] = x[rows] + g[:, None] * (pop[a] - pop[b]) + self.noise * zl[rows]
             is_de[rows] = True
         new, accept, n_eval = metropolis(walkers, prop, log_u, beta, kernel.evaluate, kernel.box)
+        if is_de.any():
+            self.de_acceptance.append(float(accept[is_de].mean()))
         return MoveStep(new, accept, n_eval, alternative=is_de)
 
     def fingerprint(self) -> dict[str, Any]:

@@ -35,6 +35,7 @@ import argparse
 import hashlib
 import json
 import os
+import tempfile
 import subprocess
 import sys
 import time
@@ -67,7 +68,7 @@ NOISE_REL = 0.015
 
 def _bench_python() -> Path | None:
     env = os.environ.get("HBM_PYMC_PYTHON")
-    for p in ([Path(env)] if env else []) + [ROOT.parent / "bench-venv/bin/python", Path("/work/bench-venv/bin/python"),
+    for p in ([Path(env)] if env else []) + [ROOT.parent / "bench-venv/bin/python",
                                               ROOT / ".venv-pymc/bin/python"]:
         if p.exists():
             return p
@@ -150,7 +151,7 @@ def peer_spec(results, datasets, hf) -> dict:
 def run_peer(spec: dict, cache: Path, draws: int, tune: int, seed: int) -> tuple[dict, dict]:
     py = _bench_python()
     if py is None:
-        raise SystemExit("no bench python (set HBM_PYMC_PYTHON or create /work/bench-venv, see README.md)")
+        raise SystemExit("no bench python (set HBM_PYMC_PYTHON or create ../bench-venv next to the repository, see README.md)")
     key = hashlib.sha256(json.dumps([spec, draws, tune, seed], sort_keys=True).encode()).hexdigest()[:12]
     spath, npz, meta = cache / f"spec-{key}.json", cache / f"nuts-{key}.npz", cache / f"nuts-{key}.json"
     spath.write_text(json.dumps(spec))
@@ -283,7 +284,7 @@ def table(cmp: dict, key: str, seeds: list) -> list[str]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cache", default="/tmp/hbm_hierarchical_gold")
+    ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "hbm_hierarchical_gold"))
     ap.add_argument("--out", default=str(ROOT / "results/benchmarks"))
     ap.add_argument("--pop-seed", type=int, default=15)
     ap.add_argument("--samples", type=int, default=2000)

@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import tempfile
 import statistics
 import sys
 import time
@@ -225,7 +226,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="2000,10000,50000", help="stage-1 samples per specimen (comma list)")
     ap.add_argument("--repeats", type=int, default=3, help="repeats of the fixed call (median)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--cache", default="/tmp/hbm_hierarchical_scaling", help="stage-1 sample cache folder")
+    ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "hbm_hierarchical_scaling"), help="stage-1 sample cache folder")
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmarks"))
     ap.add_argument("--quick", action="store_true", help="smoke run: N = 200, 400, ψ population 100")
     ap.add_argument("--table-only", action="store_true", help="re-render the Markdown from the saved JSON")

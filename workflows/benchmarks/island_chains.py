@@ -26,7 +26,7 @@ there resamples the importance draws together as before).
 
 Usage::
 
-    HBM_BENCH_DIR=/work/shared/bench OMP_NUM_THREADS=1 nice -n 10 \\
+    HBM_BENCH_DIR=../shared/bench OMP_NUM_THREADS=1 nice -n 10 \\
         python workflows/benchmarks/island_chains.py [--seeds 10] [--out results/benchmarks/island_chains]
 """
 

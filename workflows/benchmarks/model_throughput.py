@@ -7,7 +7,7 @@ Measures, on one core, strain-point evaluations per second of
 * the iid-Gaussian log-likelihood ``hbm.make_likelihood(...)(theta)`` on an (n, 9) population,
 
 and, when numba is importable (it is NOT an hbm dependency: install it in a separate environment to
-measure, e.g. ``/work/bench-venv/bin/pip install numba`` and run this script with that python plus
+measure, e.g. ``../bench-venv/bin/pip install numba`` and run this script with that python plus
 ``PYTHONPATH=.``), a fused numba kernel of the same base-model log-likelihood, checked against hbm's
 to 1e-9 relative before it is timed.  The point of the numba row is the issue-6 decision "numba only
 if it pays ≥ 3× on what the sampler really calls".

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Time-to-accuracy of hbm's TMCMC on the real muscle posterior (issue 6, DESIGN.md §6).
 
-Problem: ``/work/shared/bench/muscle_benchmark.csv`` (40 points), the base Spyrou model, iid Gaussian
+Problem: ``../shared/bench/muscle_benchmark.csv`` (``$HBM_BENCH_DIR``) (40 points), the base Spyrou model, iid Gaussian
 noise with unknown ``sigma`` in [1e-4, 0.05], uniform prior box; gold answer in
 ``muscle_benchmark_gold.json`` (log-evidence 163.90 ± 0.29 and the posterior means/sds of the
 identifiable combinations).

@@ -5,7 +5,7 @@ One process runs everything, one run at a time (the machine is shared): hbm's se
 the collapsed tier (TMCMC over φ = VOLF, EOPT, T2, THETA, sigma with the three amplitudes integrated
 out, and the N = 500 pilot + importance-sampling finish, exactly as ``collapsed_posterior.py``) and the
 full-space default TMCMC as the baseline — and the peers as subprocesses of the separate benchmark
-environment (``$HBM_PEER_PYTHON``, else ``/work/venv-bench/bin/python``): pocoMC, nautilus and dynesty
+environment (``$HBM_PEER_PYTHON``, else ``../venv-bench/bin/python`` next to the repository): pocoMC, nautilus and dynesty
 through ``evidence_peers.py`` and PyMC SMC through ``pymc_peer.py``.  The peers see the full
 9-parameter problem: they cannot use hbm's collapse, which is what the comparison measures.
 
@@ -26,7 +26,7 @@ had spent (not reached).
 
 Usage::
 
-    HBM_BENCH_DIR=/work/shared/bench nice -n 10 python workflows/benchmarks/peers_round.py run \\
+    HBM_BENCH_DIR=../shared/bench nice -n 10 python workflows/benchmarks/peers_round.py run \\
         --log /tmp/peers/round.jsonl --hbm-seeds 10 --pymc-seeds 10 --pocomc-seeds 3 \\
         --nautilus-seeds 3 --dynesty-seeds 3 --cap 600
     python workflows/benchmarks/peers_round.py report --log /tmp/peers/round.jsonl
@@ -76,7 +76,7 @@ SEED_OPTION = {"PyMC SMC (IMH, draws=2000)": "pymc_seeds", "pocoMC (n_effective=
 
 
 def peer_python() -> Path:
-    return Path(os.environ.get("HBM_PEER_PYTHON", "/work/venv-bench/bin/python"))
+    return Path(os.environ.get("HBM_PEER_PYTHON", ROOT.parent / "venv-bench" / "bin" / "python"))
 
 
 def _children_cpu() -> float:

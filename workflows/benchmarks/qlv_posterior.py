@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """A second benchmark posterior: a three-rate ramp-and-hold curve with quasi-linear viscoelasticity.
 
-The muscle benchmark (``/work/shared/bench``) is one monotonic ramp of the base model.  Here the
+The muscle benchmark (``../shared/bench``, ``$HBM_BENCH_DIR``) is one monotonic ramp of the base model.  Here the
 collapse of the linear amplitudes works differently: the viscoelastic history effect filters every
 amplitude column, and its two parameters (G1, LOGTAU1) join the sampled nonlinear parameters.
 

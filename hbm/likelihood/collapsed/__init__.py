@@ -9,7 +9,7 @@ parameters), :mod:`~hbm.likelihood.collapsed.quadrature` (the box-truncated Gaus
 from .induced import CollapseError, ColumnPrior, Term
 from .likelihood import TIERS, CollapsedLikelihood, choose_tier, collapse_reason
 from .quadrature import BoxGaussianIntegral, box_qp, truncated_normal_log_mass
-from .sampling import CollapsedFit, fit_collapsed, sample_collapsed
+from .sampling import FIT_ROUTE, CollapsedFit, CollapsedRoute, fit_collapsed, sample_collapsed
 
 __all__ = ["CollapseError", "ColumnPrior", "Term", "BoxGaussianIntegral", "box_qp", "truncated_normal_log_mass",
-           "TIERS", "CollapsedLikelihood", "choose_tier", "collapse_reason", "CollapsedFit", "fit_collapsed", "sample_collapsed"]
+           "TIERS", "CollapsedLikelihood", "choose_tier", "collapse_reason", "CollapsedFit", "CollapsedRoute", "FIT_ROUTE", "fit_collapsed", "sample_collapsed"]

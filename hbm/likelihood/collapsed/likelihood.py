@@ -199,21 +199,11 @@ class CollapsedLikelihood:
         return BoxGaussianIntegral(H, b, yy, priors, nodes=self.nodes, width=self.width), logdet
 
     def _whiten(self, q: np.ndarray, X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """W·X and W·y per row (W Σ Wᵀ = I), batched over rows with their own noise parameters."""
+        """W·X and W·y per row (W Σ Wᵀ = I), batched over rows with their own noise parameters
+        (:meth:`hbm.likelihood.noise.NoiseModel.whiten_rows`)."""
         noise = self.lik.noise_model
         sd = noise.sd(q)  # (n, P): none of the Gaussian models needs the model stress
-        Xw, yw = X / sd[:, :, None], y / sd
-        if isinstance(noise, AR1Noise):
-            rho = q[:, 1]
-            cont = ~noise.history_starts
-            c = np.sqrt(np.maximum(1.0 - rho * rho, 1e-12))
-            yn, Xn = yw.copy(), Xw.copy()
-            yn[:, 1:] = (yw[:, 1:] - rho[:, None] * yw[:, :-1]) / c[:, None]
-            Xn[:, 1:] = (Xw[:, 1:] - rho[:, None, None] * Xw[:, :-1]) / c[:, None, None]
-            keep = np.flatnonzero(~cont)  # history starts keep z
-            yn[:, keep], Xn[:, keep] = yw[:, keep], Xw[:, keep]
-            Xw, yw = Xn, yn
-        return Xw, yw
+        return noise.whiten_rows(X, q, sd=sd), noise.whiten_rows(y, q, sd=sd)
 
     def log_likelihood(self, theta, *, refine: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
         """log L_c per row and (``refine``) the quadrature's error estimate per row.

@@ -32,10 +32,11 @@ import numpy as np
 
 from ...samplers.chains import Chains, importance_batches
 from ...samplers.importance import FINISH_MIXTURE, FINISH_RESERVE, MIN_ESS, ImportanceResult, importance_evidence
+from ...samplers.resampling import resample
 from ...samplers.tmcmc import tmcmc
 from .likelihood import CollapsedLikelihood
 
-__all__ = ["CollapsedFit", "sample_collapsed", "fit_collapsed", "ERROR_ROWS", "PILOT"]
+__all__ = ["CollapsedFit", "CollapsedRoute", "FIT_ROUTE", "sample_collapsed", "fit_collapsed", "ERROR_ROWS"]
 
 #: posterior rows on which the quadrature's error estimate is evaluated (a refined second integral)
 ERROR_ROWS = 256
@@ -80,14 +81,6 @@ class CollapsedFit:
     quadrature_error: float
     info: dict = field(default_factory=dict)
     chains: Chains = field(default_factory=lambda: Chains(1, "pooled", "not recorded"))
-
-
-def _systematic(x: np.ndarray, log_w: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n rows of ``x`` by systematic resampling with normalised log weights ``log_w``."""
-    w = np.exp(log_w - np.max(log_w))
-    c = np.cumsum(w / w.sum())
-    idx = np.searchsorted(c, (rng.random() + np.arange(n)) / n)
-    return x[np.minimum(idx, x.shape[0] - 1)]
 
 
 def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, seed: int,
@@ -150,7 +143,9 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
         n_post = int(n_out or phi.shape[0])
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), 3]))
         idx, chains = importance_batches(imp.log_weights, n_post, int(tr.config.n_islands), rng)
-        phi = imp.samples[idx] if idx is not None else _systematic(imp.samples, imp.log_weights, n_post, rng)
+        if idx is None:  # pooled: one systematic resampling of all the draws
+            idx = resample(np.exp(imp.log_weights - np.max(imp.log_weights)), n_post, rng)
+        phi = imp.samples[idx]
     full = cl.complete(phi, np.random.default_rng(np.random.SeedSequence([int(seed), 1])))
     ll = cl.lik(full)
     step = max(1, phi.shape[0] // ERROR_ROWS)
@@ -168,22 +163,65 @@ def sample_collapsed(cl: CollapsedLikelihood, n_samples: int | None = None, *, s
                         n_evaluations=int(n_eval), quadrature_error=qerr, info=info, chains=chains)
 
 
-#: the default collapsed fit's first attempt: a small TMCMC run and an importance finish
-PILOT = {"n_samples": 500, "max_steps": 5, "importance_draws": 10_000}
+@dataclass(frozen=True)
+class CollapsedRoute:
+    """The route of a collapsed fit: a small pilot TMCMC run over φ with an importance finish, and a
+    TMCMC run when the finish is refused.
+
+    One route serves every caller; the numbers differ by purpose (:data:`FIT_ROUTE` for
+    :func:`hbm.fit.fit_specimen`, the detective's evidence runs in :mod:`hbm.detective.rules`).
+
+    Attributes
+    ----------
+    pilot_samples : int
+        Particles of the pilot run; at most the draws wanted when ``pilot_capped``.
+    pilot_steps : int
+        MH steps per stage of the pilot (at most).
+    importance_draws, draws_per_sample : int
+        Draws of the importance finish: ``max(importance_draws, draws_per_sample · n)``.
+    fallback_samples : int or None
+        Particles of the TMCMC run after a refused finish, at most the draws wanted (None: all of them).
+    fallback_steps : int
+        Its MH steps per stage (at most).
+    fallback_seed_offset : int
+        Its seed is the pilot's plus this.
+    keep_pilot_info : bool
+        Record the refused pilot's ``info`` in the result's (``info["pilot"]``).
+    accepted_route, refused_route : str
+        ``info["route"]``, formatted with ``pilot``, ``steps``, ``draws`` (accepted) or ``reason``,
+        ``n``, ``steps`` (refused).
+    """
+
+    pilot_samples: int = 500
+    pilot_capped: bool = True
+    pilot_steps: int = 5
+    importance_draws: int = 10_000
+    draws_per_sample: int = 5
+    fallback_samples: int | None = None
+    fallback_steps: int = 10
+    fallback_seed_offset: int = 0
+    keep_pilot_info: bool = True
+    accepted_route: str = "pilot TMCMC + importance finish"
+    refused_route: str = "importance finish refused ({reason}); TMCMC N={n} kept"
+
+
+#: the collapsed fit of :func:`hbm.fit.fit_specimen`: 500 particles, ≤ 5 steps per stage, an importance
+#: finish of max(10 000, 5·n) draws; when it is refused, TMCMC with N = n and ≤ 10 steps per stage
+FIT_ROUTE = CollapsedRoute()
 
 
 def fit_collapsed(cl: CollapsedLikelihood, n_samples: int, *, seed: int, progress: bool = False, checkpoint=None,
-                  **tmcmc_options) -> CollapsedFit:
-    """The collapsed fit of :func:`hbm.fit.fit_specimen`: cheap first, the full run when needed.
+                  route: CollapsedRoute = FIT_ROUTE, **tmcmc_options) -> CollapsedFit:
+    """The collapsed fit: cheap first, the full run when needed (:class:`CollapsedRoute`).
 
-    With no TMCMC options given: TMCMC with N = min(``n_samples``, 500) and at most 5 MH steps per
-    stage, then the importance finish with up to max(10 000, 5·``n_samples``) draws (80 % unless
-    refused), whose resampled draws give the ``n_samples`` posterior draws (~30 k evaluations on the
-    muscle benchmark).  When the finish is refused (k̂ > 0.7 or ESS < 200), TMCMC runs again with
-    N = ``n_samples`` and at most 10 steps per stage (its evidence and population are used; the
-    evaluations of both runs are counted).  With TMCMC options (e.g. ``n_steps``,
-    ``max_evaluations``): one TMCMC run with N = ``n_samples`` and those options (``max_steps`` 10
-    unless given), and an importance finish only if ``importance_draws`` is among them.
+    With no TMCMC options given: the route's pilot (:data:`FIT_ROUTE`: TMCMC with N = min(``n_samples``,
+    500) and at most 5 MH steps per stage), then the importance finish (up to max(10 000, 5·``n_samples``)
+    draws, 80 % unless refused), whose resampled draws give the ``n_samples`` posterior draws (~30 k
+    evaluations on the muscle benchmark).  When the finish is refused (k̂ > 0.7 or ESS < 200), TMCMC runs
+    again (:data:`FIT_ROUTE`: N = ``n_samples``, at most 10 steps per stage; its evidence and population are
+    used; the evaluations of both runs are counted).  With TMCMC options (e.g. ``n_steps``,
+    ``max_evaluations``): one TMCMC run with N = ``n_samples`` and those options (``max_steps`` the route's
+    ``fallback_steps`` unless given), and an importance finish only if ``importance_draws`` is among them.
 
     Parameters
     ----------
@@ -191,12 +229,15 @@ def fit_collapsed(cl: CollapsedLikelihood, n_samples: int, *, seed: int, progres
     n_samples : int
         Posterior draws wanted.
     seed : int
-        TMCMC seed (streams: :func:`sample_collapsed`; the second run uses ``seed`` as well).
+        TMCMC seed (streams: :func:`sample_collapsed`; the second run uses ``seed`` plus the route's
+        ``fallback_seed_offset``).
     progress : bool
     checkpoint : path, optional
         TMCMC checkpoint of the first run (the pilot, or the single run with options); a second
         run after a refused finish checkpoints to ``<checkpoint>.second.npz`` and removes it
         when it completes.
+    route : CollapsedRoute
+        The numbers of the route (default :data:`FIT_ROUTE`).
     **tmcmc_options
 
     Returns
@@ -205,23 +246,27 @@ def fit_collapsed(cl: CollapsedLikelihood, n_samples: int, *, seed: int, progres
         ``info["route"]`` says which route produced it.
     """
     n = int(n_samples)
-    if not tmcmc_options:
-        pilot = sample_collapsed(cl, min(n, PILOT["n_samples"]), seed=seed, progress=progress,
-                                 checkpoint=checkpoint, max_steps=PILOT["max_steps"], n_out=n,
-                                 importance_draws=max(PILOT["importance_draws"], 5 * n))
-        if pilot.importance.accepted:
-            pilot.info["route"] = "pilot TMCMC + importance finish"
-            return pilot
-        # the second run has other settings: its own checkpoint, removed once it is complete
-        second = None if checkpoint is None else Path(checkpoint).with_suffix(".second.npz")
-        full = sample_collapsed(cl, n, seed=seed, progress=progress, checkpoint=second, max_steps=10)
-        if second is not None and second.exists():
-            second.unlink()
-        full.n_evaluations += pilot.n_evaluations
-        full.info["route"] = f"importance finish refused ({pilot.importance.reason}); TMCMC N={n} kept"
+    if tmcmc_options:
+        opts = {"max_steps": route.fallback_steps, **tmcmc_options}
+        out = sample_collapsed(cl, n, seed=seed, progress=progress, checkpoint=checkpoint, **opts)
+        out.info["route"] = "TMCMC" + (" + importance finish" if out.evidence_source == "importance" else "")
+        return out
+    n_pilot = min(n, route.pilot_samples) if route.pilot_capped else route.pilot_samples
+    draws = max(route.importance_draws, route.draws_per_sample * n)
+    pilot = sample_collapsed(cl, n_pilot, seed=seed, progress=progress, checkpoint=checkpoint,
+                             max_steps=route.pilot_steps, n_out=n, importance_draws=draws)
+    if pilot.importance.accepted:
+        pilot.info["route"] = route.accepted_route.format(pilot=n_pilot, steps=route.pilot_steps, draws=draws)
+        return pilot
+    n2 = n if route.fallback_samples is None else min(n, route.fallback_samples)
+    # the second run has other settings: its own checkpoint, removed once it is complete
+    second = None if checkpoint is None else Path(checkpoint).with_suffix(".second.npz")
+    full = sample_collapsed(cl, n2, seed=seed + route.fallback_seed_offset, progress=progress, checkpoint=second,
+                            max_steps=route.fallback_steps)
+    if second is not None and second.exists():
+        second.unlink()
+    full.n_evaluations += pilot.n_evaluations
+    full.info["route"] = route.refused_route.format(reason=pilot.importance.reason, n=n2, steps=route.fallback_steps)
+    if route.keep_pilot_info:
         full.info["pilot"] = pilot.info
-        return full
-    opts = {"max_steps": 10, **tmcmc_options}
-    out = sample_collapsed(cl, n, seed=seed, progress=progress, checkpoint=checkpoint, **opts)
-    out.info["route"] = "TMCMC" + (" + importance finish" if out.evidence_source == "importance" else "")
-    return out
+    return full
