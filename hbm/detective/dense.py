@@ -44,7 +44,7 @@ def _whitened(lik, x: np.ndarray):
 
     def residual(rows: np.ndarray) -> np.ndarray:
         m = np.asarray(lik.predict(np.hstack([rows, np.broadcast_to(noise_row, (rows.shape[0], noise_row.size))])))
-        return np.stack([lik.noise_model.whiten(y - m[i], q, model_stress=m[i]) for i in range(m.shape[0])])
+        return lik.noise_model.whiten_rows(y - m, np.tile(q, (m.shape[0], 1)), model_stress=m)
     return residual, k
 
 

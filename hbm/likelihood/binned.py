@@ -85,11 +85,11 @@ class BinnedNoise(NoiseModel):
             return self.inner.standard_draws(rng, q, n)
         return NoiseModel.standard_draws(self, rng, q, n)     # the mean of many readings: Gaussian
 
-    def whiten(self, a, q, *, sd=None, model_stress=None) -> np.ndarray:
+    def whiten_rows(self, a, q, *, sd=None, model_stress=None) -> np.ndarray:
+        """The wrapped model's whitening with the sd of the bin means (σ/√count)."""
         if sd is None:
-            m = None if model_stress is None else np.asarray(model_stress, dtype=float)[None, :]
-            sd = self.sd(np.atleast_2d(np.asarray(q, dtype=float)), m)[0]
-        return self.inner.whiten(a, q, sd=sd)
+            sd = self.sd(np.atleast_2d(np.asarray(q, dtype=float)), model_stress)
+        return self.inner.whiten_rows(a, q, sd=sd)
 
     def moment_guess(self, residual) -> dict[str, float]:
         return self.inner.moment_guess(np.asarray(residual, dtype=float) * self._root)
