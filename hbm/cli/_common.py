@@ -571,6 +571,7 @@ __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positiv
            "sample_size", "seed", "workers", "power_of_two", "power_of_two_or_zero", "real", "finite_float",
            "positive_float",
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
-           "add_seed", "add_fix", "add_model_arguments", "add_record_arguments", "check_names", "check_fix_bounds", "free_parameters",
+           "add_seed", "add_fix", "add_model_arguments", "add_record_arguments",
+           "check_names", "check_fix_bounds", "free_parameters",
            "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",
            "check_sobol_memory", "check_replaceable", "print_json", "format_table", "format_bytes"]

@@ -196,7 +196,8 @@ def _screen_segment(idx: np.ndarray, strain, stress, time) -> list[Artefact]:
     if tail is not None:
         rows = tuple(int(r) for r in idx[tail:])
         out.append(Artefact("post-failure tail", rows,
-                            f"the stress falls to below {TAIL_LEVEL:.0%} of its peak at {_fmt(strain, stress, time, idx[tail])} "
+                            f"the stress falls to below {TAIL_LEVEL:.0%} of its peak at "
+                            f"{_fmt(strain, stress, time, idx[tail])} "
                             f"while the strain keeps growing, and stays there for the {len(rows)} rows to the end of "
                             "the test (the specimen failed)"))
     return _merge(out)

@@ -212,7 +212,8 @@ def convert_machine(name: str, attrs: Mapping[str, str], meta_line: Mapping[str,
                                    f"{name}: line {header_lineno}, column {index['stress'] + 1}")
         raw["stress"] = sign * raw["stress"] * FORCE_UNITS[force] / area
         scale = "" if force == "N" else f" x {FORCE_UNITS[force]:g} N/{force}"
-        steps.append(f"nominal stress (MPa = N/mm2) = {minus}{column}{scale} / cross_section_mm2 {area!r} ({how}){flip}")
+        steps.append(f"nominal stress (MPa = N/mm2) = {minus}{column}{scale} / cross_section_mm2 {area!r} ({how})"
+                     + flip)
         steps.append("Cauchy stress = (1 + strain) x nominal stress (incompressible uniaxial)")
         records["stress_input"] = f"force_{force}"
         records["cross_section_mm2"] = repr(area)

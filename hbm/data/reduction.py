@@ -9,10 +9,11 @@ carries their information about the curve as long as the curve is straight over 
 
 * **where the bins are cut.**  Each test is split into *pieces* at the corners of its strain path
   (where the strain starts or stops moving, reverses or changes its rate: the rows depart from a
-  straight line by more than ``CORNER`` of the strain span); the stress changes fastest right after a corner (a relaxation, the start
-  of a ramp), so bins grow geometrically away from each corner (1, 1, 2, 2, 3, 4, 5 ... readings,
-  ratio ``GROWTH``: constant resolution in the logarithm of the time since the corner, where
-  relaxation is resolved) up to ``ceil(n / TARGET_BINS)`` readings.  The corner rows are bins of
+  straight line by more than ``CORNER`` of the strain span); the stress changes fastest right
+  after a corner (a relaxation, the start of a ramp), so bins grow geometrically away from each
+  corner (1, 2, 2, 2, 3, 4, 4, 5 ... readings, ratio ``GROWTH``: constant resolution in the
+  logarithm of the time since the corner, where relaxation is resolved) up to
+  ``ceil(n / TARGET_BINS)`` readings.  The corner rows are bins of
   their own, so every loading history starts and ends where it did.
 * **checked on the data.**  A bin whose readings curve -- the bias of its mean, from a quadratic
   fit over the bin, exceeds ``BIAS`` times the noise sd of the mean by two standard errors --
@@ -229,4 +230,5 @@ def reduction_summary(attrs) -> str:
         return ""
     rho = f", raw noise correlation {r['raw_noise_rho']:.2f} accounted for" if r.get("raw_noise_rho") else ""
     return (f"dense record: {r['rows']} rows reduced to {r['bins']} bin means (at most {r['largest_bin']} readings "
-            f"each, cut at the corners of the strain path and where the curve bends{rho}; --reduce off keeps every row)")
+            f"each, cut at the corners of the strain path and where the curve bends{rho}; --reduce off keeps every "
+            "row)")

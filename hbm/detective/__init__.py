@@ -584,7 +584,9 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, likelihood, workers, reduce, artefacts
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated
+        As in :func:`diagnose`.
+    max_time, likelihood, workers, reduce, artefacts
         As in :func:`diagnose` (artefact rows flagged and kept are named in ``notes``).
 
     Returns

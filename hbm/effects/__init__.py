@@ -25,7 +25,8 @@ id                            stage        parameters (null)
 user's effect from their own file, ``resolve_effect(spec)`` either.  ``placements(effect)``
 lists the other placements of an effect (``prestress`` is ``offset`` carried by the tissue,
 before the history stage).  An effect with ``requires`` (a further relaxation time) is a
-candidate only beside the effects it names (:func:`applicable`).  ``CONFUSABLE_GROUPS`` and ``SEPARATING_EXPERIMENT`` record which effects one monotonic curve cannot tell apart
+candidate only beside the effects it names (:func:`applicable`).
+``CONFUSABLE_GROUPS`` and ``SEPARATING_EXPERIMENT`` record which effects one monotonic curve cannot tell apart
 (DESIGN.md §2) and what experiment would.
 """
 

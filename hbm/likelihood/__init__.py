@@ -1,5 +1,6 @@
 """The likelihood of a specimen's data: the vectorised log-likelihood (:mod:`.core`), its noise models
-(:mod:`.noise`, a registry; :mod:`.student_t` registers heavy-tailed noise), the prior (:mod:`.prior`) and the collapsed tier that integrates the linear
+(:mod:`.noise`, a registry; :mod:`.student_t` registers heavy-tailed noise),
+the prior (:mod:`.prior`) and the collapsed tier that integrates the linear
 amplitudes out exactly (:mod:`.collapsed`)."""
 
 from .core import Likelihood, make_likelihood

@@ -500,7 +500,8 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
     bar = None
     if progress:
         # a tqdm bar on a terminal, one line per stage in a log (hbm.runtime.progress)
-        bar = progress_bar(1000, "tmcmc", unit="‰β", leave=False, bar_format="{desc}: {percentage:3.0f}%|{bar}| {postfix}")
+        bar = progress_bar(1000, "tmcmc", unit="‰β", leave=False,
+                           bar_format="{desc}: {percentage:3.0f}%|{bar}| {postfix}")
         bar.update(int(1000 * state.beta))
     try:
         while state.beta < 1.0:

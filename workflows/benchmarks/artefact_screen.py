@@ -124,7 +124,8 @@ def main(argv=None) -> int:
     flagged = [r for r in rows if r["flagged"]]
     worst = sorted(rows, key=lambda r: -r["margin"])[:8]
     lines = ["# Artefact screen: false flags on clean records, finds on injected artefacts",
-             "", f"`workflows/benchmarks/artefact_screen.py --seeds {args.seeds}` ({time.process_time() - t0:.0f} s CPU).",
+             "", f"`workflows/benchmarks/artefact_screen.py --seeds {args.seeds}` "
+             f"({time.process_time() - t0:.0f} s CPU).",
              "", f"Clean records screened: {len(rows)}; flagged: {len(flagged)}.", ""]
     lines += [f"- {r['record']} ({r['kind']}, {r['rows']} rows): {r['flagged']}" for r in flagged]
     lines += ["", "Largest margins (statistic / bar; flagged above 1):", "", "| record | kind | rows | margin |",
