@@ -95,8 +95,7 @@ class NoiseModel:
     name: ClassVar[str] = ""
     names: ClassVar[tuple[str, ...]] = ()
     needs_model_stress: ClassVar[bool] = False
-    #: heavy-tailed: a fit with it is robust to artefact rows (they are kept, and down-weighted)
-    robust: ClassVar[bool] = False
+    robust: ClassVar[bool] = False  # heavy-tailed: robust to artefact rows (kept, down-weighted)
 
     def __init__(self, *, observed=None, history_starts=None) -> None:
         if observed is None and history_starts is None:
@@ -183,10 +182,8 @@ class NoiseModel:
         return self.sd(q, model_stress) ** 2
 
     def effective_sd(self, q, residual, model_stress: np.ndarray | None = None) -> np.ndarray:
-        """The sd of the Gaussian whose weight a point gets at this residual (n, n_points): the
-        marginal sd for a Gaussian model; a robust model (:attr:`robust`) gives an outlying point a
-        larger one (its iteratively-reweighted-least-squares weight), so that what whitens residuals
-        with it (the detective's windows and screens) is robust too."""
+        """The sd of a point's weight at this residual (n, n_points): the marginal sd, larger for an
+        outlier of a :attr:`robust` model (its IRLS weight; the detective's windows and screens)."""
         return self.sd(q, model_stress)
 
     def autocorrelation(self, q, lag) -> np.ndarray:
