@@ -208,3 +208,33 @@ def test_progress_in_a_log_is_one_line_per_step(capsys):
         bar.set_postfix_str(f"s{k}")
         bar.update(1)
     assert capsys.readouterr().err.splitlines()[-1].startswith("[fit] 3/3 specimen (100%")
+
+
+def test_power_assesses_a_further_relaxation_time_beside_the_fitted_one():
+    """--power: an effect that needs another first (viscoelastic_2) gets its limit at the final model
+    that has it (its row says ``beside``), and none at a starting model without it."""
+    from hbm.detective.inputs import as_data
+    from hbm.detective.power import detection_power
+    from hbm.detective.results import FitSummary
+    prot = protocol([ramp(0.3, 0.01, 15), hold(120.0, 20)], [ramp(0.3, 0.001, 15), hold(120.0, 20)])
+    base = spyrou_model()
+    full = base + make_effect("viscoelastic")
+    ds = synthetic_specimen(full, THETA, prot, 0.01, seed=2, relative=True)
+    d = as_data(ds)
+
+    def summary(model):
+        lik = make_likelihood(model, ds)
+        x = np.array([THETA.get(n, 0.01 * float(np.max(np.abs(ds.stress.values)))) for n in lik.names])
+        return FitSummary(effects=[], noise="iid", names=list(lik.names), theta_max=x, max_log_likelihood=0.0,
+                          bic=0.0, rmse=0.0, likelihood=lik, model=model)
+
+    first, final = summary(base), summary(full)
+    cands = [make_effect("offset"), make_effect("viscoelastic_2")]
+    kw = dict(n_rep=20, n_levels=2, refine=0, with_controls=False)
+    res = detection_power(first, d, cands, 0, noise_fit=final, **kw)
+    rows = {r["effect"]: r for r in res["effects"]}
+    assert set(rows) == {"offset", "viscoelastic_2"}
+    assert "beside" not in rows["offset"] and rows["viscoelastic_2"]["beside"] == ["viscoelastic"]
+    alone = detection_power(first, d, cands, 0, **kw)
+    assert [r["effect"] for r in alone["effects"]] == ["offset"]
+    assert "beside the fitted viscoelastic" in res["text"]

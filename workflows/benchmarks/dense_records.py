@@ -53,8 +53,9 @@ def diagnose(tree: Path, path: Path, extra: list[str], max_time: float) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
+    # (run in the tree: ``python -m`` puts the working folder first on the path, before PYTHONPATH)
     proc = subprocess.run([sys.executable, "-m", "hbm", "diagnose", str(path), "--json", "--no-progress",
-                           "--max-time", str(max_time), *extra], capture_output=True, text=True, env=env)
+                           "--max-time", str(max_time), *extra], capture_output=True, text=True, env=env, cwd=tree)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
@@ -106,8 +107,12 @@ def main(argv=None) -> int:
     ap.add_argument("--full-max-time", type=float, default=36000.0)
     ap.add_argument("--posterior", type=int, default=0, help="seeds of the posterior comparison (0: skip)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--resume", action="store_true", help="keep the runs already in the --out JSON, run the rest")
     args = ap.parse_args(argv)
     out: dict = {"runs": [], "posterior": []}
+    if args.resume and args.out and Path(args.out).with_suffix(".json").exists():
+        out = json.loads(Path(args.out).with_suffix(".json").read_text())
+    done = {(r["seed"], r["relaxation_times"], r["code"]) for r in out["runs"]}
     if args.posterior:
         out["posterior"] = posterior(args.posterior)
     work = Path(tempfile.mkdtemp(prefix="hbm-dense-"))
@@ -123,6 +128,8 @@ def main(argv=None) -> int:
             if seed in args.full and terms == 2:
                 trees.append(("after, full resolution", ROOT, ["--reduce", "off"]))
             for label, tree, extra in trees:
+                if (seed, terms, label) in done:
+                    continue
                 mt = args.full_max_time if extra else args.before_max_time if label == "before" else args.max_time
                 r = {"seed": seed, "relaxation_times": terms, "code": label, **diagnose(tree, path, extra, mt)}
                 out["runs"].append(r)
