@@ -1,6 +1,21 @@
 """Shared test helpers."""
 
+import os
+
 import pytest
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _isolated_cache(tmp_path_factory):
+    """The tests' caches (the detective's calibration) in a temporary folder, never the user's
+    ~/.cache/hbm: a test must compute what it checks, not read a cache of an earlier run."""
+    old = os.environ.get("HBM_CACHE_DIR")
+    os.environ["HBM_CACHE_DIR"] = str(tmp_path_factory.mktemp("hbm-cache"))
+    yield
+    if old is None:
+        os.environ.pop("HBM_CACHE_DIR", None)
+    else:
+        os.environ["HBM_CACHE_DIR"] = old
 
 
 @pytest.fixture

@@ -27,9 +27,7 @@ THETA = dict(VOLF=0.8, EOPT=0.05, P1=0.15, T1=0.5, T2=12.0, THETA=57.0, GF=0.02,
 
 
 def _screen(ds):
-    names = ds.data_vars
-    return screen_artefacts(ds.strain.values, ds.stress.values, ds.time.values if "time" in names else None,
-                            ds.test.values if "test" in names else None)
+    return screen_artefacts(ds.strain, ds.stress, ds.time, ds.test)
 
 
 def test_the_raw_records_pretest_reading_is_its_only_flag():
@@ -74,17 +72,15 @@ def test_noise_free_corners_are_not_flagged():
 
 
 def _inject(ds, rows, values):
-    out = ds.copy(deep=True)
-    s = out.stress.values
+    s = ds.stress.copy()
     s[list(rows)] = values
-    out["stress"] = ("point", s)
-    return out
+    return ds.with_series("stress", s)
 
 
 @pytest.mark.parametrize("seed", range(4))
 def test_injected_artefacts_are_found_where_they_are(seed):
     ds = _clean("ramp_hold", 400, seed)
-    s = ds.stress.values
+    s = ds.stress
     peak = float(np.max(np.abs(s)))
     rng = np.random.default_rng(seed)
     spike, drop, dip = rng.integers(40, 90), rng.integers(150, 220), rng.integers(250, 350)
@@ -97,7 +93,7 @@ def test_injected_artefacts_are_found_where_they_are(seed):
 
 def test_post_failure_tail():
     ds = _clean("rates", 150, 1)
-    s, test = ds.stress.values.copy(), ds.test.values
+    s, test = ds.stress.copy(), ds.test
     rows = np.flatnonzero(test == test[-1])
     tail = rows[-12:]
     s[tail] = 0.002 * s[rows[-13]] * np.random.default_rng(0).standard_normal(12)   # the specimen broke
@@ -108,8 +104,8 @@ def test_post_failure_tail():
 def test_dropping_rows_is_recorded_and_a_clean_record_is_left_as_it_is():
     ds = load_specimen(RAW)
     prep = prepare_record(ds, artefacts="drop")
-    assert prep.data.sizes["point"] == ds.sizes["point"] - 1
-    np.testing.assert_array_equal(prep.data.stress.values, ds.stress.values[1:])
+    assert prep.data.n_points == ds.n_points - 1
+    np.testing.assert_array_equal(prep.data.stress, ds.stress[1:])
     record = json.loads(prep.data.attrs["dropped_rows"])
     assert record[0]["kind"] == "pre-test reading" and record[0]["lines"] == [10]
     assert dropped_summary(prep.data.attrs) == "1 artefact row dropped (line 10: pre-test reading)"

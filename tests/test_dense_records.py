@@ -8,6 +8,7 @@ two Prony relaxations; the arithmetic mean of a sample without its outlier.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -16,7 +17,7 @@ from scipy import optimize, stats
 
 from hbm.cli._common import NOISE_CHOICES
 from hbm.data import hold, input_summary, protocol, ramp, specimen_loading, synthetic_specimen
-from hbm.data.reduction import effective_count, reduce_record
+from hbm.data.reduction import bin_counts, effective_count, reduce_record
 from hbm.effects import applicable, make_effect
 from hbm.errors import HbmError
 from hbm.likelihood import make_likelihood
@@ -76,17 +77,17 @@ def test_effective_count_is_the_variance_of_simulated_ar1_means():
 def test_reduction_keeps_the_paths_corners_tests_and_rows():
     model, ds = _record(3000)
     r = reduce_record(ds)
-    rows = r.rows.values
-    assert rows.sum() == 3000 and r.sizes["point"] < 400 and rows.max() == math.ceil(3000 / 250)
-    np.testing.assert_allclose(r["count"].values, rows)          # iid readings: every reading counts
+    rows = np.array(json.loads(r.attrs["reduction"])["readings"])
+    assert rows.sum() == 3000 and r.n_points < 400 and rows.max() == math.ceil(3000 / 250)
+    np.testing.assert_allclose(bin_counts(r), rows)          # iid readings: every reading counts
     first = np.r_[0, np.cumsum(rows)[:-1]]
     # bins never cross a test; the first row, the ramp's last row and the hold's first row are bins of their own
-    assert np.all(ds.test.values[first] == ds.test.values[first + rows - 1])
-    end = int(np.flatnonzero(ds.test.values == ds.test.values[0])[-1])
+    assert np.all(ds.test[first] == ds.test[first + rows - 1])
+    end = int(np.flatnonzero(ds.test == ds.test[0])[-1])
     for i in (0, end, end + 1):
         j = int(np.searchsorted(first, i, side="right") - 1)
         assert first[j] == i and rows[j] == 1, i
-    assert r.time.values[0] == 0.0 and specimen_loading(r).history_starts.sum() == 1
+    assert r.time[0] == 0.0 and specimen_loading(r).history_starts.sum() == 1
     assert "3000 rows reduced to" in input_summary(r)
     with pytest.raises(HbmError, match="reduced already"):
         reduce_record(r)
@@ -224,7 +225,7 @@ def test_power_assesses_a_further_relaxation_time_beside_the_fitted_one():
 
     def summary(model):
         lik = make_likelihood(model, ds)
-        x = np.array([THETA.get(n, 0.01 * float(np.max(np.abs(ds.stress.values)))) for n in lik.names])
+        x = np.array([THETA.get(n, 0.01 * float(np.max(np.abs(ds.stress)))) for n in lik.names])
         return FitSummary(effects=[], noise="iid", names=list(lik.names), theta_max=x, max_log_likelihood=0.0,
                           bic=0.0, rmse=0.0, likelihood=lik, model=model)
 

@@ -167,14 +167,13 @@ def test_population_exact_settings_and_combination_coordinates():
     from hbm.identifiability.combinations import log_density, support_hull, to_features
     from hbm.model import spyrou_model
     from hbm.population import PopulationConfig
-    from hbm.population.config import check_config
     from hbm.population.fallbacks import exact_applies
     from hbm.population.pooling import PhiCoordinates
 
-    with pytest.raises(HbmError, match="gibbs"):
-        check_config(PopulationConfig(exact="nuts"))
+    with pytest.raises(HbmError, match="gibbs"):  # a record refuses a bad setting when it is built
+        PopulationConfig(exact="nuts")
     with pytest.raises(HbmError, match="exact_chains"):
-        check_config(PopulationConfig(exact_chains=2))
+        PopulationConfig(exact_chains=2)
     assert PopulationConfig().exact == "gibbs"  # on by default (README, results/benchmarks/hierarchical_gold.md)
     data = {"a": None, "b": None}
     assert not exact_applies(PopulationConfig(groups={"a": "x"}), ["a"], data, "ab")  # grouped: refinements
@@ -221,7 +220,7 @@ def test_run_option_hier_exact_reaches_the_population_layer(monkeypatch, tmp_pat
         pass
 
     def capture(cfg, **kw):
-        raise Captured(cfg.population_config())
+        raise Captured(cfg.population_settings())
 
     monkeypatch.setenv("HBM_DEBUG", "1")
     monkeypatch.setattr(cli_run, "run_workflow", capture)

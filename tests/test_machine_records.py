@@ -36,11 +36,11 @@ def test_raw_record_loads_to_the_hand_conversion_with_the_steps_recorded():
     strain = [-p / height for p in position]
     nominal = [-f / area for f in load]
     cauchy = [(1 + e) * s for e, s in zip(strain, nominal)]
-    assert ds.sizes["point"] == len(t) == 219
-    np.testing.assert_allclose(ds.strain.values, strain, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(ds.stress.values, cauchy, rtol=0, atol=1e-9)
-    np.testing.assert_array_equal(ds.time.values, t)
-    assert not np.signbit(ds.strain.values[0])          # 0, not -0
+    assert ds.n_points == len(t) == 219
+    np.testing.assert_allclose(ds.strain, strain, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ds.stress, cauchy, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(ds.time, t)
+    assert not np.signbit(ds.strain[0])          # 0, not -0
     at = ds.attrs
     assert at["deformation_input"] == "displacement_mm" and at["stress_input"] == "force_N"
     assert float(at["cross_section_mm2"]) == pytest.approx(area, rel=1e-15)
@@ -77,8 +77,8 @@ def test_force_and_displacement_units_and_geometry(tmp_path, meta, head, scale_f
     ds = load_specimen(_machine(tmp_path, meta, head, rows))
     strain = [(d / scale_d) * scale_d / l0 for d in D]
     stress = [(1 + e) * (f / scale_f) * scale_f / area for e, f in zip(strain, F)]
-    np.testing.assert_allclose(ds.strain.values, strain, rtol=1e-14)
-    np.testing.assert_allclose(ds.stress.values, stress, rtol=1e-14)
+    np.testing.assert_allclose(ds.strain, strain, rtol=1e-14)
+    np.testing.assert_allclose(ds.stress, stress, rtol=1e-14)
 
 
 @pytest.mark.parametrize("meta, head, fragments", [
@@ -115,14 +115,14 @@ def test_compression_magnitudes_must_be_magnitudes(tmp_path):
     with pytest.raises(DataError, match="reads the machine's columns as magnitudes"):
         load_specimen(_machine(tmp_path, meta + "# loading: compression\n", "time,force_N,displacement_mm", signed))
     ds = load_specimen(_machine(tmp_path, meta, "time,force_N,displacement_mm", signed, "signed.csv"))
-    np.testing.assert_allclose(ds.strain.values, [-d / 25 for d in D], rtol=1e-14)
+    np.testing.assert_allclose(ds.strain, [-d / 25 for d in D], rtol=1e-14)
 
 
 def test_converted_record_saves_and_loads_back_to_the_same_numbers(tmp_path):
     ds = load_specimen(RAW)
     back = load_specimen(save_specimen(ds, tmp_path / "saved.csv"))
     for v in ("strain", "stress", "time"):
-        np.testing.assert_array_equal(back[v].values, ds[v].values)
+        np.testing.assert_array_equal(getattr(back, v), getattr(ds, v))
     assert input_summary(back) == input_summary(ds)
 
 
@@ -134,8 +134,8 @@ def test_data_check_lists_the_row_and_prints_series_record_and_flags(capsys):
     obj = json.loads(capsys.readouterr().out)
     sp = obj["specimens"][0]
     ds = load_specimen(RAW)
-    assert sp["series"]["strain"] == ds.strain.values.tolist() and sp["series"]["stress"] == ds.stress.values.tolist()
-    assert sp["series"]["time"] == ds.time.values.tolist() and sp["units"]["stress"] == "MPa (Cauchy)"
+    assert sp["series"]["strain"] == ds.strain.tolist() and sp["series"]["stress"] == ds.stress.tolist()
+    assert sp["series"]["time"] == ds.time.tolist() and sp["units"]["stress"] == "MPa (Cauchy)"
     assert sp["conversion"]["stress_input"] == "force_N" and len(sp["conversion"]["steps"]) == 3
     assert [(a["kind"], a["rows"], a["lines"]) for a in sp["artefacts"]] == [("pre-test reading", [0], [10])]
     assert obj["errors"] == []

@@ -93,15 +93,14 @@ def _input(ds) -> str:
     return ",".join(p for p in parts if p) or "-"
 
 
-def _row(ds) -> list[str]:
-    strain, stress = ds["strain"].values, ds["stress"].values
-    tests = str(len(set(ds["test"].values.tolist()))) if "test" in ds else "1"
-    source = str(ds.attrs.get("citation") or ds.attrs.get("source") or "")
+def _row(spec) -> list[str]:
+    strain, stress = spec.strain, spec.stress
+    source = str(spec.attrs.get("citation") or spec.attrs.get("source") or "")
     if len(source) > 48:
         source = source[:45] + "..."
-    return [str(ds.attrs["id"]), str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
-            f"{stress[np.argmax(np.abs(stress))]:.4g}", tests, "yes" if "time" in ds else "-", _input(ds),
-            provenance(ds), source]
+    return [spec.id, str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
+            f"{stress[np.argmax(np.abs(stress))]:.4g}", str(len(spec.tests)), "yes" if spec.time is not None else "-",
+            _input(spec), provenance(spec), source]
 
 
 #: dataset attributes that record a conversion (hbm.data: loader, machine, prepare)
@@ -110,25 +109,28 @@ _RECORDS = ("units_stress", "units_stress_original", "stress_measure", "stress_m
             "area_mm2", "diameter_mm", "width_mm", "thickness_mm", "gauge_length_mm")
 
 
-def _series(ds) -> dict:
-    """The loaded series of one specimen, in the dataset's units (the JSON of --json)."""
-    out = {"strain": ds["strain"].values.tolist(), "stress": ds["stress"].values.tolist()}
-    for name in ("time", "test", "mode"):
-        if name in ds:
-            out[name] = ds[name].values.tolist()
+def _series(spec) -> dict:
+    """The loaded series of one specimen, in the specimen's units (the JSON of --json); ``mode``:
+    each test's load case (:attr:`hbm.data.Test.load_case`)."""
+    out = {"strain": spec.strain.tolist(), **{k: sr.values.tolist() for k, sr in spec.observed.items()}}
+    for name in ("time", "test"):
+        if getattr(spec, name) is not None:
+            out[name] = getattr(spec, name).tolist()
+    out["mode"] = {str(t.id): t.load_case for t in spec.tests}
     return out
 
 
-def _specimen_json(f: Path, ds, found, lines) -> dict:
-    a = ds.attrs
+def _specimen_json(f: Path, spec, found, lines) -> dict:
+    a = spec.attrs
     record = {k: a[k] for k in _RECORDS if k in a}
     if a.get("conversion_steps"):
         record["steps"] = json.loads(a["conversion_steps"])
     if a.get("test_labels"):
         record["test_labels"] = json.loads(a["test_labels"])
-    return {"id": str(a["id"]), "file": str(f), "points": int(ds.sizes["point"]),
-            "units": {"strain": "1 (engineering strain)", "stress": "MPa (Cauchy)", "time": "s"},
-            "series": _series(ds), "conversion": {"summary": input_summary(ds), **record},
+    units = {"strain": "1 (engineering strain)", **{k: sr.unit for k, sr in spec.observed.items()},
+             "stress": "MPa (Cauchy)", "time": "s"}
+    return {"id": spec.id, "file": str(f), "points": spec.n_points, "units": units,
+            "series": _series(spec), "conversion": {"summary": input_summary(spec), **record},
             "artefacts": [x.to_dict(lines) for x in found]}
 
 
@@ -146,7 +148,7 @@ def run_check(args: argparse.Namespace) -> int:
         except HbmError as exc:
             errors.append(str(exc))
             continue
-        sid = ds.attrs["id"]
+        sid = ds.id
         if sid in ids:
             errors.append(str(DataError(f"{f}: duplicate specimen id {sid!r} (also in {ids[sid]}), "
                                         "expected unique ids")))

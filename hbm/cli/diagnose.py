@@ -5,24 +5,36 @@ from __future__ import annotations
 
 import argparse
 
-from ..likelihood.collapsed import TIERS
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
+from ..detective.calibration import CALIBRATION_CHOICES
 from ..detective.caveats import CORRELATED_CHOICES
+from ..detective.rules import CALIBRATION_REPLICATES
 from ..effects import applicable, resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..runtime.files import prepare_output_file
+from ..settings import FitSettings, add_arguments
 from ._common import (
-    n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_record_arguments,
-    add_seed,
-    check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points, name_list,
-    non_negative_int, plot_path, positive_float, print_json, sample_size, workers)
+    n_noise_parameters, add_data_arguments, add_fix, add_form_argument, check_fix_bounds, check_population_memory,
+    load_specimen_arg, name_list, integer, non_negative_int, plot_path, positive_float, print_json, workers)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
 #: --max-time default (s): a 150-point three-rate record takes 4-9 minutes in full on a busy 2-core machine
 DEFAULT_MAX_TIME = 300.0
+#: what the shared settings mean for the diagnosis (where it differs from a fit)
+HELPS = {
+    "seed": "seed of every random step (default 0)",
+    "samples": f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; use fewer for slow models)",
+    "noise": "force one noise model for every fit (default: chosen by evidence)",
+    "tier": ("tier of every evidence run: full (default) samples every parameter; auto integrates the linear "
+             "amplitudes exactly and samples only the nonlinear and noise parameters where the model and noise "
+             "allow it and it is cheap (at most 3 amplitude columns); collapsed: wherever it applies, however dear "
+             "(auto is not the default here: it tilts comparisons between a collapsible and a full-space candidate, "
+             "see results/detective_validation.md). Models without linear amplitudes (damage, series compliance) "
+             "and proportional noise always use the full likelihood; the tier of each fit is in the output"),
+}
 
 
 DIAGNOSE_DESCRIPTION = """\
@@ -40,8 +52,10 @@ Compare the model with a specimen, show where it fails and name the missing effe
    unexplained (misfit in ε or t ∈ [a, b], with its shape) | data_problem (a unit, or rows
    that are not the tissue: the artefact screen names them before any fit; --drop-artefacts
    drops them, --noise student_t keeps them in a robust fit) | adequate (only without any sign
-   of misfit).  --power adds the detection limit of every library effect.  A record above
-   1000 rows is diagnosed as bin means of its readings (--reduce off: every row).
+   of misfit).  Each statistic (window score, each shape's and candidate's likelihood gain,
+   the noise disagreement) is judged against its own null on this file at family-wise 5 %
+   (--calibration off: fixed thresholds).  --power adds the detection limit of every library
+   effect.  A dense record is diagnosed as bin means of its readings (--reduce off: every row).
 
 examples:
   hbm diagnose data/specimens/calvo_1.csv
@@ -69,11 +83,11 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     add_fix(p, "EOPT=0.12")
     add_form_argument(p)
     add_data_arguments(p)
-    add_record_arguments(p)
-    add_seed(p, "seed of every random step (default 0)")
-    p.add_argument("--samples", type=sample_size, default=None, metavar="N",
-                   help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; use fewer for slow models)")
-    add_max_evaluations(p)   # per evidence run: the population shrinks to what it affords, then a hard cap
+    # the settings diagnose shares with a fit, declared once in hbm.settings.FitSettings; --max-evaluations
+    # is per evidence run (the population shrinks to what it affords, then a hard cap)
+    add_arguments(p, FitSettings, ("seed", "samples", "max_evaluations", "noise", "tier",
+                                       "reduce", "artefacts"),
+                  defaults={"samples": None, "noise": None, "tier": "full"}, helps=HELPS)
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
                    help="write the figure (PNG/PDF/SVG/...; into an existing folder)")
@@ -87,22 +101,11 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=workers, default=None, metavar="K",
                    help="processes the candidate refits of a round run in (default: the usable cores; 0 or 1: "
                         "all in this process); the results do not depend on it")
-    p.add_argument("--noise", default=None, metavar="iid|ar1|proportional|...",
-                   help="force one noise model for every fit (default: chosen by evidence)")
     p.add_argument("--correlated", choices=CORRELATED_CHOICES, default="auto",
                    help="correlated residuals are noise (AR(1) offered) or model error (not offered); auto "
                         "(default): model error on curves marked digitised or group mean ('# digitised: yes', "
                         "'# kind: group mean', or those words in the provenance) or without noise at the "
                         "model-free scale, noise otherwise")
-    p.add_argument("--likelihood", choices=list(TIERS), default="full",
-                   help="tier of every evidence run: full (default) samples every parameter; auto integrates the "
-                        "linear amplitudes exactly and "
-                        "samples only the nonlinear and noise parameters where the model and noise allow it "
-                        "and it is cheap (at most 3 amplitude columns); collapsed: wherever it applies, however "
-                        "dear (auto is not the default yet: it tilts comparisons between a collapsible and a full-space "
-                        "candidate, see results/detective_validation.md). Models without linear amplitudes (damage, series compliance) and "
-                        "proportional noise always use the full likelihood; the tier of each fit is in the "
-                        "output")
 
 
 def register(subparsers) -> None:
@@ -119,6 +122,14 @@ def register(subparsers) -> None:
                    help="physical candidates refitted (default 3)")
     p.add_argument("--power", action="store_true",
                    help="also report the detection limit of every library effect on this protocol and noise")
+    p.add_argument("--calibration", choices=list(CALIBRATION_CHOICES), default="on",
+                   help="on (default): each statistic of the verdict is judged against its own null -- the fitted "
+                        "model with its fitted noise simulated on this file's design -- at family-wise 5 %% and "
+                        "reported with its calibrated p-value; off: the fixed thresholds (10 nats for a shape "
+                        "alone, 5 for a named effect); the output says which was used")
+    p.add_argument("--replicates", type=integer(40, "an integer >= 40"), default=CALIBRATION_REPLICATES, metavar="N",
+                   help=f"null replicates per round of the calibration (default {CALIBRATION_REPLICATES}; "
+                        "a p-value's resolution is 1/(N+1))")
     p.set_defaults(func=run_diagnose)
 
     q = subparsers.add_parser("extend", help="add effects one at a time and show the error fall",
@@ -162,18 +173,20 @@ def _prepare(args, extra: list[str]):
     check_fix_bounds(model, dict(args.fix), {})
     ds = load_specimen_arg(args.specimen, args.sl0, model)
     samples = args.samples or DEFAULT_SAMPLES
-    check_population_memory(f"--samples {samples}", samples, n_points(ds),
+    check_population_memory(f"--samples {samples}", samples, ds.n_points,
                             model.n_params + len(extra) + n_noise_parameters(args.noise))  # None: the largest model
     if args.plot is not None:
         prepare_output_file(args.plot, "--plot")
-    kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,
-          "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
-          "likelihood": args.likelihood, "workers": args.workers, "reduce": args.reduce or "auto",
+    if args.max_evaluations is not None:  # the record's rule: the budget pays for the population at least
+        FitSettings.from_args(args, samples=samples, noise=None, tier=args.tier)
+    kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed,
+          "progress": args.progress, "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
+          "tier": args.tier, "workers": args.workers, "reduce": args.reduce or "auto",
           "artefacts": args.artefacts or "flag"}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:
-        kw["max_evaluations"] = check_max_evaluations(args.max_evaluations, samples)
+        kw["max_evaluations"] = args.max_evaluations
     return ds, kw
 
 
@@ -202,7 +215,8 @@ def run_diagnose(args) -> int:
     """Check everything, then diagnose and print (or plot) the verdict."""
     candidates = _candidates(args)
     ds, kw = _prepare(args, [])
-    dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, **kw)
+    dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, calibration=args.calibration,
+                  replicates=args.replicates, **kw)
     if args.plot:
         dg.plot(args.plot)
     ds = dg.data.ds          # the record as diagnosed (a dense one reduced, artefact rows dropped on request)

@@ -319,13 +319,13 @@ def _ranges(values: list[int]) -> str:
     return ", ".join(out)
 
 
-def drop_rows(ds, found, lines=None):
-    """The dataset without the artefacts' rows, the drop recorded in its attributes
+def drop_rows(spec, found, lines=None):
+    """The specimen without the artefacts' rows, the drop recorded in its attributes
     (``dropped_rows``: JSON list of {kind, rows, lines, detail}).
 
     Parameters
     ----------
-    ds : xarray.Dataset
+    spec : Specimen
         A loaded specimen.
     found : list of Artefact
         :func:`screen_artefacts`'s result.
@@ -334,9 +334,6 @@ def drop_rows(ds, found, lines=None):
     """
     rows = artefact_rows(found)
     if not rows:
-        return ds
-    keep = np.setdiff1d(np.arange(ds.sizes["point"]), rows)
-    out = ds.isel(point=keep)
-    out.attrs = dict(ds.attrs)
-    out.attrs["dropped_rows"] = json.dumps([a.to_dict(lines) for a in found])
-    return out
+        return spec
+    keep = np.setdiff1d(np.arange(spec.n_points), rows)
+    return spec.select(keep).with_attrs(dropped_rows=json.dumps([a.to_dict(lines) for a in found]))

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from ..errors import SettingError
 from .artefacts import Artefact, data_lines, describe_artefacts, drop_rows, screen_artefacts
 from .reduction import DENSE_POINTS, is_reduced, reduce_record
+from .specimen import Specimen, as_specimen
 
 __all__ = ["REDUCE_CHOICES", "ARTEFACT_CHOICES", "Prepared", "prepare_record", "screen_dataset", "dropped_summary"]
 
@@ -26,7 +27,7 @@ ARTEFACT_CHOICES = ("flag", "drop")
 class Prepared:
     """The record to fit and what was done to it."""
 
-    data: object                                   # the dataset to fit
+    data: Specimen                                 # the record to fit
     artefacts: list[Artefact] = field(default_factory=list)   # rows flagged and kept ("flag")
     dropped: list[Artefact] = field(default_factory=list)     # rows flagged and dropped ("drop")
     lines: list[int] | None = None                 # the file's line of every raw row, where known
@@ -37,27 +38,25 @@ class Prepared:
         return describe_artefacts(self.artefacts, self.lines)
 
 
-def screen_dataset(ds) -> tuple[list[Artefact], list[int] | None]:
-    """:func:`hbm.data.artefacts.screen_artefacts` of a loaded dataset, with its file's line numbers
+def screen_dataset(spec: Specimen) -> tuple[list[Artefact], list[int] | None]:
+    """:func:`hbm.data.artefacts.screen_artefacts` of a loaded specimen, with its file's line numbers
     (None when the file is unknown or its rows do not match)."""
-    names = getattr(ds, "data_vars", ds)
-    found = screen_artefacts(ds["strain"].values, ds["stress"].values,
-                             ds["time"].values if "time" in names else None,
-                             ds["test"].values if "test" in names else None)
-    lines = data_lines(ds.attrs.get("source_file")) if found and ds.attrs.get("source_file") else None
-    if lines is not None and (len(lines) != ds.sizes["point"] or "dropped_rows" in ds.attrs):
+    found = screen_artefacts(spec.strain, spec.stress, spec.time, spec.test)
+    lines = data_lines(spec.source_file) if found and spec.source_file else None
+    if lines is not None and (len(lines) != spec.n_points or "dropped_rows" in spec.attrs):
         lines = None    # rows dropped before: the file's lines no longer match
     return found, lines
 
 
-def prepare_record(ds, *, reduce: str = "auto", artefacts: str = "flag") -> Prepared:
-    """Screen ``ds`` for artefact rows, drop them when ``artefacts="drop"``, and reduce a dense
+def prepare_record(data, *, reduce: str = "auto", artefacts: str = "flag") -> Prepared:
+    """Screen a specimen for artefact rows, drop them when ``artefacts="drop"``, and reduce a dense
     record when ``reduce="auto"`` (:mod:`hbm.data.reduction`).
 
     Parameters
     ----------
-    ds : xarray.Dataset
-        A loaded specimen (a reduced one is returned as it is).
+    data : Specimen
+        A loaded specimen (a Dataset is converted once).  A reduced one is returned as it is; one
+        whose artefact rows were dropped already is not screened again.
     reduce : {"auto", "off"}
     artefacts : {"flag", "drop"}
 
@@ -69,15 +68,18 @@ def prepare_record(ds, *, reduce: str = "auto", artefacts: str = "flag") -> Prep
         raise SettingError(f"reduce: expected one of {', '.join(REDUCE_CHOICES)}, got {reduce!r}")
     if artefacts not in ARTEFACT_CHOICES:
         raise SettingError(f"artefacts: expected one of {', '.join(ARTEFACT_CHOICES)}, got {artefacts!r}")
-    if not hasattr(ds, "data_vars") or is_reduced(ds):
-        return Prepared(ds)
-    found, lines = screen_dataset(ds)
-    out = Prepared(ds, lines=lines)
-    if found and artefacts == "drop":
-        out.data, out.dropped = drop_rows(ds, found, lines), found
-    elif found:
-        out.artefacts = found
-    if reduce == "auto" and out.data.sizes["point"] > DENSE_POINTS:
+    spec = as_specimen(data)
+    if is_reduced(spec) or not spec.has_stress:
+        return Prepared(spec)
+    out = Prepared(spec)
+    if "dropped_rows" not in spec.attrs:   # (a record prepared before, e.g. by the command line: as it is)
+        found, lines = screen_dataset(spec)
+        out.lines = lines
+        if found and artefacts == "drop":
+            out.data, out.dropped = drop_rows(spec, found, lines), found
+        elif found:
+            out.artefacts = found
+    if reduce == "auto" and out.data.n_points > DENSE_POINTS:
         out.data, out.reduced = reduce_record(out.data), True
     return out
 

@@ -21,7 +21,8 @@ carries their information about the curve as long as the curve is straight over 
 * **the noise.**  The raw readings' sd and lag-1 correlation ρ come from the residuals of
   straight lines fitted within the bins; a bin of c readings of AR(1) noise holds
   c / (1 + 2 Σ_{k<c} (1 − k/c) ρ^k) independent readings' worth of information, and that
-  *effective* count is what the likelihood uses (``count``; the raw count is ``rows``).
+  *effective* count is what the likelihood uses (:func:`bin_counts`; the specimen's
+  ``reduction`` attribute keeps it as ``count`` and the raw count as ``readings``).
 
 A record above ``DENSE_POINTS`` rows is reduced by ``hbm fit``, ``diagnose`` and ``extend``
 unless ``--reduce off``; the first output line says so.  ``workflows/benchmarks/dense_records.py``
@@ -34,12 +35,13 @@ import json
 import math
 
 import numpy as np
-import xarray as xr
 
 from ..errors import HbmError
 from .artefacts import segments
+from .specimen import Series, Specimen
 
-__all__ = ["DENSE_POINTS", "TARGET_BINS", "reduce_record", "is_reduced", "reduction_summary", "effective_count"]
+__all__ = ["DENSE_POINTS", "TARGET_BINS", "reduce_record", "is_reduced", "bin_counts", "reduction_summary",
+           "effective_count"]
 
 #: records with more rows than this are reduced ("auto")
 DENSE_POINTS = 1000
@@ -157,27 +159,25 @@ def _noise(res: list[np.ndarray]) -> tuple[float, float]:
     return sigma, float(np.clip(rho, 0.0, 0.95))
 
 
-def reduce_record(ds: xr.Dataset) -> xr.Dataset:
+def reduce_record(spec: Specimen) -> Specimen:
     """The record with each bin of neighbouring readings replaced by its mean (module docstring).
 
     Parameters
     ----------
-    ds : xarray.Dataset
-        A loaded specimen (``strain``, ``stress``, optional ``time``, ``test``).
+    spec : Specimen
+        A loaded specimen with its stress series (optional time and tests).
 
     Returns
     -------
-    xarray.Dataset
-        The bin means, with ``count`` (effective independent readings, what the likelihood
-        uses) and ``rows`` (readings) per point, and the attribute ``reduction`` (JSON: rows,
-        bins, largest bin, raw noise sd and ρ, rules).
+    Specimen
+        The bin means (every series averaged, a test's id kept), with the attribute ``reduction``
+        (JSON: rows, bins, largest bin, raw noise sd and ρ, rules, and per point ``count`` -- the
+        effective independent readings, what the likelihood uses, :func:`bin_counts` -- and
+        ``readings`` -- the readings averaged).
     """
-    if "count" in ds:
-        raise HbmError(f"{ds.attrs.get('id', 'specimen')}: the record is reduced already")
-    strain = np.asarray(ds["strain"].values, float)
-    stress = np.asarray(ds["stress"].values, float)
-    time = np.asarray(ds["time"].values, float) if "time" in ds else None
-    test = np.asarray(ds["test"].values) if "test" in ds else None
+    if is_reduced(spec):
+        raise HbmError(f"{spec.id}: the record is reduced already")
+    strain, stress, time, test = spec.strain, spec.stress, spec.time, spec.test
     n = stress.size
     largest = max(1, math.ceil(n / TARGET_BINS))
     bins: list[tuple[int, int]] = []
@@ -195,38 +195,59 @@ def reduce_record(ds: xr.Dataset) -> xr.Dataset:
     starts = np.array([a for a, _ in bins])
     rows = np.array([b - a for a, b in bins])
     mean = lambda v: np.add.reduceat(v, starts) / rows  # noqa: E731
-    data = {"strain": mean(strain), "stress": mean(stress)}
+    new_time = None
     if time is not None:
-        data["time"] = mean(time)
+        new_time = mean(time)
         # a history that restarts at time 0 still starts at exactly 0 (its first row is a bin of its own)
-        data["time"][time[starts] == 0.0] = 0.0
-    if test is not None:
-        data["test"] = test[starts]
-    variables = {k: xr.Variable("point", v, ds[k].attrs) for k, v in data.items()}
-    variables["count"] = xr.Variable("point", effective_count(rows, rho),
-                                     {"units": "1", "long_name": "independent readings' worth of the bin mean"})
-    variables["rows"] = xr.Variable("point", rows, {"units": "1", "long_name": "readings averaged in the bin"})
-    out = xr.Dataset(variables, attrs=dict(ds.attrs))
-    out.attrs["reduction"] = json.dumps({
+        new_time[time[starts] == 0.0] = 0.0
+    count = effective_count(rows, rho)
+    attrs = dict(spec.attrs)
+    attrs["reduction"] = json.dumps({
         "method": "bin means", "rows": int(n), "bins": int(rows.size), "largest_bin": int(rows.max()),
         "growth": GROWTH, "bias_limit": BIAS, "raw_noise_sd": sigma, "raw_noise_rho": rho,
-        "effective_readings": float(np.sum(variables["count"].values))})
-    return out
+        "effective_readings": float(np.sum(count)), "count": count.tolist(), "readings": rows.tolist()})
+    observed = {k: Series(k, mean(s.values), s.unit, s.long_name) for k, s in spec.observed.items()}
+    return Specimen(spec.id, mean(strain), new_time, None if test is None else test[starts], observed, attrs)
 
 
-def is_reduced(ds) -> bool:
-    """Does ``ds`` hold bin means of a dense record?"""
-    return "count" in getattr(ds, "data_vars", ())
+def _reduction(attrs) -> dict | None:
+    text = attrs.get("reduction") if hasattr(attrs, "get") else None
+    if not text:
+        return None
+    try:
+        return json.loads(text)
+    except (TypeError, ValueError):
+        return None
+
+
+def is_reduced(spec) -> bool:
+    """Does ``spec`` hold bin means of a dense record?"""
+    return _reduction(getattr(spec, "attrs", {})) is not None
+
+
+def bin_counts(spec) -> np.ndarray | None:
+    """The effective independent readings of each bin mean of a reduced record (None for another).
+
+    Raises
+    ------
+    HbmError
+        When the record's points no longer match its bins (rows selected after the reduction).
+    """
+    r = _reduction(getattr(spec, "attrs", {}))
+    if r is None or "count" not in r:
+        return None
+    counts = np.asarray(r["count"], dtype=float)
+    n = getattr(spec, "n_points", counts.size)
+    if counts.size != n:
+        raise HbmError(f"{getattr(spec, 'id', 'specimen')}: {n} points but {counts.size} bin counts: rows were "
+                       "selected after the reduction (reduce the selected record instead)")
+    return counts
 
 
 def reduction_summary(attrs) -> str:
     """``"7993 rows reduced to 312 bin means (...)"`` from the ``reduction`` attribute ("" if none)."""
-    text = attrs.get("reduction") if hasattr(attrs, "get") else None
-    if not text:
-        return ""
-    try:
-        r = json.loads(text)
-    except (TypeError, ValueError):
+    r = _reduction(attrs)
+    if r is None:
         return ""
     rho = f", raw noise correlation {r['raw_noise_rho']:.2f} accounted for" if r.get("raw_noise_rho") else ""
     return (f"dense record: {r['rows']} rows reduced to {r['bins']} bin means (at most {r['largest_bin']} readings "

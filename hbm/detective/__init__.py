@@ -32,7 +32,7 @@ from __future__ import annotations
 import time as _time
 import warnings
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -44,25 +44,28 @@ except ImportError:                  # pragma: no cover - Windows
 
 from ..runtime import seeds as _seeds
 from ..errors import HbmError, HbmWarning
-from ..runtime.validation import check_workers, usable_cores
+from ..settings.rules import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
 from ..effects import applicable
 from ..model.core import Effect
 from ..likelihood.noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
-from .decision import Verdict, decide, gain
+from .decision import Verdict, decide, shape_preferred
 from .fitting import FitInterrupted, Fitter, noise_evidence
+from .greedy import _Step, _final_verdict, _greedy, _named, _step_record, gain_beyond_controls  # noqa: F401 (tests)
+from .calibration import (
+    CalibrationSetting, calibrate, calibrated_check, calibration_record, calibration_setting)
 from .budget import cost_estimate, revised_estimate, stop_record, stop_reserve
 from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_caveats, white_noise_view
-from .inputs import added_effects, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
-from .noise_check import NoiseCheck, check_noise, misfit_windows, model_free_noise, noise_prior_box
+from .inputs import resolve_candidates, resolve_effect, resolve_model, unit_anomaly
+from .noise_check import check_noise, misfit_windows, model_free_noise, noise_prior_box
 from .power import detection_power
 from .records import artefact_caveats, artefact_problem, record_dict, record_noise
 from .records import prepare as prepare_record
 from .refits import refit_candidates, run_in_workers
 from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
-from .rules import DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
+from .rules import CALIBRATION_REPLICATES, DELTA_LOGZ_MIN, MAX_EFFECTS, N_CONTROL_REFITS, RUNNER_UP_MARGIN
 from .screen import local_refit_screen, score_screen, screen_candidates
 
 __all__ = ["diagnose", "extend", "place_as_diagnosed", "Diagnosis", "Extension", "CandidateResult", "FitSummary",
@@ -107,21 +110,9 @@ def correlated_noises(noises: list[str], noise: str | None, correlated: str, dig
     return noises
 
 
-@dataclass(slots=True)
-class _Step:
-    """One round of steps 2–4 at the current model."""
-
-    base: FitSummary
-    check: NoiseCheck
-    results: list
-    controls: list
-    skipped: dict
-    verdict: Verdict
-
-
 def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, noises: list[str], top: int,
-           seed: int, timings: dict) -> _Step:
-    """Where it fails, what is missing, the decision -- at the current model ``base``."""
+           seed: int, timings: dict, calib: CalibrationSetting | None = None, k: int = 0) -> _Step:
+    """Where it fails, what is missing, the decision -- at the current model ``base`` (round ``k``)."""
     with _stopwatch(timings, "windows"):
         check = check_noise(base, mf, d, seed)
     with _stopwatch(timings, "screen"):
@@ -132,6 +123,17 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
         done = refit_candidates(results, ctrls, base, fitter, noises, top, seed)
         # the windows at the best base found, and what each refit leaves
         check = check_noise(base, mf, d, seed)
+    cal = None
+    if calib is not None:
+        with _stopwatch(timings, "calibration"):
+            # every statistic of the verdict against its null on this file (before windows_after:
+            # the windows a refit leaves are scanned at the calibrated threshold too)
+            cal = calibrate(base, check, [c.effect_instance for c in results], d, calib.seed, k, calib.replicates,
+                            run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
+            check = calibrated_check(check, cal, base, d)
+        fitter.log(f"calibration: {cal.replicates} null replicates in {cal.seconds:.1f} s"
+                   f"{' (cached)' if cal.cached else ''}; smallest family-wise p {cal.p_family:.3g}")
+    with _stopwatch(timings, "refits"):
         for c in done:
             c.windows_after = len(check.remaining_windows(c.fit, d))
             if not c.physical:
@@ -139,8 +141,8 @@ def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, n
                 c.region = c.effect_instance.region(x, d)
                 c.shape_detail = c.effect_instance.describe(x)
     check.noise["preference"] = _noise_preference(base, ctrls)
-    verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d)
-    return _Step(base, check, results, ctrls, skipped, verdict)
+    verdict = decide(results, ctrls, check.windows, check.noise, base.noise, d, cal)
+    return _Step(base, check, results, ctrls, skipped, verdict, cal)
 
 
 def _ar1_absorbs_misfit(step: _Step) -> str | None:
@@ -175,20 +177,28 @@ def _noise_preference(base: FitSummary, ctrls: list[CandidateResult]) -> str:
     return "; ".join(parts)
 
 
+def _tier(tier: str, likelihood: str | None, who: str) -> str:
+    """The tier of ``tier=``, or of the older keyword ``likelihood=`` (deprecated: it warns)."""
+    if likelihood is None:
+        return tier
+    warnings.warn(f"{who}(likelihood=...) is deprecated; use tier=", DeprecationWarning, stacklevel=3)
+    return likelihood
+
+
 def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | None = None,
              seed: int = 0, n_samples: int = 800, top: int = 3, progress: bool = False,
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
-             correlated: str = "auto", max_time: float | None = None, likelihood: str = "full",
-             workers: int | None = None, reduce: str = "auto", artefacts: str = "flag") -> Diagnosis:
+             correlated: str = "auto", max_time: float | None = None, tier: str = "full",
+             workers: int | None = None, likelihood: str | None = None, calibration: str = "on",
+             replicates: int = CALIBRATION_REPLICATES, reduce: str = "auto", artefacts: str = "flag") -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
     ----------
-    data : xarray.Dataset or path
-        Specimen with ``strain``, ``stress`` and optional ``time``/``test`` (see
-        :func:`hbm.data.load_specimen`).
+    data : Specimen, xarray.Dataset or path
+        The specimen (:func:`hbm.data.load_specimen`; a Dataset is converted once, a path loaded).
     model : None, str, list or Model
         Current model: ``None``/``"base"`` for the Spyrou model, ``"offset,damage"`` for the
         base model plus effects, or any :class:`hbm.Model`.
@@ -196,7 +206,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Effects to screen: ids, ``"path.py:ClassName"`` strings, or :class:`hbm.Effect`
         instances (user-written effects need no edit of hbm).
     fix : dict, optional
-        Parameters held fixed, e.g. ``{"EOPT": 0.1}``.
+        Parameters held fixed, ``{name: value}`` (e.g. EOPT at 0.1 for the Spyrou base).
     seed : int
         Seed of every random step (CMA-ES, TMCMC, window calibration).
     n_samples : int
@@ -232,8 +242,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Wall seconds after which no new fit is started (a fit under way finishes): the verdict
         so far is returned with ``stopped`` saying what was left undecided and why.  ``None``:
         no limit (the command line's default is 300 s).
-    likelihood : {"full", "auto", "collapsed"}
-        Tier of every evidence run (:meth:`.fitting.Fitter.collapsed`); default "full" (every
+    tier : {"full", "auto", "collapsed"}
+        Likelihood tier of every evidence run (:meth:`.fitting.Fitter.collapsed`; ``likelihood=`` is
+        its older, deprecated name); default "full" (every
         fit in full space).  Not yet "auto": a collapsible candidate's converged evidence against
         a non-collapsible competitor's under-mixed full-space one tilts their comparison (library
         case mullins_3: damage 13.0 vs viscoelastic 12.2 gave "group" where "full" names damage;
@@ -248,6 +259,15 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     workers : int, optional
         Processes the candidate refits of a round run in (default: the usable cores; 1: all in
         this process).  The results do not depend on it (each refit has its own seed).
+    calibration : {"on", "off"}
+        "on" (default): every statistic of the verdict (the largest window score, each generic
+        shape's and each candidate's likelihood gain at its optimum, the noise disagreement) is
+        judged against its own null -- ``replicates`` simulations of the fitted model with its
+        fitted noise on this file's design -- at family-wise 5 % (:mod:`.calibration`; the
+        report gives each with its calibrated p-value).  "off": the fixed thresholds of
+        :mod:`.rules` (10 nats for a shape alone, 5 for a named effect, windows at 5 % each).
+    replicates : int
+        Null replicates of each greedy round (Monte-Carlo resolution 1/(replicates + 1)).
     reduce : {"auto", "off"}
         A record above :data:`hbm.data.reduction.DENSE_POINTS` rows is diagnosed as bin means of
         its readings, each with its variance ("auto"), or row by row ("off").
@@ -274,8 +294,10 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     workers = usable_cores() if workers is None else check_workers(workers, "workers") or 1
+    tier = _tier(tier, likelihood, "diagnose")
+    calib = calibration_setting(calibration, replicates, seed)
     # no more processes than a round has refits (+ the base's rerun): the rest would sit idle
-    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, likelihood,
+    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, tier,
                     min(workers, max(0, int(top)) + N_CONTROL_REFITS + 1))
     if max_time is not None:
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
@@ -300,7 +322,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
             rounds.append(_Step(base, check, [], [], {}, Verdict("data_problem", [], [], "", problem)))
         else:
             def run_round(cur, rem, k):
-                return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings)
+                return _round(cur, rem, fitter, mf, d, noises, top, _seed(seed, 1 + k), timings, calib, k)
             rounds, selected, current = _greedy(run_round, base, list(cands), max_effects, fitter.log, fitter)
             white = rejected = (_ar1_absorbs_misfit(rounds[0])
                      if noise is None and base.noise == "ar1" and any(n != "ar1" for n in noises) else None)
@@ -329,6 +351,11 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 rounds[0].check.noise["preference"] = "; ".join(
                     [f"AR(1) noise rejected: {white}; diagnosed with white noise"] + ([pref] if pref else []))
         verdict = _final_verdict(rounds, selected)
+        if verdict.verdict == "adequate" and rejected and "prefer white noise" in rejected:
+            # never "adequate" beside a caveat that the data prefer a misfit shape to AR(1) noise
+            last = rounds[-1]
+            verdict = shape_preferred(last.controls, last.check.windows, d, rejected, last.calibration)
+            rounds[-1].verdict = verdict
         first = rounds[0]
         edges_found = _base_at_bounds(first.base, d.name)
         extra = {}
@@ -371,7 +398,8 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 try:
                     extra["power"] = detection_power(
                         first.base, d, cands, _seed(seed, 91), noise_fit=current,
-                        run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0])
+                        run_tasks=lambda task, calls: run_in_workers(fitter, task, calls)[0],
+                        calibration=first.calibration)
                 except FitInterrupted:
                     fitter.skip("the detection-power estimate (--power)", "interrupted at --max-time: no detection "
                                 "limits")
@@ -393,6 +421,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                         residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
                         unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
                         data_problem=problem, named_candidates=_named(rounds, selected), record=record_dict(prep),
+                        calibration=calibration_record([(r.base, r.calibration) for r in rounds], calib is not None),
                         **extra)
     # the refit workers' CPU, counted once they have exited
     out.timings["cpu"] += _children_cpu() - kids
@@ -405,130 +434,6 @@ def _children_cpu() -> float:
         return 0.0
     r = _resource.getrusage(_resource.RUSAGE_CHILDREN)
     return float(r.ru_utime + r.ru_stime)
-
-
-def _named(rounds: list[_Step], selected: list[str]) -> list[CandidateResult]:
-    """The candidate result of each named effect, in order (round k named ``selected[k]``)."""
-    return [next(c for c in rounds[k].results if c.effect == name) for k, name in enumerate(selected)]
-
-
-def _step_record(r: _Step) -> dict:
-    named = next((c for c in r.results if r.verdict.selected and c.effect == r.verdict.selected[0]), None)
-    return {"model": added_effects(r.base.model), "verdict": r.verdict.verdict, "selected": r.verdict.selected,
-            "group": r.verdict.group, "message": r.verdict.message,
-            "windows": [(w["eps_lo"], w["eps_hi"], w["sign"]) for w in r.check.windows],
-            "candidates": {c.effect: round(float(gain(c)), 2) for c in r.results + r.controls if c.refit},
-            "placements": dict(named.placements) if named is not None else {},
-            "placement_ties": dict(named.placement_ties) if named is not None else {}}
-
-
-def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lambda msg: None,
-            fitter: Fitter | None = None):
-    """Steps 2–4 at the base model, then again after each named effect.
-
-    ``run_round(current_fit, remaining_candidates, k)`` returns a :class:`_Step`.  A tentatively
-    named effect (verdict ``"partial"``) is added and kept if the next round settles what it
-    left (:func:`_settles`), or if no generic shape replaces it -- with it the best evidence
-    (alone or with any control) beats the best without it by more than ``DELTA_LOGZ_MIN``
-    (:func:`gain_beyond_controls`): two hidden effects whose interplay leaves a small rest (an
-    offset that relaxes with the tissue) are both named, and the rest is reported as unexplained.
-    Otherwise the rounds after it are dropped and its round's unexplained verdict stands.
-
-    Returns
-    -------
-    (rounds, selected, current) : the rounds kept, the named effects in order, the final fit.
-    """
-    rounds: list[_Step] = []
-    selected: list[str] = []
-    current, remaining = base, list(cands)
-    tentative: int | None = None          # index of the round whose effect awaits the next round
-    for k in range(max(0, int(max_effects)) + 1):
-        st, why = None, "what the named effect leaves is not screened"
-        if not (k > 0 and fitter is not None and fitter.out_of_time()):
-            try:
-                st = run_round(current, remaining, k)
-            except FitInterrupted:
-                if k == 0:        # (its refits are guarded one by one: only a bug gets here)
-                    raise
-                why = "interrupted at --max-time: " + why
-        if st is None:
-            named = selected[-1] if selected else "?"
-            fitter.skip(f"greedy round {k} (with {named} added)", why + (
-                f"; {named} stays tentative: the verdict of the round that named it stands"
-                if tentative is not None else ""))
-            if tentative is not None:
-                rounds[tentative].verdict = rounds[tentative].verdict.fallback
-                return rounds, selected[:-1], rounds[tentative].base
-            break
-        rounds.append(st)
-        if tentative is not None:
-            t = rounds[tentative]
-            beyond = gain_beyond_controls(t, st)
-            if not _settles(st.verdict) and not beyond > DELTA_LOGZ_MIN:
-                # the next round does not explain the rest, and a generic shape does as well
-                # without the effect as with it: the effect may be absorbing an unknown misfit
-                log(f"{selected[-1]} alone leaves misfit the next round does not explain, and it gains "
-                    f"{beyond:.1f} nats beside the best generic shape: not named")
-                t.verdict = t.verdict.fallback
-                return rounds[:tentative + 1], selected[:-1], t.base
-            msg = t.verdict.message
-            if not _settles(st.verdict):
-                # a second, unexplained misfit: the effect is needed all the same
-                msg += f" (needed beside the best generic shape too: +{beyond:.1f} nats)"
-            t.verdict = replace(t.verdict, verdict="effect", fallback=None, message=msg)
-            tentative = None
-        if st.verdict.verdict == "partial":
-            if len(selected) >= max_effects:
-                st.verdict = st.verdict.fallback
-                break
-            tentative = len(rounds) - 1
-        elif st.verdict.verdict != "effect" or len(selected) >= max_effects:
-            break
-        chosen = next(c for c in st.results if c.effect == st.verdict.selected[0])
-        selected.append(chosen.effect)
-        log(f"named {chosen.effect}{' (tentatively)' if tentative is not None else ''}: adding it and re-screening")
-        current, remaining = chosen.fit, [e for e in remaining if e.name != chosen.effect]
-    return rounds, selected, current
-
-
-def gain_beyond_controls(prev: _Step, nxt: _Step) -> float:
-    """Evidence the effect named in round ``prev`` adds when a generic shape may be present too.
-
-    The best log-evidence with the effect (the model of round ``nxt``, alone or with any control
-    refitted there) minus the best without it (round ``prev``'s model, alone or with any control
-    refitted there), capped like :func:`.decision.gain` by the same difference of maximum
-    log-likelihoods (a noisy evidence must not create a gain the best fits do not show).  Large:
-    no generic shape replaces the effect -- it is needed even if a second, unexplained misfit is
-    hidden with it.  −inf when either round has no evidence.
-    """
-    def best(st: _Step) -> tuple[float, float]:
-        fits = [getattr(st.base, "log_evidence", np.nan), getattr(st.base, "max_log_likelihood", np.nan)]
-        out = [tuple(fits)] + [(c.fit.log_evidence, c.fit.max_log_likelihood) for c in st.controls
-                               if c.refit and c.fit is not None]
-        out = [o for o in out if np.isfinite(o[0]) and np.isfinite(o[1])]
-        return max(out, default=(np.nan, np.nan))
-    (z0, l0), (z1, l1) = best(prev), best(nxt)
-    if not (np.isfinite(z0) and np.isfinite(z1)):
-        return -np.inf
-    return float(min(z1 - z0, l1 - l0))
-
-
-def _settles(verdict: Verdict) -> bool:
-    """Does the round after a tentatively named effect account for what that effect left?
-    Yes when it names a further effect or group that explains it, or finds no misfit left."""
-    return verdict.verdict in ("effect", "group", "adequate")
-
-
-def _final_verdict(rounds: list[_Step], selected: list[str]) -> Verdict:
-    """The verdict over the greedy rounds: the named effects in order, and what is left."""
-    last = rounds[-1].verdict
-    if not selected:
-        return last
-    msgs = [r.verdict.message for r in rounds if r.verdict.verdict == "effect"]
-    msg = "; then ".join(msgs)
-    if last.verdict != "effect":
-        msg += f". With {' + '.join(selected)} added: {last.verdict} — {last.message}"
-    return Verdict("effect", list(selected), list(last.group), last.experiment, msg, last.unexplained)
 
 
 def _base_at_bounds(base: FitSummary, name: str) -> list[dict]:
@@ -560,8 +465,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            top: int = 3, progress: bool = False, max_steps: int = 4,
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
            max_evaluations: int | None = None, correlated: str = "auto",
-           max_time: float | None = None, likelihood: str = "full", workers: int | None = None,
-           reduce: str = "auto", artefacts: str = "flag") -> Extension:
+           max_time: float | None = None, tier: str = "full", workers: int | None = None,
+           likelihood: str | None = None, reduce: str = "auto", artefacts: str = "flag") -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     One noise-model choice for the whole table, so that its Δlog Z are those of
@@ -576,7 +481,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
 
     Parameters
     ----------
-    data : xarray.Dataset or path
+    data : Specimen, xarray.Dataset or path
         The specimen.
     add : sequence
         Effects to add in this order (ids, ``"path.py:ClassName"`` or Effect instances).
@@ -584,9 +489,9 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated
-        As in :func:`diagnose`.
-    max_time, likelihood, workers, reduce, artefacts
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, tier, workers
+        As in :func:`diagnose` (``likelihood=``: the tier's older, deprecated name).
+    reduce, artefacts
         As in :func:`diagnose` (artefact rows flagged and kept are named in ``notes``).
 
     Returns
@@ -607,7 +512,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     mf = record_noise(d)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
-    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, likelihood)
+    tier = _tier(tier, likelihood, "extend")
+    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, tier)
     steps: list[FitSummary] = []
     decisions: list = []
     notes: list[str] = record_notes + [c["text"] for c in artefact_caveats(prep, noise)]
@@ -644,7 +550,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
                       noise=noise, max_effects=max_steps - len(adds), removal=False,
                       max_evaluations=max_evaluations, correlated=correlated, max_time=max_time,
-                      likelihood=likelihood, workers=workers, artefacts=artefacts)
+                      tier=tier, workers=workers, artefacts=artefacts)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         # the diagnosis's own fits: the same model as the last given step, fitted (and its noise

@@ -58,6 +58,16 @@ class Control(Effect):
         mesh = np.meshgrid(*axes, indexing="ij")
         return [{q.name: float(m.ravel()[i]) for q, m in zip(qs, mesh)} for i in range(mesh[0].size)]
 
+    def dense_grid(self, n: int = 40, n_scale: int = 10) -> list[dict[str, float]]:
+        """A fine grid of shapes over the whole box, for the calibration's optimum gains
+        (:mod:`.calibration`): ``n`` values of a linear shape parameter, ``n_scale`` of one
+        spanning more than a decade (log-spaced)."""
+        qs = [q for q in self.parameters if q.name in self.shape_names]
+        axes = [np.geomspace(q.lower, q.upper, n_scale) if q.lower > 0 and q.upper / q.lower > 10
+                else np.linspace(q.lower, q.upper, n + 2)[1:-1] for q in qs]
+        mesh = np.meshgrid(*axes, indexing="ij")
+        return [{q.name: float(m.ravel()[i]) for q, m in zip(qs, mesh)} for i in range(mesh[0].size)]
+
     def region(self, x: dict[str, float], data) -> tuple[str, float, float]:
         """Where the fitted control acts: (axis, lo, hi)."""
         raise NotImplementedError
@@ -292,6 +302,15 @@ class Ripple(Control):
         freqs = np.linspace(1.0 / p_hi, 1.0 / p_lo, k)
         phases = np.arange(n) * 2 * np.pi / n
         return [{"RIP_P": float(1.0 / f), "RIP_PH": float(ph)} for f in freqs for ph in phases]
+
+    def dense_grid(self, n: int = 12, n_scale: int = 0) -> list[dict[str, float]]:
+        """Frequencies three times finer than the record's resolution (at most 600) and ``n``
+        phases over [0, π) (the amplitude takes the sign; the gain lost between two phases is at most
+        1 − cos²(π/2n), 2 % at 12)."""
+        p_lo, p_hi = self.parameters[1].lower, self.parameters[1].upper
+        k = int(np.clip(np.ceil(3 * (2.0 * p_hi) * (1.0 / p_lo - 1.0 / p_hi)) + 1, 8, 600))
+        freqs = np.linspace(1.0 / p_hi, 1.0 / p_lo, k)
+        return [{"RIP_P": float(1.0 / f), "RIP_PH": float(ph)} for f in freqs for ph in np.arange(n) * np.pi / n]
 
     def region(self, x, data):
         t = data.time

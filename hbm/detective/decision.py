@@ -57,24 +57,72 @@ class Verdict:
 
 
 def misfit_signs(check_noise: dict, windows: list[dict], best_ctrl: CandidateResult | None,
-                 base_noise: str, controls: Sequence[CandidateResult] = ()) -> list[str]:
-    """Every sign of a systematic misfit the diagnosis has, in words (empty: none)."""
+                 base_noise: str, controls: Sequence[CandidateResult] = (), calibration=None,
+                 physical: Sequence[CandidateResult] = ()) -> list[str]:
+    """Every sign of a systematic misfit the diagnosis has, in words (empty: none).
+
+    With a :class:`.calibration.Calibration` each statistic is a sign when it is beyond its own
+    null at the family-wise level (:func:`calibrated_signs`); else the fixed rules."""
+    if calibration is not None:
+        return calibrated_signs(calibration, windows, base_noise, controls, physical)
     out = []
     if windows:
         out.append(f"{len(windows)} significant misfit window(s)")
     if not check_noise.get("consistent", True):
         out.append("the fitted noise disagrees with the model-free estimate")
-    white = max((c for c in controls if c.white_gain is not None), key=lambda c: c.white_gain, default=None)
-    if base_noise == "ar1" and white is not None and white.white_gain > 0:
-        out.append(f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
-                   f"by {white.white_gain:.1f} nats")
+    out += _white_sign(base_noise, controls)
     if best_ctrl is not None and gain(best_ctrl) > (DELTA_LOGZ_MIN if windows else CONTROL_ALONE_MIN):
         out.append(f"a generic shape ({best_ctrl.effect}) gains {gain(best_ctrl):.1f} nats")
     return out
 
 
-def adequate_message(noise: dict, windows: list[dict], best_ctrl: CandidateResult | None) -> str:
+def _white_sign(base_noise: str, controls: Sequence[CandidateResult]) -> list[str]:
+    """An AR(1) base whose correlation white noise + a smooth misfit explains better."""
+    white = max((c for c in controls if c.white_gain is not None), key=lambda c: c.white_gain, default=None)
+    if base_noise == "ar1" and white is not None and white.white_gain > 0:
+        return [f"the data prefer white noise + a smooth misfit ({white.effect}) to AR(1) noise "
+                f"by {white.white_gain:.1f} nats"]
+    return []
+
+
+def calibrated_signs(cal, windows: list[dict], base_noise: str, controls: Sequence[CandidateResult],
+                     physical: Sequence[CandidateResult] = ()) -> list[str]:
+    """The signs of misfit of a calibrated round: each statistic beyond its null, with its strength."""
+    out = []
+    if windows and "windows" in cal.stats:
+        out.append(f"{len(windows)} significant misfit window(s) (largest window score "
+                   f"{cal.stats['windows']['observed']:.2f}× its pure-noise threshold; {cal.strength('windows')})")
+    if cal.significant("noise"):
+        out.append(f"the fitted noise disagrees with the model-free estimate ({cal.strength('noise')})")
+    out += _white_sign(base_noise, controls)
+    for kind, words in (("control", "a generic shape"), ("candidate", "the physical candidate")):
+        hits = sorted((k for k, v in cal.stats.items() if v["kind"] == kind and cal.significant(k)),
+                      key=lambda k: -cal.stats[k]["observed"])
+        for k in hits[:2]:
+            out.append(f"{words} {k} gains {cal.stats[k]['observed']:.1f} nats at its optimum ({cal.strength(k)})")
+    return out
+
+
+def named_strongly(c: CandidateResult | None, cal=None) -> bool:
+    """Is physical candidate ``c``'s gain enough to name it?  Calibrated: its likelihood gain is
+    beyond its null at the family-wise level and its evidence gain is positive; fixed rule: its
+    gain exceeds ``DELTA_LOGZ_MIN``."""
+    if c is None:
+        return False
+    if cal is not None:
+        return bool(cal.significant(c.effect) and gain(c) > 0)
+    return bool(gain(c) > DELTA_LOGZ_MIN)
+
+
+def adequate_message(noise: dict, windows: list[dict], best_ctrl: CandidateResult | None, cal=None) -> str:
     """The adequate verdict, naming only the checks that were made (and how they came out)."""
+    if cal is not None:
+        top = sorted(cal.stats, key=lambda k: cal.stats[k]["p_family"])[:2]
+        parts = [f"no statistic of the verdict beyond its null at family-wise {cal.alpha:.0%} ({cal.replicates} "
+                 f"replicates of {cal.null}; the strongest: "
+                 + ", ".join(f"{k} {cal.stats[k]['observed']:.3g} ({cal.strength(k)})" for k in top) + ")",
+                 noise.get("comparison") or ""]
+        return "the model is adequate: " + ", ".join(p for p in parts if p)
     parts = ["no significant misfit window (family-wise 5 %)" if not windows else ""]
     parts.append(noise.get("comparison") or "")
     g = gain(best_ctrl)
@@ -88,41 +136,45 @@ def adequate_message(noise: dict, windows: list[dict], best_ctrl: CandidateResul
 
 
 def decide(results: list[CandidateResult], controls: list[CandidateResult], windows: list[dict],
-           noise: dict, base_noise: str, data) -> Verdict:
-    """The decision rule (module docstring)."""
+           noise: dict, base_noise: str, data, calibration=None) -> Verdict:
+    """The decision rule (module docstring); ``calibration`` (:class:`.calibration.Calibration`)
+    replaces the fixed thresholds by each statistic's null on this file."""
     phys = sorted([c for c in results if c.refit], key=lambda c: -gain(c))
     ctrls = sorted([c for c in controls if c.refit], key=lambda c: -gain(c))
     best, ctrl = (phys[0] if phys else None), (ctrls[0] if ctrls else None)
     g_best = gain(best)
-    signs = misfit_signs(noise, windows, ctrl, base_noise, ctrls)
-    if best is not None and g_best > DELTA_LOGZ_MIN:
+    signs = misfit_signs(noise, windows, ctrl, base_noise, ctrls, calibration, phys)
+    if named_strongly(best, calibration):
         beats = _beats(best, ctrl)
         if beats and not _explains_like(best, ctrl):
             # it beats every generic shape in evidence but leaves misfit a shape would remove: a
             # second effect may be hidden with it (offset + viscoelasticity) -- tentative; the
             # next greedy round decides (diagnose), else the unexplained verdict stands
-            return replace(_effect(best), verdict="partial",
-                           fallback=_unexplained(ctrl, windows, data, best, signs))
+            return replace(_effect(best, calibration), verdict="partial",
+                           fallback=_unexplained(ctrl, windows, data, best, signs, calibration))
         if beats:
-            tied = [c for c in phys[1:] if gain(c) > DELTA_LOGZ_MIN and
+            tied = [c for c in phys[1:] if named_strongly(c, calibration) and
                     g_best - gain(c) < max(RUNNER_UP_MARGIN, 2 * math.hypot(best.delta_log_evidence_se,
                                                                              c.delta_log_evidence_se))]
             if tied:
                 return _group(best, tied, data)
-            return _effect(best)
-        return _unexplained(ctrl, windows, data, best, signs)
+            return _effect(best, calibration)
+        return _unexplained(ctrl, windows, data, best, signs, calibration)
     if signs:
-        return _unexplained(ctrl, windows, data, best, signs)
-    return Verdict("adequate", [], [], "", adequate_message(noise, windows, ctrl))
+        return _unexplained(ctrl, windows, data, best, signs, calibration)
+    return Verdict("adequate", [], [], "", adequate_message(noise, windows, ctrl, calibration))
 
 
-def _effect(best: CandidateResult) -> Verdict:
+def _effect(best: CandidateResult, cal=None) -> Verdict:
     iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
                    if k in primary_parameters(best.effect_instance))
+    strength = "" if cal is None or best.effect not in cal.stats else (
+        f"likelihood gain {cal.stats[best.effect]['observed']:.1f} nats at the screen's optimum, "
+        f"{cal.strength(best.effect)}; ")
     return Verdict("effect", [best.effect], [], "",
                    f"missing effect: {best.effect}{placement_words(best)} (Δlog Z = {best.delta_log_evidence:.1f} ± "
-                   f"{best.delta_log_evidence_se:.1f}, RMSE {best.rmse_before:.3g} → {best.rmse_after:.3g} MPa; "
-                   f"{iv})")
+                   f"{best.delta_log_evidence_se:.1f}, {strength}RMSE {best.rmse_before:.3g} → "
+                   f"{best.rmse_after:.3g} MPa; {iv})")
 
 
 def placement_words(c: CandidateResult) -> str:
@@ -168,11 +220,32 @@ def _gain_words(c: CandidateResult) -> str:
     return f"Δlog Z = {gain(c):.1f}"
 
 
+def _significant_shape(cal, ctrl: CandidateResult | None) -> dict | None:
+    """The calibrated verdict's shape: the most significant control, located at its grid optimum,
+    when it is not the refitted best control (None: the refit says it, or nothing is significant)."""
+    if cal is None:
+        return None
+    hits = [k for k, v in cal.stats.items() if v["kind"] == "control" and cal.significant(k) and "region" in v]
+    if not hits:
+        return None
+    k = min(hits, key=lambda k: (cal.stats[k]["p_family"], -cal.stats[k]["observed"]))
+    if ctrl is not None and ctrl.refit and ctrl.effect == k and ctrl.region is not None and gain(ctrl) > 0:
+        return None
+    v = cal.stats[k]
+    return {"axis": v["region"][0], "range": [v["region"][1], v["region"][2]],
+            "shape": v["shape"] + (f", {v['detail']}" if v["detail"] else ""), "control": k,
+            "delta_log_evidence": None, "likelihood_gain": v["observed"],
+            "words": f"likelihood gain {v['observed']:.1f} nats, {cal.strength(k)}"}
+
+
 def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: CandidateResult | None,
-                 signs: list[str]) -> Verdict:
-    """Unexplained misfit: where (the best control's region, else the strongest window) and its shape."""
-    where = None
-    if ctrl is not None and ctrl.refit and ctrl.region is not None and gain(ctrl) > 0:
+                 signs: list[str], cal=None) -> Verdict:
+    """Unexplained misfit: where (the best control's region -- or, calibrated, the most significant
+    shape's -- else the strongest window) and its shape."""
+    where = _significant_shape(cal, ctrl)
+    if where is not None:
+        pass
+    elif ctrl is not None and ctrl.refit and ctrl.region is not None and gain(ctrl) > 0:
         axis, lo, hi = ctrl.region
         shape = ctrl.effect_instance.description.split(": ")[-1]
         where = {"axis": axis, "range": [lo, hi], "shape": shape + (f", {ctrl.shape_detail}" if ctrl.shape_detail else ""),
@@ -190,7 +263,7 @@ def _unexplained(ctrl: CandidateResult | None, windows: list[dict], data, best: 
     msg = (f"unexplained misfit in {sym} ∈ [{where['range'][0]:.3g}, {where['range'][1]:.3g}]{unit}"
            f" (best-fitting shape: {where['shape']}"
            + (f", Δlog Z = {where['delta_log_evidence']:.1f}" if where["delta_log_evidence"] is not None else "")
-           + ")")
+           + (f", {where.pop('words')}" if "words" in where else "") + ")")
     if best is not None and best.refit:
         msg += f"; best physical candidate {best.effect} {_gain_words(best)} does not explain it as well"
     if signs:
@@ -208,3 +281,16 @@ def _group(best: CandidateResult, tied: list[CandidateResult], data) -> Verdict:
                    f"{', '.join(members)} explain the misfit about equally (Δlog Z "
                    + ", ".join(f"{gain(c):.1f}" for c in [best] + tied) + ")"
                    + (f"; known confusable group: {', '.join(known[0])}" if known else ""))
+
+
+def shape_preferred(controls: list[CandidateResult], windows: list[dict], data, reason: str, cal=None) -> Verdict:
+    """The verdict when AR(1) noise was rejected because the data prefer white noise + a misfit
+    shape, and nothing else is significant: what was found, with its calibrated strength --
+    never "adequate" beside that finding."""
+    ctrls = sorted([c for c in controls if c.refit], key=lambda c: -gain(c))
+    ctrl = ctrls[0] if ctrls else None
+    signs = [f"AR(1) noise rejected: {reason}"]
+    if ctrl is not None and cal is not None and ctrl.effect in cal.stats:
+        signs.append(f"under white noise {ctrl.effect} gains {cal.stats[ctrl.effect]['observed']:.1f} nats at its "
+                     f"optimum ({cal.strength(ctrl.effect)}; not significant alone at family-wise {cal.alpha:.0%})")
+    return _unexplained(ctrl, windows, data, None, signs, cal)

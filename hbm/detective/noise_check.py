@@ -56,45 +56,68 @@ def model_free_noise(stress: np.ndarray, segment: np.ndarray | None = None, max_
     structure.  Without it the estimate is a root-mean-square sd, which exceeds the median sd
     of a proportional noise several-fold on curves spanning a decade of stress.
 
+    ``stress`` may also be (replicates, n): every row is estimated at once (the calibration's
+    null replicates, :mod:`.calibration`), each as it would be alone (to rounding).
+
     Returns
     -------
-    dict with ``sigma``, ``rho`` and ``sigma_iid`` (σ from lag 1 assuming ρ = 0).
+    dict with ``sigma``, ``rho`` and ``sigma_iid`` (σ from lag 1 assuming ρ = 0): floats, or
+    arrays (replicates,) for a 2-D ``stress``.
     """
     y = np.asarray(stress, float)
-    seg = np.zeros(y.size, int) if segment is None else np.asarray(segment)
-    w = np.ones(y.size) if scale is None else np.asarray(scale, float)
-    # E[x² | x² below its 95 % quantile] / E[x²] for a Gaussian x
-    q = _stats.chi2.ppf(0.95, 1)
-    trim_factor = _stats.chi2.cdf(q, 3) / 0.95
+    one = y.ndim == 1
+    y = np.atleast_2d(y)
+    n = y.shape[-1]
+    seg = np.zeros(n, int) if segment is None else np.asarray(segment)
+    w = np.ones(n) if scale is None else np.asarray(scale, float)
     lags, ms = [], []
     for lag in range(1, max_lag + 1):
         vals = []
         for s in np.unique(seg):
-            ys, ws = y[seg == s], w[seg == s]
-            m = ys.size - 3 * lag
+            ys, ws = y[:, seg == s], w[seg == s]
+            m = ys.shape[-1] - 3 * lag
             if m <= 0:
                 continue
             # the scale at the difference's centre (the mean of its two middle points)
             centre = 0.5 * (ws[lag: lag + m] + ws[2 * lag: 2 * lag + m])
-            vals.append(sum(_DIFF[j] * ys[j * lag: j * lag + m] for j in range(4)) / centre)
-        v = np.concatenate(vals) if vals else np.zeros(0)
-        if v.size < 8:
+            vals.append(sum(_DIFF[j] * ys[:, j * lag: j * lag + m] for j in range(4)) / centre)
+        v = np.concatenate(vals, axis=-1) if vals else np.zeros((y.shape[0], 0))
+        if v.shape[-1] < 8:
             break
-        v2 = np.sort(v * v)[: max(1, int(0.95 * v.size))]
+        v2 = np.sort(v * v, axis=-1)[:, : max(1, int(0.95 * v.shape[-1]))]
         lags.append(lag)
-        ms.append(float(v2.mean() / trim_factor))
-    if not ms or not ms[0] > 0:
-        return {"sigma": float("nan"), "rho": float("nan"), "sigma_iid": float("nan")}
-    lm = np.log(np.asarray(ms))
-    grid = np.linspace(-0.5, 0.97, 148)
-    best = (np.inf, 0.0, ms[0])
-    for r in grid:
-        lv = np.log([_diff_var_factor(r, k) for k in lags])
-        ls2 = float(np.mean(lm - lv))
-        sse = float(np.sum((lm - lv - ls2) ** 2))
-        if sse < best[0]:
-            best = (sse, float(r), math.exp(ls2))
-    return {"sigma": math.sqrt(best[2]), "rho": best[1], "sigma_iid": math.sqrt(ms[0])}
+        ms.append(v2.mean(axis=-1) / _TRIM_FACTOR)
+    nan = np.full(y.shape[0], np.nan)
+    sigma, rho, sigma_iid = nan.copy(), nan.copy(), nan.copy()
+    if ms:
+        ms_a = np.stack(ms, axis=-1)                       # (rows, lags)
+        ok = ms_a[:, 0] > 0
+        lm = np.log(np.where(ok[:, None], ms_a, 1.0))
+        lv = _diff_var_table(tuple(lags))                  # (grid, lags)
+        ls2 = np.mean(lm[:, None, :] - lv[None], axis=-1)  # (rows, grid): σ² profiled
+        sse = np.sum((lm[:, None, :] - lv[None] - ls2[..., None]) ** 2, axis=-1)
+        k = np.argmin(sse, axis=-1)                        # (the first of equal minima, as a loop)
+        rows = np.arange(y.shape[0])
+        # (scalar math per row: a 1-D estimate stays bitwise what it was)
+        sigma = np.array([math.sqrt(math.exp(v)) if o else np.nan for v, o in zip(ls2[rows, k], ok)])
+        rho = np.where(ok, _RHO_GRID[k], np.nan)
+        sigma_iid = np.array([math.sqrt(v) if o else np.nan for v, o in zip(ms_a[:, 0], ok)])
+    if one:
+        return {"sigma": float(sigma[0]), "rho": float(rho[0]), "sigma_iid": float(sigma_iid[0])}
+    return {"sigma": sigma, "rho": rho, "sigma_iid": sigma_iid}
+
+
+#: ρ grid of the model-free estimate; E[x² | x² below its 95 % quantile] / E[x²] for a Gaussian x
+_RHO_GRID = np.linspace(-0.5, 0.97, 148)
+_TRIM_FACTOR = float(_stats.chi2.cdf(_stats.chi2.ppf(0.95, 1), 3) / 0.95)
+_VAR_TABLES: dict[tuple[int, ...], np.ndarray] = {}
+
+
+def _diff_var_table(lags: tuple[int, ...]) -> np.ndarray:
+    """log v_k(ρ) on the ρ grid for the given lags (grid, lags), computed once."""
+    if lags not in _VAR_TABLES:
+        _VAR_TABLES[lags] = np.log([[_diff_var_factor(r, k) for k in lags] for r in _RHO_GRID])
+    return _VAR_TABLES[lags]
 
 
 def noise_prior_box(model_free: dict, stress: np.ndarray) -> tuple[float, float]:

@@ -137,8 +137,10 @@ def _ssr(comp: dict, E: np.ndarray) -> np.ndarray:
 
 
 def _named_fraction(model: Model, eff: Effect, others: Sequence[Effect], ctrls: Sequence[Effect], theta: np.ndarray,
-                    free: list[str], y0: np.ndarray, truth: dict, whiten, d: SpecimenData, E: np.ndarray) -> float:
-    """Share of the replicates ``E`` in which ``eff`` would be named (module docstring)."""
+                    free: list[str], y0: np.ndarray, truth: dict, whiten, d: SpecimenData, E: np.ndarray,
+                    critical: float | None = None) -> float:
+    """Share of the replicates ``E`` in which ``eff`` would be named (module docstring); with a
+    calibrated ``critical`` likelihood gain, the calibrated rule (gain beyond it, evidence > 0)."""
     mb = model
     idx_b = np.array([mb.index(n) for n in free])
     r0, A, _ = _fit_noiseless(mb, theta, idx_b, y0, whiten, d, [theta[idx_b]])
@@ -160,7 +162,8 @@ def _named_fraction(model: Model, eff: Effect, others: Sequence[Effect], ctrls: 
         g, dl = gains(c, c.grid()[::3])
         better = g > g_ctrl
         g_ctrl, dl_ctrl = np.where(better, g, g_ctrl), np.where(better, dl, dl_ctrl)
-    named = ((g_eff > DELTA_LOGZ_MIN) & (g_eff - g_other >= RUNNER_UP_MARGIN) & (g_eff >= g_ctrl)
+    strong = (g_eff > DELTA_LOGZ_MIN) if critical is None else ((dl_eff > critical) & (g_eff > 0))
+    named = (strong & (g_eff - g_other >= RUNNER_UP_MARGIN) & (g_eff >= g_ctrl)
              & (dl_eff >= dl_ctrl - REMOVE_TOL))
     return float(np.mean(named))
 
@@ -168,7 +171,7 @@ def _named_fraction(model: Model, eff: Effect, others: Sequence[Effect], ctrls: 
 def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effect], seed: int,
                     n_rep: int = POWER_REPLICATES, level: float = POWER_LEVEL, n_levels: int = 7,
                     refine: int = 3, with_controls: bool = True, noise_fit: FitSummary | None = None,
-                    run_tasks=None) -> dict:
+                    run_tasks=None, calibration=None) -> dict:
     """Detection limit of every candidate effect on this specimen's protocol and fitted noise.
 
     Parameters
@@ -199,6 +202,10 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
         ``run_tasks(task, calls)`` returns ``[task(*c) for c in calls]``, e.g. in worker processes
         (diagnose passes its refit workers); every effect's limit is computed independently, from
         the same noise replicates, so the result does not depend on how they run.
+    calibration : Calibration, optional
+        The calibration of ``fit`` (:mod:`.calibration`): an effect counts as named when its
+        likelihood gain exceeds its calibrated critical value (family-wise) instead of the fixed
+        ``DELTA_LOGZ_MIN``.
 
     Returns
     -------
@@ -232,16 +239,24 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
         usable.append(e)
     ctrls = controls_for(d) if with_controls else []
     feats = protocol_features(d)
+    crit = {k: v["critical"] for k, v in calibration.stats.items()} if calibration is not None else {}
     calls = [(e, model, [o for o in usable if o is not e], ctrls, theta, free, whiten, d, E, n_levels, refine, level,
-              feats) for e in usable]
+              feats, crit.get(e.name)) for e in usable]
     if later:
+        # (not among the calibrated candidates of the starting model: these rows use the fixed rule)
         final, theta_f, free_f = _at(noise_fit)
         rivals = [o for o in candidates if o.name not in final.effect_names and applicable(o, final)]
         calls += [(e, final, [o for o in rivals if o is not e], ctrls, theta_f, free_f, whiten, d, E, n_levels,
-                   refine, level, feats) for e in later]
+                   refine, level, feats, None) for e in later]
     rows = run_tasks(_effect_limit, calls) if run_tasks is not None else [_effect_limit(*c) for c in calls]
+    if calibration is not None:
+        for row in rows[len(usable):]:
+            row["rule"] = f"fixed (gain > {DELTA_LOGZ_MIN:g} nats): not among the calibrated candidates"
     out = {"effects": rows, "replicates": int(n_rep), "level": level,
-           "method": "Laplace screen: linearised refits of every candidate and control at their noiseless optima",
+           "method": "Laplace screen: linearised refits of every candidate and control at their noiseless optima"
+           + (f"; named by the calibrated rule (likelihood gain beyond its family-wise {calibration.alpha:.0%} null "
+              f"quantile from {calibration.replicates} replicates)" if calibration is not None else
+              f"; named by the fixed rule (gain > {DELTA_LOGZ_MIN:g} nats)"),
            "protocol": describe_protocol(feats)}
     out["text"] = _text(out)
     return out
@@ -255,7 +270,8 @@ def _at(fit: FitSummary) -> tuple[Model, np.ndarray, list[str]]:
 
 
 def _effect_limit(e: Effect, model: Model, others: list, ctrls: list, theta: np.ndarray, free: list, whiten,
-                  d: SpecimenData, E: np.ndarray, n_levels: int, refine: int, level: float, feats: dict) -> dict:
+                  d: SpecimenData, E: np.ndarray, n_levels: int, refine: int, level: float, feats: dict,
+                  critical: float | None = None) -> dict:
     """One effect's detection limit (a row of :func:`detection_power`): the shares named on a
     geometric grid of strengths, then bisection; independent of the other effects' rows."""
     mc = model.with_effects(e)
@@ -267,7 +283,7 @@ def _effect_limit(e: Effect, model: Model, others: list, ctrls: list, theta: np.
         th[mc.index(q.name)] = q.null + frac * (far - q.null)
         y0 = np.asarray(mc.stress(d.loading, th))
         truth = {p.name: float(th[mc.index(p.name)]) for p in e.parameters}
-        return _named_fraction(model, e, others, ctrls, theta, free, y0, truth, whiten, d, E)
+        return _named_fraction(model, e, others, ctrls, theta, free, y0, truth, whiten, d, E, critical)
 
     fracs = list(np.geomspace(0.01, 1.0, n_levels))
     levels = [(f, share(f)) for f in fracs]
@@ -300,6 +316,8 @@ def _text(p: dict) -> str:
         shape = ", ".join(f"{k}={v:g}" for k, v in r["shape"].items())
         if r.get("beside"):
             shape += f"{', ' if shape else ''}beside the fitted {' + '.join(r['beside'])}"
+        if r.get("rule"):
+            shape += f"{', ' if shape else ''}{r['rule'].split(':')[0]} rule"
         if r["limit"] is not None:
             lines.append(f"  {r['effect']:<18} {r['parameter']} >= {r['limit']:.3g} {r['unit']}"
                          + (f"  ({shape})" if shape else ""))

@@ -236,6 +236,9 @@ class Diagnosis:
     caveats: list = field(default_factory=list)
     #: why the diagnosis stopped early (``max_time`` reached), and what was left undecided
     stopped: dict | None = None
+    #: what decided the verdict (issue 38): ``method`` "calibrated" with each greedy round's calibrated
+    #: statistics (:class:`hbm.detective.calibration.Calibration` as dicts) or "fixed"; ``text``
+    calibration: dict = field(default_factory=dict)
     #: the candidate result of each named effect, in order, each from the round that named it
     #: (``hbm extend --auto`` tabulates their fits and gains)
     named_candidates: list = field(default_factory=list, repr=False)
@@ -277,6 +280,7 @@ class Diagnosis:
             "caveats": jsonable([{k: v for k, v in c.items()} for c in self.caveats]),
             "stopped": jsonable(self.stopped),
             "power": jsonable({k: v for k, v in self.power.items() if k != "text"}) if self.power else None,
+            "calibration": jsonable({k: v for k, v in self.calibration.items() if k != "text"}),
             **({"record": jsonable(self.record)} if self.record else {}),
         }
 
@@ -292,8 +296,14 @@ class Diagnosis:
                  f"{int(BAND * 100)}% predictive coverage {self.coverage.get('overall', NAN):.2f}"]
         lines += [f"base fit: {line.removeprefix('warning: ')}" for line in format_at_bounds(self.at_bounds)]
         if self.noise.get("comparison"):
-            lines.append("noise check: " + self.noise["comparison"]
-                         + ("" if self.noise.get("consistent", True) else "  (DISAGREES: a sign of misfit)"))
+            cal = self.noise.get("calibrated") or {}
+            if cal.get("noise"):
+                st = cal["noise"]
+                flag = (f"  (disagreement {st['observed']:.2f}, 1 = the fixed rule's bound; calibrated family-wise p "
+                        f"{st['p_family']:.3g}{': a sign of misfit' if st['p_family'] <= cal['alpha'] else ''})")
+            else:
+                flag = "" if self.noise.get("consistent", True) else "  (DISAGREES: a sign of misfit)"
+            lines.append("noise check: " + self.noise["comparison"] + flag)
         if self.misfit_windows:
             lines.append("misfit windows (smoothed standardised residual, family-wise 5%):")
             for d in self.window_detail:
@@ -344,6 +354,8 @@ class Diagnosis:
         if self.removal and all(r["needed"] for r in self.removal):
             lines.append("removal test: every base part is needed ("
                          + ", ".join(f"{r['part']} {r['delta_log_evidence']:+.1f}" for r in self.removal) + ")")
+        if self.calibration.get("text"):
+            lines.append(self.calibration["text"])
         if self.stopped:
             lines.append(self.stopped["text"])
         lines.append("")

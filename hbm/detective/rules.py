@@ -19,6 +19,14 @@ RUNNER_UP_MARGIN = 3.0    # a named effect must beat the runner-up by this many 
 CONTROL_ALONE_MIN = 2 * DELTA_LOGZ_MIN
 REMOVE_TOL = 3.0          # "explains the misfit about as well as the best control": within this many nats of its max log L
 
+# --- calibrated decisions (issue 38, hbm.detective.calibration): the fixed numbers above are the
+# fallback of calibration="off"; with calibration each statistic of the verdict is judged against
+# its own null on the file at this family-wise level
+CALIBRATION_ALPHA = 0.05
+#: null replicates per greedy round: Monte-Carlo resolution 1/401 of a p-value; the 5 % quantile
+#: of the smallest p-value rests on ~20 replicates below it
+CALIBRATION_REPLICATES = 400
+
 # --- where it fails
 WINDOW_ALPHA = 0.05       # family-wise false-alarm rate of the misfit-window scan
 BAND = 0.90               # posterior-predictive band used for coverage
@@ -47,7 +55,7 @@ TMCMC_MIN_SAMPLES = 250
 # 50 local steps reach the converged mean at half the cost of 100 (the reported SE × TMCMC_SE_FACTOR,
 # 1.7, covers their scatter); the stages still run to the cap (the decorrelation criterion is not met)
 TMCMC_REFINE_STEPS = 50
-TMCMC_REFINE_PROPOSAL = "local"
+TMCMC_REFINE_MOVE = "local"
 # the collapsed tier (issue 27; Fitter.collapsed): where a model's amplitudes integrate exactly, its
 # evidence run samples only the nonlinear and noise parameters: a small TMCMC run and an importance
 # finish (hbm.likelihood.collapsed's pilot settings).  On validation case qlv_0 (three rates, 105 points), base +

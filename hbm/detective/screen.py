@@ -23,7 +23,7 @@ from .noise_check import NoiseCheck, whitener
 from .results import CandidateResult, FitSummary
 from .rules import SCREEN_STEPS
 
-__all__ = ["LocalMisfit", "score_screen", "local_refit_screen", "screen_candidates", "screen_controls"]
+__all__ = ["LocalMisfit", "score_screen", "candidate_column_sets", "absorbable_basis", "local_refit_screen", "screen_candidates", "screen_controls"]
 
 
 # =========================================================================================
@@ -71,6 +71,15 @@ def _grid(q: Parameter, n: int) -> np.ndarray:
     return np.linspace(q.lower, q.upper, n + 2)[1:-1]
 
 
+def absorbable_basis(model: Model, theta_model: np.ndarray, free: Sequence[str], whiten,
+                     data: SpecimenData) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal basis (n, r) of what the base's free parameters absorb, in whitened units
+    (numerically null directions dropped), and the base Jacobian's free columns (n, k)."""
+    Jb = np.asarray(model.stress_jacobian(data.loading, theta_model))[:, [model.index(n) for n in free]]
+    U, sv, _ = np.linalg.svd(whiten(Jb), full_matrices=False)
+    return (U[:, sv > sv.max() * 1e-9] if sv.size and sv.max() > 0 else U[:, :0]), Jb
+
+
 def score_screen(model: Model, theta_model: np.ndarray, free: Sequence[str], effect: Effect,
                  residual: np.ndarray, whiten, data: SpecimenData, n_grid: int = 5) -> dict:
     """Projected score statistic of one candidate effect.
@@ -91,60 +100,30 @@ def score_screen(model: Model, theta_model: np.ndarray, free: Sequence[str], eff
     dict with ``chi2``, ``dof``, ``p``, ``z``, ``absorbed`` and ``start`` (linearised estimate
     of the effect's parameters, a warm start for the refit).
     """
-    Jb = np.asarray(model.stress_jacobian(data.loading, theta_model))
-    cols = [model.index(n) for n in free]
-    Wb = whiten(Jb[:, cols])
-    # orthonormal basis of the absorbable directions (drop numerically null directions)
-    U, sv, _ = np.linalg.svd(Wb, full_matrices=False)
-    U = U[:, sv > sv.max() * 1e-9] if sv.size and sv.max() > 0 else U[:, :0]
+    U, _ = absorbable_basis(model, theta_model, free, whiten, data)
     r = whiten(residual)
     r = r - U @ (U.T @ r)
 
-    J0, names, mc = _candidate_sensitivity(model, effect, theta_model, data)
-    steps = SCREEN_STEPS
-    scale = np.linalg.norm(whiten(J0), axis=0)
-    ref = max(float(np.linalg.norm(r)), 1e-300)
-    nuis = [n for n, s in zip(names, scale) if not (s * 1e-3 > 1e-12 * ref and s > 0)]
-    nuis_params = [q for q in effect.parameters if q.name in nuis]
-    if nuis_params and len(nuis_params) < len(names):
-        grids = np.array(np.meshgrid(*[_grid(q, n_grid) for q in nuis_params], indexing="ij"))
-        combos = grids.reshape(len(nuis_params), -1).T
-        if combos.shape[0] > 25:
-            combos = combos[np.linspace(0, combos.shape[0] - 1, 25).astype(int)]
-    else:
-        combos = np.zeros((1, 0))
-    best = None
-    for combo, rel in ((c, r) for c in combos for r in steps):
-        ov = {q.name: v for q, v in zip(nuis_params, combo)}
-        J, _, _ = (J0, names, mc) if not ov and rel == steps[0] else \
-            _candidate_sensitivity(model, effect, theta_model, data, ov, rel_step=rel)
-        act = [i for i, n in enumerate(names) if n not in ov]
-        Wc = whiten(J[:, act])
-        norm0 = np.linalg.norm(Wc, axis=0)
-        Wp = Wc - U @ (U.T @ Wc)
-        normp = np.linalg.norm(Wp, axis=0)
-        keep = normp > 1e-8 * np.maximum(norm0, 1e-300)
-        if not keep.any():
+    best, n_tries = None, 0
+    for cs in candidate_column_sets(model, theta_model, effect, whiten, data, U, float(np.linalg.norm(r)), n_grid):
+        n_tries += 1
+        ov, act, keep, A = cs["ov"], cs["act"], cs["keep"], cs["A"]
+        if A is None:
             res = {"chi2": 0.0, "dof": 0, "absorbed": 1.0, "beta": np.zeros(len(act)), "ov": ov, "act": act}
         else:
-            A = Wp[:, keep]
-            qa = [effect.parameters[i] for i in np.array(act)[keep]]
-            lb = np.array([0.0 if q.null is not None and q.null <= q.lower else -np.inf for q in qa])
-            ub = np.array([0.0 if q.null is not None and q.null >= q.upper else np.inf for q in qa])
             # column scaling keeps lsq_linear well conditioned
-            cs = np.linalg.norm(A, axis=0)
-            sol = _sopt.lsq_linear(A / cs, r, bounds=(lb, ub))
+            cs_ = np.linalg.norm(A, axis=0)
+            sol = _sopt.lsq_linear(A / cs_, r, bounds=(cs["lb"], cs["ub"]))
             beta_s = sol.x
-            chi2 = float(r @ r - np.sum((r - (A / cs) @ beta_s) ** 2))
+            chi2 = float(r @ r - np.sum((r - (A / cs_) @ beta_s) ** 2))
             beta = np.zeros(len(act))
-            beta[np.flatnonzero(keep)] = beta_s / cs
-            res = {"chi2": max(chi2, 0.0), "dof": int(np.linalg.matrix_rank(A)),
-                   "absorbed": float(1 - np.sum(normp ** 2) / max(np.sum(norm0 ** 2), 1e-300)),
+            beta[np.flatnonzero(keep)] = beta_s / cs_
+            res = {"chi2": max(chi2, 0.0), "dof": int(np.linalg.matrix_rank(A)), "absorbed": cs["absorbed"],
                    "beta": beta, "ov": ov, "act": act}
         if best is None or res["chi2"] > best["chi2"]:
             best = res
     dof = max(best["dof"], 1)
-    p = float(_stats.chi2.sf(best["chi2"], dof)) * len(combos) * len(steps)
+    p = float(_stats.chi2.sf(best["chi2"], dof)) * n_tries
     p = min(max(p, 1e-300), 1.0)
     z = float(_stats.norm.isf(p)) if p < 0.5 else 0.0
     # warm start: null + linearised step (clipped into the box), nuisances at their best grid value
@@ -156,6 +135,52 @@ def score_screen(model: Model, theta_model: np.ndarray, free: Sequence[str], eff
                                       q.upper - 1e-3 * (q.upper - q.lower)))
     return {"chi2": best["chi2"], "dof": best["dof"], "p": p, "z": z,
             "absorbed": best["absorbed"], "start": start}
+
+
+def candidate_column_sets(model: Model, theta_model: np.ndarray, effect: Effect, whiten, data: SpecimenData,
+                          U: np.ndarray, ref: float, n_grid: int = 5):
+    """The linear alternatives the score test of ``effect`` fits, one per nuisance value × step.
+
+    Yields dicts: ``A`` the whitened sensitivity columns with the base's absorbable directions
+    (orthonormal ``U``) projected out (None when all are absorbed), ``lb``/``ub`` the sign
+    bounds of their coefficients (0 on the side where the null sits on a box edge), ``ov`` the
+    nuisance values, ``act`` the active parameter indices, ``keep`` which of them survive the
+    projection and ``absorbed``.  Shared by :func:`score_screen` and the calibration's null
+    replicates (:mod:`.calibration`), so both test the very same alternatives.  ``ref``: the
+    norm of the whitened residual (a parameter whose sensitivity is negligible beside it is a
+    nuisance, maximised over a grid).
+    """
+    J0, names, _ = _candidate_sensitivity(model, effect, theta_model, data)
+    steps = SCREEN_STEPS
+    scale = np.linalg.norm(whiten(J0), axis=0)
+    ref = max(ref, 1e-300)
+    nuis = [n for n, s in zip(names, scale) if not (s * 1e-3 > 1e-12 * ref and s > 0)]
+    nuis_params = [q for q in effect.parameters if q.name in nuis]
+    if nuis_params and len(nuis_params) < len(names):
+        grids = np.array(np.meshgrid(*[_grid(q, n_grid) for q in nuis_params], indexing="ij"))
+        combos = grids.reshape(len(nuis_params), -1).T
+        if combos.shape[0] > 25:
+            combos = combos[np.linspace(0, combos.shape[0] - 1, 25).astype(int)]
+    else:
+        combos = np.zeros((1, 0))
+    for combo, rel in ((c, r) for c in combos for r in steps):
+        ov = {q.name: v for q, v in zip(nuis_params, combo)}
+        J = J0 if not ov and rel == steps[0] else \
+            _candidate_sensitivity(model, effect, theta_model, data, ov, rel_step=rel)[0]
+        act = [i for i, n in enumerate(names) if n not in ov]
+        Wc = whiten(J[:, act])
+        norm0 = np.linalg.norm(Wc, axis=0)
+        Wp = Wc - U @ (U.T @ Wc)
+        normp = np.linalg.norm(Wp, axis=0)
+        keep = normp > 1e-8 * np.maximum(norm0, 1e-300)
+        if not keep.any():
+            yield {"A": None, "lb": None, "ub": None, "ov": ov, "act": act, "keep": keep, "absorbed": 1.0}
+            continue
+        qa = [effect.parameters[i] for i in np.array(act)[keep]]
+        yield {"A": Wp[:, keep], "ov": ov, "act": act, "keep": keep,
+               "lb": np.array([0.0 if q.null is not None and q.null <= q.lower else -np.inf for q in qa]),
+               "ub": np.array([0.0 if q.null is not None and q.null >= q.upper else np.inf for q in qa]),
+               "absorbed": float(1 - np.sum(normp ** 2) / max(np.sum(norm0 ** 2), 1e-300))}
 
 
 # =========================================================================================
@@ -287,9 +312,7 @@ def screen_controls(controls: Sequence[Control], model: Model, theta_model: np.n
 
     Returns the controls as CandidateResults, the strongest (local-refit z) first.
     """
-    Jb = np.asarray(model.stress_jacobian(d.loading, theta_model))
-    U, sv, _ = np.linalg.svd(whiten(Jb[:, [model.index(n) for n in free]]), full_matrices=False)
-    U = U[:, sv > sv.max() * 1e-9] if sv.size and sv.max() > 0 else U[:, :0]
+    U, _ = absorbable_basis(model, theta_model, free, whiten, d)
     r = whiten(resid)
     r = r - U @ (U.T @ r)
     out = []

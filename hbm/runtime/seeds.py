@@ -26,6 +26,9 @@ stream                     spawn key                 draws
 ``organ_new_specimen``     ``(20000, 2)``            organ bands: population-predictive draws
 ``detective``              ``(30000,)``              hbm.diagnose/extend: child j = 0 base fit,
                                                      1 + k greedy round k, 90 removal, 91 power
+``calibration`` k          ``(60000, k)``            hbm.diagnose: the null replicates of greedy round
+                                                     k (the fitted model's own noise on the file's
+                                                     design, :mod:`hbm.detective.calibration`)
 ``grouped``                ``(40000,)``              the grouped population sampler (population →
                                                      group → specimen, ``--group-by``/``# group:``);
                                                      used instead of ``hierarchical``
@@ -58,6 +61,7 @@ _ORGAN = 20_000
 _DETECTIVE = 30_000
 _GROUPED = 40_000
 _PRIOR = 50_000
+_CALIBRATION = 60_000
 
 #: name -> function of the stream's indices returning its spawn key (the table above).
 def _specimen_key(k: int) -> tuple[int, ...]:
@@ -79,6 +83,7 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "detective": lambda: (_DETECTIVE,),
     "grouped": lambda: (_GROUPED,),
     "prior": lambda: (_PRIOR,),
+    "calibration": lambda k: (_CALIBRATION, int(k)),
 }
 
 

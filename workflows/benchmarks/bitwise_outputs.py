@@ -44,6 +44,9 @@ VOLATILE = re.compile(r"(^|_)(time|times|timings|seconds|wall|cpu|elapsed|create
                       r"total_before_report|hostname|workers_used)($|_)", re.I)
 DURATION = re.compile(r"\d+(\.\d+)?\s*(s|ms|min)\b")
 
+#: diagnose's --max-time for the comparison: a diagnosis cut at its deadline depends on the machine's load
+UNBOUNDED = "86400"
+
 FORMATS = ("febio-uniaxial", "febio-energy", "febio-optimize", "abaqus-marlow", "csv", "json")
 
 
@@ -189,7 +192,8 @@ def run_all(tree: Path, work: Path, full: bool, which: set[str]) -> dict:
                            hbm(tree, ["export", str(nc), "--to", fmt, "--out", str(card), "--json"], work), [card])
         if "diagnose" in which:
             record(f"diagnose {path.name} --json",
-                   hbm(tree, ["diagnose", str(path), *extra, "--json", "--no-progress", "--workers", "1"], work))
+                   hbm(tree, ["diagnose", str(path), *extra, "--json", "--no-progress", "--workers", "1",
+                              "--max-time", UNBOUNDED], work))
     if "extra" in which:
         spec = data / "specimens" / "calvo2010_rat1.csv"
         nc = fits / "calvo2010_rat1_energy.nc"
@@ -207,7 +211,8 @@ def run_all(tree: Path, work: Path, full: bool, which: set[str]) -> dict:
             record(f"fit {path.name}", hbm(tree, ["fit", str(path), "--out", str(out), "--no-progress", "--no-plot",
                                                   "--json"], work), [out])
             record(f"diagnose {path.name} --json",
-                   hbm(tree, ["diagnose", str(path), "--json", "--no-progress", "--workers", "1"], work))
+                   hbm(tree, ["diagnose", str(path), "--json", "--no-progress", "--workers", "1", "--max-time",
+                              UNBOUNDED], work))
     return manifest
 
 

@@ -24,10 +24,11 @@ import sys
 import time
 from pathlib import Path
 
+# the cases are the measured checkout's (--after) definitions; hbm is the checkout run's own
 _CASE = r'''
 import json, sys
-sys.path.insert(0, {tree!r} + "/workflows")
-import detective_validation as V
+sys.path.insert(0, {cases!r} + "/workflows")
+import {module} as V
 from hbm.detective import diagnose
 seed, c = [(17 + k, c) for k, c in enumerate(V.cases({groups!r}))][{i}]
 print("ROW" + json.dumps(V.run_case(c, seed, diagnose), default=str))
@@ -35,12 +36,15 @@ print("ROW" + json.dumps(V.run_case(c, seed, diagnose), default=str))
 
 
 def _run(tree: str, argv: list[str]) -> subprocess.CompletedProcess:
+    # no calibration cache: every run pays for its calibration (a rerun of the benchmark would hit it)
     return subprocess.run([sys.executable, *argv], capture_output=True, text=True, cwd=tree,
-                          env={**os.environ, "PYTHONPATH": str(Path(tree).resolve())})
+                          env={**os.environ, "PYTHONPATH": str(Path(tree).resolve()), "HBM_CACHE_DIR": "off"})
 
 
-def case_row(tree: str, groups: list[str], i: int) -> dict | None:
-    out = _run(tree, ["-c", _CASE.format(tree=str(Path(tree).resolve()), groups=groups, i=i)])
+def case_row(tree: str, groups: list[str], i: int, module: str = "detective_validation",
+             cases: str | None = None) -> dict | None:
+    src = str(Path(cases or tree).resolve())
+    out = _run(tree, ["-c", _CASE.format(cases=src, module=module, groups=groups, i=i)])
     line = [ln for ln in out.stdout.splitlines() if ln.startswith("ROW")]
     return json.loads(line[0][3:]) if line else None
 
@@ -67,17 +71,24 @@ def main(argv=None) -> int:
     ap.add_argument("--after", required=True, help="checkout of the code measured")
     ap.add_argument("--groups", nargs="*", default=[], help="validation groups (e.g. clean unknown library two)")
     ap.add_argument("--file", action="append", default=[], help="'FILE [diagnose options]' (repeatable)")
+    ap.add_argument("--run-groups", nargs="*", default=None,
+                    help="run only these groups, in this order (seeds as in the enumeration of --groups)")
+    ap.add_argument("--module", default="detective_validation",
+                    help="the cases' module in the --after checkout's workflows/ (e.g. calibration_validation)")
     ap.add_argument("--json", required=True)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(Path(args.after).resolve() / "workflows"))
-    import detective_validation as V
+    V = __import__(args.module)
     rows: dict[str, list] = {"before": [], "after": []}
-    todo = [("case", i) for i in range(len(V.cases(args.groups)) if args.groups else 0)] + \
+    every = V.cases(args.groups) if args.groups else []
+    order = args.run_groups if args.run_groups is not None else sorted({c["group"] for c in every},
+                                                                       key=[c["group"] for c in every].index)
+    todo = [("case", i) for g in order for i, c in enumerate(every) if c["group"] == g] + \
         [("file", f) for f in args.file]
     for kind, what in todo:
         for lab in ("before", "after"):
             tree = getattr(args, lab)
-            r = case_row(tree, args.groups, what) if kind == "case" else file_row(tree, what)
+            r = case_row(tree, args.groups, what, args.module, args.after) if kind == "case" else file_row(tree, what)
             if r is None:
                 print(f"{lab} {what}: failed", flush=True)
                 continue
