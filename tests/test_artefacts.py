@@ -113,3 +113,33 @@ def test_dropping_rows_is_recorded_and_a_clean_record_is_left_as_it_is():
     clean = load_specimen(ROOT / "data" / "specimens" / "calvo2010_rat1.csv")
     assert prepare_record(clean, artefacts="drop").data is clean
     assert drop_rows(clean, []) is clean
+
+
+def test_drop_artefacts_is_one_declared_setting_recorded_only_when_set(tmp_path):
+    """--drop-artefacts / --reduce are FitSettings fields: the flag sets artefacts='drop', a fit
+    drops the row and records it (config and input line), and unset settings leave the result key
+    and config as they were."""
+    import warnings
+
+    from hbm.cli import build_parser
+    from hbm.errors import SettingError, HbmWarning
+    from hbm.fit import fit_specimen
+    from hbm.settings import FitRecord, FitSettings
+
+    args = build_parser().parse_args(["fit", str(RAW), "--drop-artefacts", "--reduce", "off"])
+    assert (args.artefacts, args.reduce) == ("drop", "off")
+    assert build_parser().parse_args(["diagnose", str(RAW)]).artefacts is None
+    plain = FitSettings()
+    assert "artefacts" not in plain.record() and "reduce" not in FitRecord(settings=plain).to_attrs()
+    s = FitSettings(artefacts="drop", reduce="off")
+    assert s.record()["artefacts"] == "drop" and FitRecord.from_attrs(FitRecord(settings=s).to_attrs()).settings == s
+    with pytest.raises(SettingError, match="artefacts"):
+        FitSettings(artefacts="remove")
+    spec = load_specimen(RAW)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", HbmWarning)
+        res = fit_specimen(spec, model=spyrou_model(form="energy"), samples=40, restarts=0, maxfevals=200,
+                           artefacts="drop", progress=False, tier="full", max_evaluations=400)
+    assert res.result.config["artefacts"] == "drop"
+    assert "1 artefact row dropped (line 10: pre-test reading)" in res.result.config["input"]
+    assert res.result.data.n_points == spec.n_points - 1

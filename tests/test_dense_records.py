@@ -137,6 +137,24 @@ def test_reduced_record_has_the_full_records_posterior():
     assert abs(xr[k] / xf[k] - 1) < 0.15                              # sigma: one raw reading's sd
 
 
+def test_a_reduced_records_null_replicates_are_means_of_raw_readings():
+    """The calibrated detective's null draws from the likelihood's noise model: on a reduced record
+    its replicates must have the spread of means of the bins' raw readings (independent truth: iid
+    readings simulated and averaged bin by bin)."""
+    model, ds = _record(3000)
+    r = reduce_record(ds)
+    lik = make_likelihood(model, r, noise="iid")
+    assert isinstance(lik.noise_model, BinnedNoise)
+    sigma, reps = 0.02, 4000
+    draws = lik.noise_model.simulate(np.random.default_rng(5), np.full((reps, 1), sigma))
+    rows = np.array(json.loads(r.attrs["reduction"])["readings"])
+    raw = np.random.default_rng(6).normal(0.0, sigma, (reps, rows.sum()))
+    means = np.add.reduceat(raw, np.r_[0, np.cumsum(rows)[:-1]], axis=1) / rows
+    big = rows >= 8
+    np.testing.assert_allclose(draws.std(axis=0)[big], means.std(axis=0)[big], rtol=0.08)
+    assert abs(float(np.mean(draws.std(axis=0) / means.std(axis=0))) - 1.0) < 0.01
+
+
 # ------------------------------------------------------------------------------ Student-t noise
 def test_student_t_noise_is_the_t_density_and_robust():
     assert "student_t" in NOISE_CHOICES

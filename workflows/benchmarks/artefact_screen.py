@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT / "workflows"))
 
 import detective_validation as V  # noqa: E402
 
-from hbm.data import cycle, hold, load_specimen, protocol, ramp, synthetic_specimen  # noqa: E402
+from hbm.data import as_specimen, cycle, hold, load_specimen, protocol, ramp, synthetic_specimen  # noqa: E402
 from hbm.data import artefacts as A  # noqa: E402
 from hbm.effects import make_effect  # noqa: E402
 from hbm.model.spyrou import spyrou_model  # noqa: E402
@@ -68,9 +68,8 @@ def _synthetic(kind: str, n: int, seed: int, noise: str):
 
 
 def _arrays(ds):
-    names = ds.data_vars
-    return (ds.strain.values, ds.stress.values, ds.time.values if "time" in names else None,
-            ds.test.values if "test" in names else None)
+    spec = as_specimen(ds)
+    return spec.strain, spec.stress, spec.time, spec.test
 
 
 def clean_records(seeds: int):
@@ -93,13 +92,13 @@ def injected(seeds: int) -> dict:
         hits, total = 0, 0
         for s in range(seeds * 4):
             ds = _synthetic("ramp_hold", 400, 100 + s, "iid")
-            y = ds.stress.values.copy()
+            y = ds.stress.copy()
             sd = float(ds.attrs["noise_sd"])
             rng = np.random.default_rng(s)
             spike, dip = int(rng.integers(40, 90)), int(rng.integers(250, 350))
             y[spike] += size * sd
             y[dip:dip + 2] -= size * sd
-            found = {a.rows for a in A.screen_artefacts(ds.strain.values, y, ds.time.values, ds.test.values)}
+            found = {a.rows for a in A.screen_artefacts(ds.strain, y, ds.time, ds.test)}
             hits += ((spike,) in found) + ((dip, dip + 1) in found)
             total += 2
         out[size] = hits / total

@@ -87,7 +87,7 @@ def posterior(seeds: int) -> list[dict]:
         xr, sr = _laplace(red, x0)
         t_red = time.process_time() - t
         k = full.n_model
-        rows.append({"seed": seed, "points": [int(ds.sizes["point"]), int(red.n_points)],
+        rows.append({"seed": seed, "points": [ds.n_points, int(red.n_points)],
                      "shift_sd": dict(zip(full.names[:k], np.round((xr - xf)[:k] / sf[:k], 3).tolist())),
                      "sd_ratio": dict(zip(full.names[:k], np.round(sr[:k] / sf[:k], 3).tolist())),
                      "sigma_ratio": round(float(xr[k] / xf[k]), 3), "cpu": [round(t_full, 1), round(t_red, 1)]})
