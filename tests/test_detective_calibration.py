@@ -65,13 +65,13 @@ def _design():
     ds = protocol([ramp(0.3, 2e-3, 40), hold(120.0, 40)])
     m = spyrou_model()
     th = np.array([TH[k] for k in m.parameter_names])
-    s0 = np.asarray(m.stress(ds["strain"].values, th, ds["time"].values, ds["test"].values))
+    s0 = np.asarray(m.stress(ds.strain, th, ds.time, ds.test))
     return ds, m, th, s0
 
 
 def _null_fit(ds, m, th, stress):
     """The base 'fitted' at the truth (no optimiser: the calibration only needs an optimum)."""
-    ds = ds.assign(stress=("point", stress))
+    ds = ds.with_series("stress", stress)
     lik = make_likelihood(m, ds, noise="iid", sigma_bounds=(SD / 20, SD * 20))
     x = lik.from_natural(np.r_[th, SD][None, :])[0]
     return SimpleNamespace(likelihood=lik, model=m, theta_max=x, names=list(lik.names), noise="iid",
@@ -88,7 +88,7 @@ def test_calibrated_false_alarms_and_a_ripple(tmp_path, monkeypatch):
     rng = np.random.default_rng(11)
 
     def p_family(y):
-        d = as_data(ds.assign(stress=("point", y)))
+        d = as_data(ds.with_series("stress", y))
         check = check_noise(base, model_free_noise(d.stress, d.segment), d, 0)
         return calibrate(base, check, cands, d, seed=3, replicates=200)
 
@@ -96,7 +96,7 @@ def test_calibrated_false_alarms_and_a_ripple(tmp_path, monkeypatch):
     hits = sum(p_family(s0 + SD * rng.standard_normal(s0.size)).p_family <= 0.05 for _ in range(n_draws))
     # binomial(40, 0.05): P(X >= 7) = 0.004
     assert hits <= 6
-    t = ds["time"].values
+    t = ds.time
     cal = p_family(s0 + SD * rng.standard_normal(s0.size) + 0.03 * s0.max() * np.sin(2 * np.pi * t / 11.0))
     assert cal.significant("periodic")
     assert cal.stats["periodic"]["p"] == pytest.approx(1 / 201)
@@ -115,7 +115,7 @@ def test_calibration_cache_is_keyed_by_the_inputs(tmp_path, monkeypatch):
     again = calibrate(base, check, cands, d, seed=5, replicates=50)
     assert not first.cached and again.cached and again.stats == first.stats
     # other data (one point), another seed: computed anew
-    ds2 = ds1.assign(stress=("point", ds1["stress"].values + np.r_[1e-4, np.zeros(s0.size - 1)]))
+    ds2 = ds1.with_series("stress", ds1.stress + np.r_[1e-4, np.zeros(s0.size - 1)])
     assert not calibrate(base, check, cands, as_data(ds2), seed=5, replicates=50).cached
     assert not calibrate(base, check, cands, d, seed=6, replicates=50).cached
 
@@ -123,9 +123,9 @@ def test_calibration_cache_is_keyed_by_the_inputs(tmp_path, monkeypatch):
 def test_calibration_setting_is_checked_before_any_fit():
     ds, *_ = _design()
     with pytest.raises(SettingError, match="calibration"):
-        diagnose(ds.assign(stress=("point", np.linspace(0.0, 0.05, ds.sizes["point"]))), calibration="maybe")
+        diagnose(ds.with_series("stress", np.linspace(0.0, 0.05, ds.n_points)), calibration="maybe")
     with pytest.raises(SettingError, match="replicates"):
-        diagnose(ds.assign(stress=("point", np.linspace(0.0, 0.05, ds.sizes["point"]))), replicates=3)
+        diagnose(ds.with_series("stress", np.linspace(0.0, 0.05, ds.n_points)), replicates=3)
 
 
 def test_the_report_gives_each_statistic_with_its_calibrated_p_value(monkeypatch):
@@ -135,9 +135,9 @@ def test_the_report_gives_each_statistic_with_its_calibrated_p_value(monkeypatch
     monkeypatch.setenv("HBM_CACHE_DIR", "off")
     ds = protocol(ramp(0.3, 2e-3, 30))
     m = spyrou_model()
-    s0 = np.asarray(m.stress(ds["strain"].values, np.array([TH[k] for k in m.parameter_names]), ds["time"].values))
+    s0 = np.asarray(m.stress(ds.strain, np.array([TH[k] for k in m.parameter_names]), ds.time))
     y = s0 + SD * np.random.default_rng(8).standard_normal(s0.size)
-    dg = diagnose(ds.assign(stress=("point", y)), seed=2, n_samples=250, candidates=["offset"], removal=False,
+    dg = diagnose(ds.with_series("stress", y), seed=2, n_samples=250, candidates=["offset"], removal=False,
                   replicates=100, workers=1, noise="iid")
     js = dg.to_dict()["calibration"]
     assert js["method"] == "calibrated" and js["rounds"][0]["replicates"] == 100

@@ -16,16 +16,22 @@ Write a material card for an FE code from a fit (specimens/<id>.nc) or a populat
 (hierarchical.nc), verified on the way out: the card's law, re-implemented from its
 documentation and solved in homogeneous incompressible uniaxial tension (lateral stretch by
 root finding), is compared with hbm's curve on the tested strain range and on 1.5x it.  Exact
-cards must agree within 0.5 %; approximate ones within the bound the card states.  Energy-form
-fits also get a Drucker stability check (uniaxial, equibiaxial, planar).
+cards must agree within 0.5 %; approximate ones within the bound the card states.  The energy
+cards (3-D materials) are also solved in every loading mode hbm predicts (cross-fibre tension,
+planar, biaxial, simple shear; the tested strain range as each mode's control) against hbm's
+cone reading, and state their deviation per mode.  Energy-form fits also get a Drucker
+stability check (uniaxial, equibiaxial, planar).
 
 formats:
-  febio-uniaxial  Mooney-Rivlin + active fibre stress load curve (exact along the fibres, not an energy)
-  febio-energy    Mooney-Rivlin + fiber-pow-linear + helical fiber-exp-pow families (energy form only)
+  febio-uniaxial  Mooney-Rivlin + active fibre stress load curve (exact along the fibres; not an
+                  energy, along-fibre uniaxial only)
+  febio-energy    Mooney-Rivlin + fiber-pow-linear + N helical fiber-exp-linear families (energy
+                  form only; a 3-D material: states its deviation from hbm per mode)
   febio-optimize  FEBio optimisation input: summary as start, 1-99 % posterior interval as bounds
-  abaqus-marlow   *HYPERELASTIC, MARLOW with *UNIAXIAL TEST DATA (isotropic, exact in uniaxial tension)
-  abaqus-uanisohyper  UANISOHYPER_INV subroutine of the energy form (exact in uniaxial; needs gfortran
-                  here to compile and check it)
+  abaqus-marlow   *HYPERELASTIC, MARLOW with *UNIAXIAL TEST DATA (isotropic, exact in uniaxial
+                  tension; along-fibre uniaxial only)
+  abaqus-uanisohyper  UANISOHYPER_INV subroutine of the energy form (exact in uniaxial; a 3-D
+                  material with N <= 24 families; needs gfortran here to compile and check it)
   csv, json       parameter draws / the summary's parameter set with units
 
 summaries: median (the draw nearest the pointwise median curve), p05/p95 (pointwise quantile

@@ -44,6 +44,7 @@ except ImportError:                  # pragma: no cover - Windows
 
 from ..runtime import seeds as _seeds
 from ..errors import HbmError, HbmWarning
+from ..settings.fields import renamed_keyword
 from ..settings.rules import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
 from ..effects import applicable
@@ -177,14 +178,6 @@ def _noise_preference(base: FitSummary, ctrls: list[CandidateResult]) -> str:
     return "; ".join(parts)
 
 
-def _tier(tier: str, likelihood: str | None, who: str) -> str:
-    """The tier of ``tier=``, or of the older keyword ``likelihood=`` (deprecated: it warns)."""
-    if likelihood is None:
-        return tier
-    warnings.warn(f"{who}(likelihood=...) is deprecated; use tier=", DeprecationWarning, stacklevel=3)
-    return likelihood
-
-
 def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | None = None,
              seed: int = 0, n_samples: int = 800, top: int = 3, progress: bool = False,
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
@@ -294,7 +287,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     workers = usable_cores() if workers is None else check_workers(workers, "workers") or 1
-    tier = _tier(tier, likelihood, "diagnose")
+    tier = renamed_keyword(tier, likelihood, "diagnose", "likelihood", "tier")
     calib = calibration_setting(calibration, replicates, seed)
     # no more processes than a round has refits (+ the base's rerun): the rest would sit idle
     fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, tier,
@@ -512,7 +505,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     mf = record_noise(d)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
-    tier = _tier(tier, likelihood, "extend")
+    tier = renamed_keyword(tier, likelihood, "extend", "likelihood", "tier")
     fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, tier)
     steps: list[FitSummary] = []
     decisions: list = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import verify
+from .modes import SCOPE_ALONG
 from .registry import Written
 
 DESCRIPTION = "Abaqus *HYPERELASTIC, MARLOW with *UNIAXIAL TEST DATA (isotropic, exact in uniaxial tension)"
@@ -51,4 +52,5 @@ def write(src) -> Written:
     body = ["*MATERIAL, NAME=MUSCLE", "*HYPERELASTIC, MARLOW", "*UNIAXIAL TEST DATA",
             "** nominal stress (MPa), nominal strain"]
     body += [f"{s:.10g}, {x:.10g}" for x, s in zip(e[1:], t[1:])]  # the origin (0, 0) is implied
-    return Written(text="\n".join(head + body) + "\n", checks=[chk], card={"points": int(e.size - 1)})
+    return Written(text="\n".join(head + body) + "\n", checks=[chk], card={"points": int(e.size - 1)},
+                   scope=SCOPE_ALONG)

@@ -3,7 +3,11 @@
 Only for ``form="energy"`` results: the thesis form is not derived from a strain energy (its
 collagen turns tensile under compression), so no hyperelastic card can reproduce it; use
 ``febio-uniaxial`` or ``abaqus-marlow`` for those.  The mapping and its approximations are in
-:mod:`hbm.export.laws`; the card states its measured error over the tested range.
+:mod:`hbm.export.laws`: N ``uncoupled fiber-exp-linear`` families on the cone stand for hbm's cone
+reading (DESIGN.md §8), their law fitted on the helix-segment stretches every loading mode reaches.
+The card is verified along the fibres (:mod:`.verify`) and in every loading mode (:mod:`.modes`), and
+states its measured deviations; N is the smallest of :data:`N_LADDER` whose N-family deviation is
+within :data:`hbm.export.modes.FAMILY_TARGET` (FEBio evaluates each family separately: cost ∝ N).
 """
 
 from __future__ import annotations
@@ -11,16 +15,22 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 
 from ..errors import HbmError
-from . import verify
+from . import modes, verify
 from ._xml import provenance_lines, sub, to_text, vec
-from .laws import energy_card, family_directions
+from .card_models import CardEnergy
+from .laws import cone_directions, energy_card
 from .registry import Written
 
 DESCRIPTION = ("FEBio uncoupled solid mixture: Mooney-Rivlin + fiber-pow-linear-uncoupled (axis) + "
-               "fiber-exp-pow-uncoupled helical families (energy form of the Spyrou model)")
+               "uncoupled fiber-exp-linear helical families (energy form of the Spyrou model, cone reading)")
 SUFFIX = ".feb"
-VALID = ("3-D hyperelastic (an energy): any homogeneous or FE loading; calibrated in uniaxial tension "
-         "along the fibres only, so other modes are the model's prediction, not data")
+VALID = ("3-D hyperelastic (an energy; hbm's cone reading with N collagen families): any homogeneous or FE "
+         "loading within the deviations stated below and the family stretch lambda1; calibrated in uniaxial "
+         "tension along the fibres only, so other modes are the model's prediction, not data")
+#: collagen families offered, smallest first (the first within the family target is written)
+N_LADDER = (12, 24, 48, 96)
+COST = "FEBio evaluates one fibre material per family (cost and card size grow linearly with N)"
+METHOD = ("documented FEBio fibre/matrix stresses, 3-D incompressible, lateral stretch by root finding")
 
 
 def require_energy(src) -> None:
@@ -31,8 +41,12 @@ def require_energy(src) -> None:
 
 
 def make_card(src):
+    """(the card, the family deviations measured for the N tried)."""
     require_energy(src)
-    return energy_card(src.constituents(), src.k_iso, src.strain_range, src.stress, src.curve_strain)
+    n, seen = modes.choose_families(src, N_LADDER)
+    card = energy_card(src.constituents(), src.k_iso, src.strain_range, src.stress, n, modes.segment_stretch(src),
+                       src.curve_strain)
+    return card, seen
 
 
 def build(card) -> ET.Element:
@@ -51,13 +65,13 @@ def build(card) -> ET.Element:
         sub(f, "lam0", card.fibre_lam0)
         sub(f, "fiber", vec((1, 0, 0)), type="vector")
         sub(f, "k", 0.0)
-    if card.ksi > 0:
-        for a in family_directions(card.theta, card.n_families):
-            h = sub(m, "solid", type="fiber-exp-pow-uncoupled")
-            sub(h, "ksi", card.ksi)
-            sub(h, "alpha", card.alpha)
-            sub(h, "beta", card.beta)
-            sub(h, "mu", 0.0)
+    if card.c3 > 0:
+        for a in cone_directions(card.theta, card.n_families):
+            h = sub(m, "solid", type="uncoupled fiber-exp-linear")
+            sub(h, "c3", card.c3)
+            sub(h, "c4", card.c4)
+            sub(h, "c5", card.c5)
+            sub(h, "lambda", card.lam1)
             sub(h, "fiber", vec(a), type="vector")
             sub(h, "k", 0.0)
     return root
@@ -65,21 +79,36 @@ def build(card) -> ET.Element:
 
 def check(src, card) -> verify.Check:
     return verify.compare("febio-energy", verify.energy_card_stress(card), src.curve_strain,
-                          src.stress(src.curve_strain), src.tested_mask(), False, card.fit_error,
-                          "documented FEBio fibre/matrix stresses, 3-D incompressible, lateral stretch by "
-                          "root finding")
+                          src.stress(src.curve_strain), src.tested_mask(), False, card.fit_error, METHOD)
+
+
+def check_modes(src, card) -> list[modes.ModeCheck]:
+    """The card in every loading mode: its FEBio laws solved here against hbm's evaluation of them."""
+    volume = 1.0 - src.params()[src.spec.mixture.fraction]  # the collagen's share, as Energy3D applies it
+    return modes.check_card("febio-energy", verify.febio_card_stress(card), src,
+                            CardEnergy(card, src.k_iso, volume), card.n_families, METHOD)
 
 
 def write(src) -> Written:
-    card = make_card(src)
+    card, seen = make_card(src)
     chk = check(src, card)
+    every = check_modes(src, card)
     lines = provenance_lines(src, DESCRIPTION, VALID, [chk])
-    lines.append(f"approximation: the card differs from hbm's energy form by at most {card.fit_error:.3g} "
-                 f"(relative) on the tested range, {card.fit_error_15:.3g} on 1.5x it (fibre toe below "
-                 f"lam0 = {card.fibre_lam0:.6g} and the exp-pow fit of the collagen)")
-    lines.append(f"{card.n_families} helical families at THETA = {card.theta:.6g} deg to x, azimuths 360/"
-                 f"{card.n_families} apart, each with (1 - VOLF)/{card.n_families} of the collagen")
+    lines.append(f"approximation: along the fibres the card differs from hbm's energy form by at most "
+                 f"{card.fit_error:.3g} (relative) on the tested range, {card.fit_error_15:.3g} on 1.5x it (fibre "
+                 f"toe below lam0 = {card.fibre_lam0:.6g} and the exp-linear fit of the collagen)")
+    if card.c3 > 0:
+        lines.append(f"{card.n_families} helical families at THETA = {card.theta:.6g} deg to x, azimuths 360/"
+                     f"{card.n_families} apart starting at 180/{card.n_families}, each with (1 - VOLF)/"
+                     f"{card.n_families} of the collagen; the family law differs from hbm's segment law by at most "
+                     f"{card.law_error:.3g} (relative) up to the segment stretch of the tested range, "
+                     f"{card.law_error_15:.3g} up to lambda1 = {card.lam1:.6g} (1.5x), linear beyond")
+    else:
+        lines.append("no collagen families: the collagen amplitude of this parameter set is 0")
+    tradeoff = modes.tradeoff_line("febio-energy", card.n_families, seen, COST)
+    lines += modes.header_lines(every, tradeoff)
     if src.summary in ("p05", "p95"):
         lines.append(f"{src.summary}: the card is the posterior draw nearest the {src.summary} curve "
                      f"(max gap {src.nearest_gap:.3g} relative)")
-    return Written(text=to_text(build(card), lines), checks=[chk], card=card.as_dict())
+    return Written(text=to_text(build(card), lines), checks=[chk], card=card.as_dict(), notes=[tradeoff],
+                   modes=every, scope=modes.SCOPE_3D)

@@ -20,9 +20,9 @@ MATERIAL_PARAMETERS: dict[str, frozenset[str]] = {
     "Mooney-Rivlin": frozenset({"c1", "c2", "k", "pressure_model", "density"}),
     # FEUncoupledFiberPowLinear: E, lam0, beta; FEElasticFiberMaterialUC: property "fiber"
     "fiber-pow-linear-uncoupled": frozenset({"E", "lam0", "beta", "fiber", "k", "pressure_model", "density"}),
-    # FEUncoupledFiberExpPow: alpha, beta, ksi, mu; property "fiber"
-    "fiber-exp-pow-uncoupled": frozenset({"alpha", "beta", "ksi", "mu", "fiber", "k", "pressure_model",
-                                          "density"}),
+    # FEUncoupledFiberExpLinear (FEBioMech/FEUncoupledFiberExpLinear.cpp): c3, c4, c5, lambda; property "fiber"
+    "uncoupled fiber-exp-linear": frozenset({"c3", "c4", "c5", "lambda", "fiber", "k", "pressure_model",
+                                             "density"}),
     # FEActiveFiberStressUC: smax, activation; properties stl, stv, mat_axis
     "uncoupled active fiber stress": frozenset({"smax", "activation", "stl", "stv", "mat_axis", "k",
                                                 "pressure_model", "density"}),

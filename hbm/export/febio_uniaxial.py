@@ -15,6 +15,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from . import verify
+from .modes import SCOPE_ALONG
 from ._xml import provenance_lines, sub, to_text, vec
 from .laws import BULK_FACTOR
 from .registry import Written
@@ -73,4 +74,4 @@ def write(src) -> Written:
     lines = provenance_lines(src, DESCRIPTION, VALID, [chk])
     lines.append(f"bulk modulus k = {BULK_FACTOR:g} x initial shear modulus (near-incompressible penalty)")
     return Written(text=to_text(build(src), lines), checks=[chk],
-                   card={"c1": card(src)[0], "smax": 1.0, "points": int(src.table()[0].size)})
+                   card={"c1": card(src)[0], "smax": 1.0, "points": int(src.table()[0].size)}, scope=SCOPE_ALONG)

@@ -23,12 +23,15 @@ FORMATS: dict[str, str] = {
 
 @dataclass
 class Written:
-    """What a format wrote: the text, the checks run on it, notes for the user."""
+    """What a format wrote: the text, the checks run on it, notes for the user; for a material law its
+    scope (a 3-D material or along-fibre only) and, for a 3-D one, its check in every loading mode."""
 
     text: str
     checks: list = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     card: dict = field(default_factory=dict)
+    modes: list = field(default_factory=list)
+    scope: str = ""
 
 
 def format_module(name: str) -> ModuleType:

@@ -9,6 +9,7 @@ from .spyrou import (
     BASE_EFFECTS, BASE_PARAMETERS, COMBINATIONS, FORMS, SHAPE_PARAMETERS, EnergyHelicalCollagen, HelicalCollagen,
     NeoHookeanMatrix, PassiveFibers, collagen_energy, collagen_onset_stretch, compression_check, model_form,
     helical_stretch, identifiable_combinations, spyrou_model)
+from . import energy3d  # noqa: F401  (registers the Spyrou base's 3-D energy)
 
 __all__ = ["STAGES", "Effect", "Loading", "Model", "Parameter", "State", "LinearStructure", "structure_of",
            "why_not_linear", "BASE_PARAMETERS",

@@ -246,6 +246,26 @@ def register_base(spec: ModelSpec, factory: Callable[..., Any]) -> None:
     BASES[spec.name] = (spec, factory)
 
 
+#: the 3-D strain energies of registered bases: name -> ``energy(params, k_iso, l1, l2, l3) -> W``
+#: (registered by the module that implements it, e.g. :mod:`hbm.model.energy3d` for the Spyrou base,
+#: so that a base's export map can read its energy without importing that module)
+ENERGIES: dict[str, Callable[..., np.ndarray]] = {}
+
+
+def register_energy(name: str, energy: Callable[..., np.ndarray]) -> None:
+    """Register the 3-D strain energy of base ``name`` (``energy(params, k_iso, l1, l2, l3)``: W (n, m) of
+    parameter columns (n, 1) at principal stretches (m,)).  An existing entry is replaced."""
+    ENERGIES[str(name)] = energy
+
+
+def principal_energy(name: str) -> Callable[..., np.ndarray]:
+    """The registered 3-D energy of base ``name`` (:func:`register_energy`)."""
+    try:
+        return ENERGIES[str(name)]
+    except KeyError:
+        raise HbmError(f"base model {name!r} has no registered 3-D energy") from None
+
+
 def base_spec(name: str | None = None) -> ModelSpec:
     """The spec of the registered base ``name`` (default :data:`DEFAULT_BASE`)."""
     name = DEFAULT_BASE if name is None else str(name)

@@ -88,7 +88,7 @@ import numpy as np
 from ..errors import HbmError
 from ..settings.rules import check_positive
 from .core import Effect, Loading, Model, Parameter, State
-from .spec import Combination, Constituents, Manifold, MixtureRoles, ModelSpec, register_base
+from .spec import Combination, Constituents, Manifold, MixtureRoles, ModelSpec, principal_energy, register_base
 
 # exp(709) is the largest finite double; T2 up to 200 with λ up to 3 stays far below, but a
 # user can widen the box, so the exponent is clipped to keep the model finite everywhere.
@@ -501,9 +501,8 @@ class SpyrouExport:
         with the helical collagen averaged exactly over its azimuth φ around the fibre (the cone
         reading of :class:`hbm.model.energy3d.Energy3D`; in uniaxial tension every azimuth has the λH
         of the uniaxial formula).  ``p``: parameter columns (n, 1); returns (n, m)."""
-        from .energy3d import Energy3D, Sym  # energy3d builds on this module's collagen law
-        D = Sym(*(np.asarray(v, float) ** 2 - 1.0 for v in (l1, l2, l3)))
-        return Energy3D(k_iso, "energy", "cone").energy(p, D)
+        # registered by hbm.model.energy3d, which builds on this module's laws
+        return principal_energy(SPEC.name)(p, k_iso, l1, l2, l3)
 
 
 # the combinations from named columns (module-level functions: a spec pickles)

@@ -307,3 +307,11 @@ def _refusing(flag: str, reasons: Mapping[str, str]) -> Callable[[str], str]:
 
     parse.__name__ = flag.lstrip("-")
     return parse
+
+
+def renamed_keyword(value, old_value, who: str, old: str, new: str):
+    """The value of keyword ``new``, or of its older name ``old`` when that was given (it warns: deprecated)."""
+    if old_value is None:
+        return value
+    warnings.warn(f"{who}({old}=...) is deprecated; use {new}=", DeprecationWarning, stacklevel=3)
+    return old_value

@@ -159,7 +159,11 @@ class DirectionalCollagen(CollagenReading):
     """A reading that averages W_c over segments with structure tensors N: W = Σ_q ω_q·W_c(l_q),
     l_q² = 1 + N_q:D.  Then S = Σ ω·h·N with h = W_c'(l)/l, and (diagonal D) the principal
     tangent c_ij = 2δ_ij·τ_i + 2λ_i²λ_j²·Σ ω·k·N_ii·N_jj with k = dh/d(l²) = (W_c'' − h)/(2l²)
-    (the integrand vanishes where a segment goes slack, so a moving slack boundary adds nothing)."""
+    (the integrand vanishes where a segment goes slack, so a moving slack boundary adds nothing).
+
+    The segment law is the thesis's W_c (:meth:`segment_energy`, :meth:`segment_force`,
+    :meth:`segment_stiffness`); a subclass may replace it, e.g. to evaluate an FE card's fibre law
+    on the same quadrature (:mod:`hbm.export.modes`)."""
 
     def rule(self, D: Sym, theta_deg: np.ndarray, need: str = "tangent") -> tuple[Sym | None, np.ndarray, np.ndarray]:
         """The quadrature at D: structure tensors N (components (..., q)), weights ω (..., q) summing to
@@ -170,6 +174,18 @@ class DirectionalCollagen(CollagenReading):
         (diagonal D; the N's must be exact per node, since the tangent uses N ⊗ N)."""
         raise NotImplementedError
 
+    def segment_energy(self, l, t1, t2):
+        """W_c of a segment at stretch ``l`` (per unit collagen volume)."""
+        return collagen_energy(l, t1, t2)
+
+    def segment_force(self, x, t1, t2):
+        """dW_c/dl of a segment at excess ``x`` = ⟨l − 1⟩₊."""
+        return collagen_force(x, t1, t2)
+
+    def segment_stiffness(self, x, t1, t2):
+        """d²W_c/dl² of a segment at excess ``x``."""
+        return collagen_stiffness(x, t1, t2)
+
     def _nodes(self, p, D, need):
         N, w, l2m1 = self.rule(D, p["THETA"], need)
         l, x = segment_excess(l2m1)
@@ -177,17 +193,17 @@ class DirectionalCollagen(CollagenReading):
 
     def energy(self, p, D):
         _, w, l, x, t1, t2 = self._nodes(p, D, "energy")
-        return np.sum(w * collagen_energy(l, t1, t2), axis=-1)
+        return np.sum(w * self.segment_energy(l, t1, t2), axis=-1)
 
     def pk2(self, p, D):
         N, w, l, x, t1, t2 = self._nodes(p, D, "stress")
-        wh = w * collagen_force(x, t1, t2) / l
+        wh = w * self.segment_force(x, t1, t2) / l
         return Sym(*(0.0 if is_zero(v) else np.sum(wh * v, axis=-1) for v in N))
 
     def principal(self, p, e, tangent=False):
         d = tuple(np.expm1(2.0 * np.asarray(ei, dtype=float)) for ei in e)
         N, w, l, x, t1, t2 = self._nodes(p, Sym(*d), "tangent" if tangent else "stress")
-        force = collagen_force(x, t1, t2)
+        force = self.segment_force(x, t1, t2)
         h = force / l
         wh = w * h
         nd = (N.ff, N.cc, N.nn)
@@ -195,7 +211,7 @@ class DirectionalCollagen(CollagenReading):
         tau = tuple(lam2[i] * np.sum(wh * nd[i], axis=-1) for i in range(3))
         if not tangent:
             return tau, None
-        wk = w * (collagen_stiffness(x, t1, t2) - h) / (2.0 * l * l)
+        wk = w * (self.segment_stiffness(x, t1, t2) - h) / (2.0 * l * l)
         c = [[None] * 3 for _ in range(3)]
         for i in range(3):
             for j in range(i, 3):

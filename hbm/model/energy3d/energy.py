@@ -18,6 +18,7 @@ import numpy as np
 
 from ...errors import HbmError, SettingError
 from ...runtime.validation import check_positive
+from ..spec import register_energy
 from ..spyrou import FORMS, NeoHookeanMatrix, model_form
 from .axial import AxialCollagen
 from .base import DEFAULT_COLLAGEN3D, CollagenReading, Sym, get_collagen_reading, is_zero
@@ -85,9 +86,21 @@ class Energy3D:
         return self.iso_factor * (c * p["GF"] + (1.0 - c) * p["GM"])
 
     @staticmethod
+    def _fibre_energy(p, lf_minus_1):
+        """W_f = c·P1/2·⟨λf − 1 − EOPT⟩₊²."""
+        fib = np.maximum(lf_minus_1 - p["EOPT"], 0.0)
+        return 0.5 * p["VOLF"] * p["P1"] * fib * fib
+
+    @staticmethod
     def _fibre_force(p, lf_minus_1):
         """dW_f/dλf = c·P1·⟨λf − 1 − EOPT⟩₊ (the fibres' nominal stress times c)."""
         return p["VOLF"] * p["P1"] * np.maximum(lf_minus_1 - p["EOPT"], 0.0)
+
+    @staticmethod
+    def _fibre_stiffness(p, lf_minus_1):
+        """d²W_f/dλf² = c·P1 where the fibres are taut (a subclass with another fibre law, such as an FE
+        card's, replaces the three ``_fibre_*`` methods)."""
+        return p["VOLF"] * p["P1"] * (lf_minus_1 > p["EOPT"])
 
     # -- energy and stresses --------------------------------------------------------------------
     def energy(self, p: Mapping[str, np.ndarray], D: Sym) -> np.ndarray:
@@ -99,10 +112,9 @@ class Energy3D:
             For the thesis form, whose collagen is defined by a stress (:mod:`.axial`).
         """
         lf = np.sqrt(1.0 + np.asarray(D.ff, dtype=float))
-        fib = np.maximum((lf - 1.0) - p["EOPT"], 0.0)
         c = p["VOLF"]
         trace = D.ff + D.cc + D.nn
-        return (0.5 * self.shear_modulus(p) * trace + 0.5 * c * p["P1"] * fib * fib
+        return (0.5 * self.shear_modulus(p) * trace + self._fibre_energy(p, lf - 1.0)
                 + (1.0 - c) * self.collagen.energy(p, D))
 
     def pk2(self, p: Mapping[str, np.ndarray], D: Sym) -> Sym:
@@ -163,7 +175,7 @@ class Energy3D:
             return tau, None
         lf, ones = np.exp(e[0]), np.ones_like(d[0])
         # d(λf·W_f')/d ln λf = λf·W_f' + λf²·W_f''
-        fibre_k = fibre + lf * lf * p["VOLF"] * p["P1"] * (np.expm1(e[0]) > p["EOPT"])
+        fibre_k = fibre + lf * lf * self._fibre_stiffness(p, np.expm1(e[0]))
         rows = []
         for i in range(3):
             row = []
@@ -205,3 +217,13 @@ def energy_from_model(model, collagen3d: str | None = None) -> Energy3D:
         raise HbmError(f"model {getattr(model, 'name', model)!r}: a 3-D energy exists only for the Spyrou base "
                        "model (its matrix and collagen effects)")
     return Energy3D(matrix[0].iso_factor, form, collagen3d)
+
+
+def _spyrou_principal_energy(p, k_iso: float, l1, l2, l3) -> np.ndarray:
+    """The Spyrou base's export energy (:meth:`hbm.model.spyrou.SpyrouExport.energy`): the energy form
+    with the cone reading at principal stretches (m,), parameter columns (n, 1) -> (n, m)."""
+    D = Sym(*(np.asarray(v, float) ** 2 - 1.0 for v in (l1, l2, l3)))
+    return Energy3D(k_iso, "energy", "cone").energy(p, D)
+
+
+register_energy("spyrou", _spyrou_principal_energy)
