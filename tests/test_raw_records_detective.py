@@ -29,6 +29,8 @@ def test_the_pretest_reading_is_a_data_problem_naming_its_line():
     assert "line 10: pre-test reading" in dg.message and "--drop-artefacts" in dg.message
     assert "--noise student_t" in dg.message
     assert dg.to_dict()["record"]["artefacts"][0]["lines"] == [10]
+    # the calibrated detective reports the data problem before any physics: no round calibrated
+    assert dg.to_dict()["calibration"]["method"] == "none"
 
 
 @pytest.mark.slow
