@@ -111,7 +111,6 @@ class Calibration:
         return {"method": "calibrated", "replicates": self.replicates, "alpha": self.alpha, "null": self.null,
                 "p_family": self.p_family, "resolution": 1.0 / (self.replicates + 1),
                 "window_thresholds": dict(self.window_thresholds), "cached": self.cached, "key": self.key,
-                "seconds": round(self.seconds, 3),
                 "statistics": {k: dict(self.stats[k]) for k in self.order}}
 
     def text(self) -> str:
