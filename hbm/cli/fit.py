@@ -15,6 +15,7 @@ from ..io.identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
 from ..settings import DEFAULT_OUT
 from ..data.plausibility import edges_suggest_units
+from ..data.prepare import prepare_record
 from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ..settings import FitSettings, add_arguments
 from ._common import n_noise_parameters
@@ -24,7 +25,7 @@ from ._common import (
 
 #: the FitSettings that are options of ``hbm fit`` (fix, bounds and prior come with the model's options)
 FIT_OPTIONS = ("samples", "move", "noise", "sigma_bounds", "tier", "restarts", "sweep", "maxfevals", "max_evaluations",
-               "sobol_n", "seed")
+               "sobol_n", "seed", "reduce", "artefacts")
 
 DESCRIPTION = """\
 Fit one specimen: CMA-ES optima (restarts and an optional bound sweep), the TMCMC posterior of
@@ -72,7 +73,10 @@ def run(args: argparse.Namespace) -> int:
     # the one settings record: it runs the fit and keys its result and checkpoint
     settings = FitSettings.from_args(args, fix=fix or None, bounds=None if prior is not None else (bounds or None),
                                      prior=prior)
-    data = load_specimen_arg(args.specimen, args.sl0, model)
+    # the record as fitted (a dense one reduced, artefact rows dropped on request): the figure and the
+    # quality lines compare the fit with it
+    data = prepare_record(load_specimen_arg(args.specimen, args.sl0, model), reduce=settings.reduce or "auto",
+                          artefacts=settings.artefacts or "flag").data
     points = data.n_points
     check_population_memory(f"--samples {settings.samples}", settings.samples, points,
                             model.n_params + n_noise_parameters(settings.noise))

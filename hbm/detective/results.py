@@ -243,6 +243,9 @@ class Diagnosis:
     #: the candidate result of each named effect, in order, each from the round that named it
     #: (``hbm extend --auto`` tabulates their fits and gains)
     named_candidates: list = field(default_factory=list, repr=False)
+    #: what was done to the record before the diagnosis: artefact rows flagged or dropped, a dense
+    #: record reduced (:func:`hbm.detective.records.record_dict`); None for a record taken as it is
+    record: dict | None = None
 
     @property
     def named_fits(self) -> list:
@@ -279,6 +282,7 @@ class Diagnosis:
             "stopped": jsonable(self.stopped),
             "power": jsonable({k: v for k, v in self.power.items() if k != "text"}) if self.power else None,
             "calibration": jsonable({k: v for k, v in self.calibration.items() if k != "text"}),
+            **({"record": jsonable(self.record)} if self.record else {}),
         }
 
     def to_json(self) -> str:
@@ -310,7 +314,9 @@ class Diagnosis:
         else:
             lines.append("misfit windows: none")
         lines.append("")
-        lines.append("Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
+        lines.append("Δlog Z: Laplace difference against the best base (a dense record: narrow, Gaussian posteriors, "
+                     "no sampling SE); intervals: Laplace posterior 95 %" if b.tier == "laplace" else
+                     "Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
                      "(Laplace: the screen's estimate); intervals: TMCMC posterior 95 %")
         lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ ± SE':>15}"
                      f"{'Laplace':>9}{'RMSE before':>12}{'after':>11}  noise  interval of new parameter")
