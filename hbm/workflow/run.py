@@ -259,6 +259,8 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
             _log(f"hierarchical layer over {len(results)} specimens", cfg.progress)
             wres.hierarchical, wres.hierarchical_path = run_population(results, datasets, model, config=pop_cfg,
                                                                        out=out, client=cl)
+            if wres.hierarchical is not None and wres.hierarchical.evaluations is not None:
+                timings["hierarchical_evaluations"] = int(wres.hierarchical.evaluations)  # type: ignore[assignment]
             if wres.hierarchical is not None and wres.hierarchical_path is not None:
                 wres.hierarchical.attrs["content_key"] = hkey
                 io.write_hierarchical(wres.hierarchical, wres.hierarchical_path)
