@@ -11,26 +11,37 @@ The main entry points, by role:
 * errors: :class:`HbmError` and its subclasses (:mod:`hbm.errors`), raised for every bad input
 """
 
-from ._version import __version__
-from .runtime.process import restore_sigint as _restore_sigint  # Ctrl-C while `hbm` imports: one line, exit 130
-from .model import Effect, Loading, Model, Parameter, State, spyrou_model
-from .data import load_specimen, load_specimens, save_specimen, synthetic_specimen
-from .likelihood.core import Likelihood, make_likelihood
-from .samplers.tmcmc import TMCMCResult, tmcmc
-from .samplers.hierarchical import HierarchicalResult, hierarchical
-from .fit.sensitivity import SobolResult, sobol
-from .identifiability.identify import identifiable_directions, volf_t1_manifold
-from .organ import FusiformGeometry, load_geometry, organ_response
-from .fit.specimen import FitResult, fit_specimen
-from .likelihood.prior import Prior, resolve_prior
-from .workflow.run import RunConfig, run_workflow
-from .workflow.organ import predict_organ
-from . import data, effects, errors, io, organ
-from .detective import Diagnosis, diagnose, extend
-from .fit.optimization import OptimizeResult, optimize
-from .errors import DataError, HbmError, HbmWarning, OutputError, OutputLockedError, SettingError, TooLargeError
+from __future__ import annotations
 
-_restore_sigint()
+from ._version import __version__
+# first: in the `hbm` command, Ctrl-C while it imports is one line, exit 130 (until hbm.cli.main takes over)
+from .runtime import process as _process  # noqa: F401
+from . import errors
+from .errors import DataError, HbmError, HbmWarning, OutputError, OutputLockedError, SettingError, TooLargeError
+from .runtime.lazy import attach as _attach
+
+# The public names resolve on first use (PEP 562), so that `import hbm` -- and with it every `hbm`
+# command -- loads only what it uses: the samplers, the detective, cma, scipy.stats, xarray and
+# matplotlib are imported by the code that needs them.  Sub-packages load on attribute access too
+# (``hbm.io`` after a bare ``import hbm``), as when this file imported them all.
+__getattr__, __dir__ = _attach(__name__, {
+    ".model": ["Effect", "Loading", "Model", "Parameter", "State", "spyrou_model"],
+    ".data": ["load_specimen", "load_specimens", "save_specimen", "synthetic_specimen"],
+    ".likelihood.core": ["Likelihood", "make_likelihood"],
+    ".samplers.tmcmc": ["TMCMCResult", "tmcmc"],
+    ".samplers.hierarchical": ["HierarchicalResult", "hierarchical"],
+    ".fit.sensitivity": ["SobolResult", "sobol"],
+    ".identifiability.identify": ["identifiable_directions", "volf_t1_manifold"],
+    ".organ": ["FusiformGeometry", "load_geometry", "organ_response"],
+    ".fit.specimen": ["FitResult", "fit_specimen"],
+    ".likelihood.prior": ["Prior", "resolve_prior"],
+    ".workflow.run": ["RunConfig", "run_workflow"],
+    ".workflow.organ": ["predict_organ"],
+    ".detective": ["Diagnosis", "diagnose", "extend"],
+    ".fit.optimization": ["OptimizeResult", "optimize"],
+}, submodules=["cli", "data", "detective", "effects", "export", "fit", "identifiability", "io", "likelihood", "model",
+               "organ", "plots", "population", "runtime", "samplers", "settings", "workflow"])
+
 
 __all__ = ["__version__", "Effect", "Loading", "Model", "Parameter", "State", "spyrou_model",
            "load_specimen", "load_specimens", "save_specimen", "synthetic_specimen",

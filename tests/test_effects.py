@@ -19,7 +19,7 @@ from hbm.model.core import Effect, Loading, Model, Parameter
 BASE = hbm.spyrou_model()
 THETA = np.array([0.9, 0.15, 0.06, 1.0, 14.0, 58.0, 0.03, 0.02])  # VOLF EOPT P1 T1 T2 THETA GF GM
 IDS = ["offset", "prestress", "slack", "fiber_exponential", "recruitment", "dispersion", "series_compliance",
-       "viscoelastic", "damage"]
+       "viscoelastic", "damage", "viscoelastic_2", "viscoelastic_3"]
 
 
 def coll(lam, theta_deg, t2):

@@ -20,7 +20,8 @@ from scipy.stats import norm, truncnorm
 
 from hbm.errors import HbmError
 from hbm.population import run_population
-from hbm.samplers.hierarchical import grouped_hierarchical, truncnorm_ppf
+from hbm.samplers.hierarchical import grouped_hierarchical
+from hbm.samplers.truncnorm import ppf as truncnorm_ppf
 from hbm.samplers.tmcmc import tmcmc
 
 L = 5.0  # stage-1 box [-L, L]

@@ -8,9 +8,9 @@ from hbm.runtime import seeds
 
 def test_no_two_streams_share_a_key():
     keys = seeds.run_keys(500)
-    # every specimen stream, its four phases, refine, reference, two organ streams, plus four run-level
-    # streams (hierarchical, new_specimen, organ_new_specimen, grouped, joint)
-    assert len(keys) == 500 * (1 + len(seeds.PHASES) + 4) + 5
+    # every specimen stream, its four phases, refine, reference, layer_specimen, two organ streams, plus the
+    # run-level streams (hierarchical, new_specimen, organ_new_specimen, grouped, joint, layer)
+    assert len(keys) == 500 * (1 + len(seeds.PHASES) + 5) + 6
 
 
 def test_run_keys_detects_a_collision(monkeypatch):
@@ -49,6 +49,8 @@ def test_named_streams_match_the_documented_keys():
     assert seeds.stream(5, "refine", 2).spawn_key == (10_000, 3)
     assert seeds.stream(5, "organ_updated", 1).spawn_key == (20_000, 1, 1)
     assert seeds.stream(5, "joint").spawn_key == (10_002,)
+    assert seeds.stream(5, "layer").spawn_key == (10_003,)
+    assert seeds.stream(5, "layer_specimen", 7).spawn_key == (10_004, 7)
     with pytest.raises(KeyError, match="unknown seed stream"):
         seeds.stream(5, "nope")
     with pytest.raises(ValueError):

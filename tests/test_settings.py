@@ -57,7 +57,7 @@ def test_every_keyed_setting_changes_the_key_and_only_those():
         assert (settings_key(other.record()) != settings_key(base.record())) == s.keyed, name
     pop = PopulationSettings()
     assert settings_key(pop.replace(progress=False, retries=5).record()) == settings_key(pop.record())
-    assert settings_key(pop.replace(exact_keep=50).record()) != settings_key(pop.record())
+    assert settings_key(pop.replace(layer_keep=50).record()) != settings_key(pop.record())
 
 
 def test_rules_refuse_bad_settings_when_a_record_is_built():

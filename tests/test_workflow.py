@@ -23,7 +23,7 @@ TRUTHS = {
     "ratB": {"VOLF": 0.85, "EOPT": 0.17, "P1": 0.08, "T1": 0.8, "T2": 18.0, "THETA": 59.5, "GF": 0.02, "GM": 0.02},
 }
 TINY = dict(samples=150, restarts=1, maxfevals=200, sweep=None, sobol_n=16, hier_samples=100,
-            tmcmc_options={"max_steps": 6}, progress=False)
+            tmcmc_options={"max_steps": 6}, progress=False, quick=True)  # quick: the population layer's chains short
 
 
 @pytest.fixture(scope="module")
@@ -80,15 +80,15 @@ def test_end_to_end_outputs(first_run):
     th = theta_from_samples(m, h.pooled_names, h.new_specimen)
     assert th.shape == (h.new_specimen.shape[0], 8)
     assert np.all((th >= m.bounds[:, 0]) & (th <= m.bounds[:, 1]))
-    # joint draws: --hier-samples of them, or all chains x kept draws of the exact fallback (>= that)
+    # the joint sampler's draws: all chains x kept draws (at least --hier-samples), stored as its chains; the
+    # updated individuals from the same chains (at most 4000 per specimen); its model evaluations recorded
     n_draws = h.hyper_samples.shape[0]
-    assert h.updated.shape == (n_draws, 2, 9)
-    exact = h.attrs.get("exact")
-    assert n_draws == (exact["n_chains"] * exact["n_keep"] if exact else 100) and n_draws >= 100
-    assert np.isfinite(h.log_evidence)
-    # hyper-evidence includes both specimens' stage-1 evidence
-    lz = sum(r.log_evidence for r in res.results.values())
-    assert abs(h.log_evidence - lz) < 100
+    layer = h.attrs["layer"]
+    assert h.chains == layer["chains"] >= 2 and n_draws == layer["chains"] * layer["n_keep"] >= 100
+    assert h.updated.shape == (min(n_draws, 4000), 2, 9)
+    assert h.evaluations == layer["evaluations"] > 0
+    assert json.loads((out / "run.json").read_text())["timings"]["hierarchical_evaluations"] == h.evaluations
+    assert not np.isfinite(h.log_evidence)  # this sampler estimates no hyper-evidence (the report says so)
     report = (out / "report.md").read_text()
     for key in ("## Run settings", "## Timings", "### ratA", "### ratB", "Population estimates",
                 "Specimen variability", "(1-VOLF)*T1"):

@@ -1,5 +1,10 @@
 """The ``hbm`` command.  Each subcommand lives in its own module with ``register(subparsers)``.
 
+A command loads only what it uses: the top-level parser lists every subcommand with its one-line
+help from :data:`SUBCOMMANDS`, and only the invoked subcommand's module is imported and builds its
+arguments (``hbm --version`` imports none of them, ``hbm data check`` neither the samplers nor
+the detective nor matplotlib).
+
 Error contract of :func:`main`: a bad option, bad input file, unwritable output, full disk or
 a size that cannot fit in memory ends as ONE line ``hbm: error: ...`` on stderr naming the
 option or file, exit status 2; Ctrl-C (or SIGTERM) at any moment ends as ``hbm: interrupted``,
@@ -19,13 +24,30 @@ import signal
 import sys
 import threading
 import warnings
+from typing import Sequence
 
 from .._version import __version__
 from ..errors import HbmError, HbmWarning, SettingError
-from ._common import HbmArgumentParser
+from ..runtime.process import restore_sigint
+from ._parser import HbmArgumentParser
 
+#: the subcommands in the order shown by ``hbm --help``: name -> (module of hbm.cli that registers
+#: it, one-line help); a test keeps the help equal to the module's own
+SUBCOMMANDS = {
+    "run": ("run", "all specimens in parallel + hierarchical layer + report"),
+    "fit": ("fit", "posterior (TMCMC) + optima (CMA-ES) of one specimen -> netCDF"),
+    "optimize": ("optimize", "CMA-ES point estimates, restarts and bound sweeps"),
+    "sobol": ("sobol", "Sobol sensitivity indices and relevance classes"),
+    "diagnose": ("diagnose", "where does the model fail, which effect is missing"),
+    "extend": ("diagnose", "add effects one at a time and show the error fall"),
+    "predict": ("predict", "predictions from fitted specimens (organ-scale curves)"),
+    "simulate": ("simulate", "predict every observable of every test (virtual experiments)"),
+    "data": ("data", "specimen data utilities (check CSV files)"),
+    "export": ("export", "verified FE material card (FEBio, Abaqus) or parameter table"),
+    "summary": ("summary", "parameter table (with units) of a fit, text or CSV"),
+}
 # subcommand modules, in the order shown by --help
-COMMANDS = ["run", "fit", "optimize", "sobol", "diagnose", "predict", "simulate", "data", "export", "summary"]
+COMMANDS = list(dict.fromkeys(module for module, _ in SUBCOMMANDS.values()))
 
 DESCRIPTION = """\
 hbm: Bayesian learning of skeletal-muscle model parameters across specimens.
@@ -35,16 +57,41 @@ Fits the Spyrou-Agoras-Danas microstructural model of passive muscle (fibers + E
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``hbm`` parser with every subcommand (errors: one line, see :class:`HbmArgumentParser`)."""
+def build_parser(words: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The ``hbm`` parser (errors: one line, see :class:`HbmArgumentParser`).
+
+    Parameters
+    ----------
+    words : sequence of str, optional
+        The command line about to be parsed: only its subcommand is imported and built in full,
+        every other one is listed with its one-line help (so ``hbm --help`` shows them all and a
+        mistyped name gets argparse's usual error).  ``None``: every subcommand in full.
+    """
     parser = HbmArgumentParser(prog="hbm", description=DESCRIPTION,
                                formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"hbm {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
-        importlib.import_module(f"{__name__}.{name}").register(sub)
+    invoked = None if words is None else _invoked(words)
+    wanted = set(COMMANDS) if words is None else {SUBCOMMANDS[invoked][0]} if invoked else set()
+    for module in COMMANDS:
+        if module in wanted:
+            importlib.import_module(f"{__name__}.{module}").register(sub)
+        else:
+            for name, (owner, help_text) in SUBCOMMANDS.items():
+                if owner == module:
+                    sub.add_parser(name, help=help_text)
     parser.set_defaults(commands=list(sub.choices))
     return parser
+
+
+def _invoked(words: Sequence[str]) -> str | None:
+    """The subcommand named on the command line ``words`` (None: no known subcommand).
+
+    The top-level options (``-h``, ``--version``) take no value, so the first word that is not
+    an option is the subcommand; anything else is left to argparse (and its error message).
+    """
+    first = next((str(w) for w in words if not str(w).startswith("-")), None)
+    return first if first in SUBCOMMANDS else None
 
 
 class _Terminated(KeyboardInterrupt):
@@ -111,7 +158,11 @@ def _main(argv: list[str] | None) -> int:
     previous_show = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        parser = build_parser()
+        parser = build_parser(words)  # imports the invoked command's module: still under the import guard
+        if in_main_thread:
+            # the import guard of hbm.runtime.process ends here, after the command's imports (a Ctrl-C that
+            # interrupts an import as KeyboardInterrupt can end the process by SIGINT although caught)
+            restore_sigint()
         args = parser.parse_args(argv)
         if not getattr(args, "func", None):
             raise SettingError(f"expected a command ({', '.join(args.commands)}); see hbm --help")

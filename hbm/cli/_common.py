@@ -24,13 +24,14 @@ from ..data import Specimen, load_specimen
 from ..effects import resolve_effect
 from ..errors import DataError, HbmError, HbmWarning, OutputError, SettingError
 from ..io.identity import changed
-from ..io import read_attrs
+from .. import io, plots  # io.read_attrs, plots.supported_formats at use: xarray, matplotlib only if needed
 from ..likelihood.prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
 from ..likelihood.noise import get_noise, noise_model_names
 from ..model.spec import spec_of
 from ..runtime.memory import format_bytes, require_memory
 from ..settings.fit import NOISE_RULE, RUN_SWEEP, SWEEP, FitRecord, Sweep
+from ._parser import HbmArgumentParser  # noqa: F401  (the subcommands' parser class, kept importable here)
 from ..settings.rules import (
     FINITE, MIN_SAMPLES, NON_NEGATIVE_INT, POSITIVE, POSITIVE_INT, POWER_OF_TWO, POWER_OF_TWO_OR_ZERO, SAMPLE_SIZE,
     SEED, SEED_LIMIT, WORKERS, IntRule, RangeRule, RealRule, _type_error, check_physical_bounds)
@@ -52,18 +53,6 @@ SPECIMEN_FOLDER = Path("data") / "specimens"
 #: the shipped specimens of this checkout (an editable install), for ids given outside it
 SHIPPED_FOLDER = Path(__file__).resolve().parents[2] / "data" / "specimens"
 _FLOAT = 8  # bytes per float64
-
-
-class HbmArgumentParser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors are one line ``hbm: error: <command>: <message>``, exit 2.
-
-    ``error`` raises :class:`SettingError` (the ``hbm`` entry point prints it) instead of
-    printing a usage block; sub-parsers inherit the class.
-    """
-
-    def error(self, message: str):  # type: ignore[override]
-        command = self.prog.partition(" ")[2]
-        raise SettingError(f"{command}: {message}" if command else message)
 
 
 # ----------------------------------------------------------------------- value rules (type=)
@@ -146,16 +135,13 @@ run_sweep = RUN_SWEEP
 
 def plot_path(text: str) -> Path:
     """``type=`` rule of figure paths: an existing folder and a format matplotlib can write."""
-    # the one function-level import of the CLI: matplotlib costs ~0.4 s and only --plot needs it
-    from ..plots import supported_formats
-
     path = Path(text).expanduser()
     if not path.parent.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r}: no folder {path.parent}, expected an existing folder")
     if path.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r} is a folder, expected a file name")
     fmt = path.suffix.lstrip(".").lower() or "png"
-    formats = supported_formats()
+    formats = plots.supported_formats()
     if fmt not in formats:
         raise argparse.ArgumentTypeError(f"{text!r}: cannot write .{fmt} figures, expected one of "
                                          f"{', '.join('.' + f for f in formats)}")
@@ -363,7 +349,7 @@ def check_replaceable(path: Path, parts: Mapping[str, str], option: str) -> None
     path = Path(path)
     if not path.exists():
         return
-    attrs = read_attrs(path)
+    attrs = io.read_attrs(path)
     config = attrs.get("config") if isinstance(attrs.get("config"), dict) else {}
     stored = FitRecord.from_attrs(config).identity
     stored = stored if isinstance(stored, dict) else None

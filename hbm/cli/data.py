@@ -10,8 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from ..data import input_summary, load_specimen, provenance
+from ..data.artefacts import describe_artefacts
+from ..data.prepare import screen_dataset
 from ..errors import DataError, HbmError, SettingError
-from ._common import add_data_arguments
+from ._common import add_data_arguments, print_json
 
 CHECK_DESCRIPTION = """\
 Validate specimen CSV files and print a summary table.
@@ -25,13 +27,26 @@ CSV format: optional '# key: value' metadata lines, then a header with strain,st
 columns.  Other inputs are converted and the conversion is shown (column "input" and a line per
 converted specimen): '# units_stress: kPa' (or Pa, or a column stress_kPa ...), nominal stress
 ('# stress_measure: nominal' or a column nominal_stress...), stretch or sarcomere_length_um
-(with '# reference_sarcomere_length_um: 2.0') instead of strain.  A Cauchy stress above 5 MPa
-is refused as a unit mix-up.
+(with '# reference_sarcomere_length_um: 2.0') instead of strain, and a testing machine's force
+and displacement ('Load (N)', 'Extension (mm)', 'Position (mm)') with the specimen's geometry
+('# diameter_mm:' or '# area_mm2:' or '# width_mm:' + '# thickness_mm:', '# gauge_length_mm:',
+'# loading: compression' for machines that report magnitudes).  A curve much stiffer than
+passive muscle without a declared unit is refused as a unit mix-up.
+
+Rows that are not the tissue -- pre-test readings, spikes, dropouts, dips during holds,
+post-failure tails -- are found by a model-free screen and listed with their lines (hbm fit,
+diagnose and extend --drop-artefacts drop them, with a record in the result).
+
+--json prints one object: per specimen the loaded series (engineering strain, Cauchy stress in
+MPa, time in s, test), the conversion record and the flagged rows.
 
 Tests as data (README "Loading modes"): a 'mode' column (uniaxial_f, uniaxial_c, planar_*,
 biaxial_*, shear_*; constant within a test) and the observables strain_2, stress_2, strain_c,
 strain_n, strain_f (empty cell = not measured); the check then lists each specimen's tests by mode.
---json prints one JSON object per run instead of the table.
+
+examples:
+  hbm data check data/specimens
+  hbm data check raw_machine_export.csv --json
 """
 
 
@@ -45,9 +60,10 @@ def register(subparsers) -> None:
                            description=CHECK_DESCRIPTION,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     check.add_argument("paths", nargs="+", metavar="PATH", help="CSV file or folder of CSV files")
-    add_data_arguments(check)
     check.add_argument("--json", action="store_true",
-                       help="print the specimens (with their tests by mode) and the errors as one JSON object")
+                       help="print one JSON object: per specimen its series, tests by mode, conversion record and "
+                            "flagged rows")
+    add_data_arguments(check)
     check.set_defaults(func=run_check)
     parser.set_defaults(func=_no_action)
 
@@ -111,14 +127,47 @@ def _mode_line(spec) -> str:
     return f"  {spec.id}: " + "; ".join(parts)
 
 
+#: dataset attributes that record a conversion (hbm.data: loader, machine, prepare)
+_RECORDS = ("units_stress", "units_stress_original", "stress_measure", "stress_measure_original", "deformation_input",
+            "reference_sarcomere_length_um", "test_labels", "stress_input", "cross_section_mm2", "loading",
+            "area_mm2", "diameter_mm", "width_mm", "thickness_mm", "gauge_length_mm")
+
+
+def _series(spec) -> dict:
+    """The loaded series of one specimen, in the specimen's units (the JSON of --json); ``mode``:
+    each test's load case (:attr:`hbm.data.Test.load_case`)."""
+    out = {"strain": spec.strain.tolist(), **{k: sr.values.tolist() for k, sr in spec.observed.items()}}
+    for name in ("time", "test"):
+        if getattr(spec, name) is not None:
+            out[name] = getattr(spec, name).tolist()
+    out["mode"] = {str(t.id): t.load_case for t in spec.tests}
+    return out
+
+
+def _specimen_json(f: Path, spec, found, lines) -> dict:
+    a = spec.attrs
+    record = {k: a[k] for k in _RECORDS if k in a}
+    if a.get("conversion_steps"):
+        record["steps"] = json.loads(a["conversion_steps"])
+    if a.get("test_labels"):
+        record["test_labels"] = json.loads(a["test_labels"])
+    units = {"strain": "1 (engineering strain)", **{k: sr.unit for k, sr in spec.observed.items()},
+             "stress": "MPa (Cauchy)", "time": "s"}
+    return {"id": spec.id, "file": str(f), "points": spec.n_points, "units": units,
+            "series": _series(spec), "tests_by_mode": tests_by_mode(spec),
+            "conversion": {"summary": input_summary(spec), **record},
+            "artefacts": [x.to_dict(lines) for x in found]}
+
+
 def run_check(args: argparse.Namespace) -> int:
-    """Check every file, print the table of good ones and one line per bad one."""
+    """Check every file, print the table of good ones (or the JSON) and one line per bad one."""
     errors: list[str] = []
     rows: list[list[str]] = []
     notes: list[str] = []
+    flagged: list[str] = []
+    specimens: list[dict] = []
     ids: dict[str, str] = {}
     modes: list[str] = []
-    specs: list = []
     for f in _files(args.paths, errors):
         try:
             ds = load_specimen(f, sl0=args.sl0)
@@ -131,18 +180,18 @@ def run_check(args: argparse.Namespace) -> int:
                                         "expected unique ids")))
             continue
         ids[sid] = str(f)
+        found, lines = screen_dataset(ds)
         rows.append(_row(ds))
-        specs.append(ds)
         if "test_load_cases" in ds.attrs or len(ds.observed) > 1:
             modes.append(_mode_line(ds))
+        specimens.append(_specimen_json(f, ds, found, lines) if args.json else {})
         if input_summary(ds):
             notes.append(f"{sid}: {input_summary(ds)}")
-    if getattr(args, "json", False):
-        print(json.dumps({"specimens": [{"id": d.id, "source_file": d.source_file, "points": d.n_points,
-                                         "input": input_summary(d), "tests_by_mode": tests_by_mode(d)}
-                                        for d in specs], "errors": errors}, indent=1))
-        return 2 if errors else 0
-    if rows:
+        if found:
+            flagged.append(f"{sid}: {describe_artefacts(found, lines)}")
+    if args.json:
+        print_json({"specimens": specimens, "errors": errors})
+    elif rows:
         head = ["id", "points", "strain", "peak stress [MPa]", "tests", "time", "input", "provenance", "source"]
         widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
         line = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
@@ -158,7 +207,14 @@ def run_check(args: argparse.Namespace) -> int:
             print("converted on loading (dataset: engineering strain, Cauchy stress in MPa):")
             for n in notes:
                 print(f"  {n}")
-        print(f"{len(rows)} specimen(s) OK" + (f", {len(errors)} failed" if errors else ""))
+        if flagged:
+            print("rows that are not the tissue (artefact screen; hbm fit/diagnose/extend --drop-artefacts drops "
+                  "them, recorded in the result):")
+            for n in flagged:
+                print(f"  {n}")
+        ok = len(rows) - len(flagged)
+        print(f"{ok} specimen(s) OK" + (f", {len(flagged)} with artefact rows" if flagged else "")
+              + (f", {len(errors)} failed" if errors else ""))
     for e in errors:
         print(f"hbm: error: {e}", file=sys.stderr)
     return 2 if errors else 0

@@ -10,7 +10,7 @@ from ..detective import diagnose, extend
 from ..detective.calibration import CALIBRATION_CHOICES
 from ..detective.caveats import CORRELATED_CHOICES
 from ..detective.rules import CALIBRATION_REPLICATES
-from ..effects import resolve_effect
+from ..effects import applicable, resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..runtime.files import prepare_output_file
@@ -49,11 +49,13 @@ Compare the model with a specimen, show where it fails and name the missing effe
    time), refits the best, re-optimises the base from every refit (gains against the best base);
 4. verdict: effect (Δlog Z > 5, explains the misfit like the best control and beats it;
    greedy: several effects, in order) | group (with the experiment that separates them) |
-   unexplained (misfit in ε or t ∈ [a, b], with its shape) | data_problem | adequate (only
-   without any sign of misfit).  Each statistic (window score, each shape's and candidate's
-   likelihood gain, the noise disagreement) is judged against its own null on this file at
-   family-wise 5 % (--calibration off: fixed thresholds).  --power adds the detection limit
-   of every library effect.
+   unexplained (misfit in ε or t ∈ [a, b], with its shape) | data_problem (a unit, or rows
+   that are not the tissue: the artefact screen names them before any fit; --drop-artefacts
+   drops them, --noise student_t keeps them in a robust fit) | adequate (only without any sign
+   of misfit).  Each statistic (window score, each shape's and candidate's likelihood gain,
+   the noise disagreement) is judged against its own null on this file at family-wise 5 %
+   (--calibration off: fixed thresholds).  --power adds the detection limit of every library
+   effect.  A dense record is diagnosed as bin means of its readings (--reduce off: every row).
 
 examples:
   hbm diagnose data/specimens/calvo_1.csv
@@ -83,7 +85,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     add_data_arguments(p)
     # the settings diagnose shares with a fit, declared once in hbm.settings.FitSettings; --max-evaluations
     # is per evidence run (the population shrinks to what it affords, then a hard cap)
-    add_arguments(p, FitSettings, ("seed", "samples", "max_evaluations", "noise", "tier"),
+    add_arguments(p, FitSettings, ("seed", "samples", "max_evaluations", "noise", "tier",
+                                       "reduce", "artefacts"),
                   defaults={"samples": None, "noise": None, "tier": "full"}, helps=HELPS)
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
@@ -155,12 +158,18 @@ def _prepare(args, extra: list[str]):
     base = spyrou_model(form=args.form)
     model = base.with_effects(*effects) if effects else base
     have = set(model.effect_names)
+    grown = model
     for spec in extra:
-        name = resolve_effect(spec).name
+        effect = resolve_effect(spec)
+        name = effect.name
         if name in have:
             raise SettingError(f"--add {spec}: effect {name!r} is already in the model "
                                f"({', '.join(model.effect_names)}); expected a new effect")
+        if not applicable(effect, grown):
+            raise SettingError(f"--add {spec}: effect {name!r} goes beside {', '.join(effect.requires)}; expected "
+                               "it after that in the list (e.g. --add viscoelastic,viscoelastic_2)")
         have.add(name)
+        grown = grown.with_effects(effect)
     check_fix_bounds(model, dict(args.fix), {})
     ds = load_specimen_arg(args.specimen, args.sl0, model)
     samples = args.samples or DEFAULT_SAMPLES
@@ -172,7 +181,8 @@ def _prepare(args, extra: list[str]):
         FitSettings.from_args(args, samples=samples, noise=None, tier=args.tier)
     kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed,
           "progress": args.progress, "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
-          "tier": args.tier, "workers": args.workers}
+          "tier": args.tier, "workers": args.workers, "reduce": args.reduce or "auto",
+          "artefacts": args.artefacts or "flag"}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:
@@ -209,6 +219,7 @@ def run_diagnose(args) -> int:
                   replicates=args.replicates, **kw)
     if args.plot:
         dg.plot(args.plot)
+    ds = dg.data.ds          # the record as diagnosed (a dense one reduced, artefact rows dropped on request)
     if args.json:
         print_json({**dg.to_dict(), "input": input_summary(ds)})
     else:
@@ -228,6 +239,7 @@ def run_extend(args) -> int:
     ext = extend(ds, add=adds, auto=args.auto, **kw)
     if args.plot:
         ext.plot(args.plot)
+    ds = ext.data.ds          # the record as fitted
     if args.json:
         print_json({**ext.to_dict(), "input": input_summary(ds)})
     else:

@@ -7,13 +7,15 @@ import contextlib
 import warnings
 from pathlib import Path
 
+from .. import plots  # hbm.plots.fit (matplotlib) loads when a figure is drawn
 from ..errors import HbmWarning
 from ..export.stability import fit_line as stability_line
 from ..fit.specimen import fit_specimen, format_at_bounds
 from ..io.identity import checkpoint_dir, fit_key, set_aside_checkpoints
 from ..io import specimen_path
-from ..workflow.run import DEFAULT_OUT
+from ..settings import DEFAULT_OUT
 from ..data.plausibility import edges_suggest_units
+from ..data.prepare import prepare_record
 from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ..settings import FitSettings, add_arguments
 from ..likelihood.modes import is_multimode
@@ -25,7 +27,7 @@ from ._common import (
 
 #: the FitSettings that are options of ``hbm fit`` (fix, bounds and prior come with the model's options)
 FIT_OPTIONS = ("samples", "move", "noise", "sigma_bounds", "tier", "restarts", "sweep", "maxfevals", "max_evaluations",
-               "sobol_n", "seed")
+               "sobol_n", "seed", "reduce", "artefacts")
 
 DESCRIPTION = """\
 Fit one specimen: CMA-ES optima (restarts and an optional bound sweep), the TMCMC posterior of
@@ -80,6 +82,9 @@ def run(args: argparse.Namespace) -> int:
         prepare_output_file(out, "--out")
         figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
         return run_modes(args, model, fix, bounds, prior, settings, data, out, figure, _figure_modes)
+    # the record as fitted (a dense one reduced, artefact rows dropped on request): the figure and the
+    # quality lines compare the fit with it
+    data = prepare_record(data, reduce=settings.reduce or "auto", artefacts=settings.artefacts or "flag").data
     points = data.n_points
     check_population_memory(f"--samples {settings.samples}", settings.samples, points,
                             model.n_params + n_noise_parameters(settings.noise))
@@ -131,18 +136,12 @@ def _figure(res, data, figure) -> None:
     if units is not None:
         warnings.warn(f"{res.result.specimen_id}: {units}", HbmWarning, stacklevel=1)
     if figure is not None:
-        _plots()[0](res, data, path=figure)
-
-
-def _plots():
-    """(fit_plot, modes_plot), imported when a figure is drawn (matplotlib is heavy)."""
-    from ..plots.fit import fit_plot, modes_plot
-    return fit_plot, modes_plot
+        plots.fit.fit_plot(res, data, path=figure)
 
 
 def _figure_modes(fit, figure) -> None:
     """The figure of a fit across modes: one panel per test in its own axes."""
-    _plots()[1](fit, path=figure)
+    plots.fit.modes_plot(fit, path=figure)
 
 
 def _print(args, res, figure) -> int:

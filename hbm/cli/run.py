@@ -78,8 +78,8 @@ def register(subparsers) -> None:
                         "'dask scheduler --scheduler-file') of a cluster started by an MPI/HPC script")
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
     p.add_argument("--hier-samples", type=sample_size, default=1000, metavar="N",
-                   help="TMCMC population over the hyperparameters (default 1000); when the exact fallback "
-                        "runs, the layer keeps all its chains x kept draws (at least N)")
+                   help="hyper-posterior draws (default 1000): the joint sampler keeps all its chains x kept "
+                        "draws, at least N (--hier-exact none: the TMCMC population over the hyperparameters)")
     p.add_argument("--pool", type=name_list, metavar="|".join(POOL_MODES) + "|P1,P2,...", default=["auto"],
                    help="what gets a population distribution: 'combinations' = the identifiable combinations "
                         "log G, log VOLF*P1, log (1-VOLF)*T1 with T2, THETA (and EOPT when informed); "
@@ -91,9 +91,10 @@ def register(subparsers) -> None:
                    help="estimator of p(d_i|psi): raw importance ratios (default, unbiased) or kernel-smoothed "
                         "ratios (O(h^2) bias, robust when the population is narrower than a posterior)")
     p.add_argument("--hier-exact", choices=("gibbs", "none"), default="gibbs",
-                   help="specimens whose reused samples the diagnostics flag: joint Metropolis-within-Gibbs "
-                        "with their real likelihoods (gibbs, default) or a fresh TMCMC run of each (none; "
-                        "cheaper, lower tails too short: README)")
+                   help="the population layer: joint sampling of the population and every specimen with its "
+                        "real likelihood (gibbs, default), or TMCMC over the population reusing the stage-1 "
+                        "samples with a fresh TMCMC run of each specimen they cannot represent (none; it gives "
+                        "the hyper-evidence, but lower tails too short: README)")
     p.add_argument("--group-by", metavar="KEY",
                    help="group the specimens by a metadata key of their files (e.g. species, muscle, protocol): "
                         "a population -> group -> specimen layer whose report says whether the groups differ; "

@@ -9,7 +9,7 @@ import sys
 
 from ..io.conventions import parameter_attrs, udunits
 from ..fit.quality import combination_samples
-from ..fit.specimen import chain_rhat, chains_line, summarize
+from ..fit.quality import chain_rhat, chains_line, summarize
 from ..io import read_specimen_result
 from ..model.spec import spec_of
 from ._common import format_table

@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import DataError, HbmWarning
 
 
+from .machine import machine_column, machine_header
 from .modes import mode_column
 from .plausibility import describe, implausible, suggest_unit
 
@@ -43,9 +44,10 @@ _LABEL_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_.+\-/()% ]{0,63}$")
 _LEADING_ZERO_RE = re.compile(r"^[+-]?0[0-9]+$")
 _DECIMAL_COMMA_RE = re.compile(r"^(\s*[+-]?[0-9]+),([0-9]+(?:[eE][+-]?[0-9]+)?\s*)$")
 _INT64 = 2 ** 63
-_EXPECTED_COLUMNS = ("strain|strain_percent|stretch|sarcomere_length_um, stress (or stress_MPa|stress_kPa|stress_Pa, "
-                     "nominal_stress[_unit], cauchy_stress[_unit]), time, test, and per test mode, stress_measure, "
-                     "strain_2, stress_2, strain_c, strain_n, strain_f")
+_EXPECTED_COLUMNS = ("strain|strain_percent|stretch|sarcomere_length_um|displacement_mm|displacement_um, stress (or "
+                     "stress_MPa|stress_kPa|stress_Pa, nominal_stress[_unit], cauchy_stress[_unit], force_N|force_mN|"
+                     "force_kN), time, test, and per test mode, stress_measure, strain_2, stress_2, strain_c, "
+                     "strain_n, strain_f")
 _SEPARATOR_HINT = " (cells are separated by ',', numbers use '.')"
 # headers as labs write them: "Strain (%)", "Nominal stress [kPa]", "Time (s)" -> the canonical names
 _UNIT_SUFFIX_RE = re.compile(r"^(?P<word>[^()\[\]]*?)\s*(?:\((?P<u1>[^()]*)\)|\[(?P<u2>[^\[\]]*)\])$")
@@ -141,9 +143,10 @@ class _Columns:
 
     index: dict[str, int]  # role ("deformation", "stress", "time", "test") -> column index
     names: dict[str, str]  # role -> header cell as written
-    deformation: str  # one of DEFORMATIONS
+    deformation: str  # one of DEFORMATIONS, or displacement_mm / displacement_um (hbm.data.machine)
     unit: str | None  # stress unit carried by the column name
     measure: str | None  # stress measure carried by the column name
+    force: str | None = None  # unit of a force column ("N", "mN", "kN"): the stress role holds a force
 
 
 def _canonical_header(text: str, where: str) -> str | None:
@@ -152,16 +155,17 @@ def _canonical_header(text: str, where: str) -> str | None:
     ``Strain (%)`` -> ``strain_percent``, ``Strain [-]`` / ``Engineering strain`` -> ``strain``,
     ``Stretch ratio`` -> ``stretch``, ``Sarcomere length (µm)`` -> ``sarcomere_length_um``,
     ``Nominal stress (kPa)`` / ``Engineering stress [N/mm2]`` -> ``nominal_stress_kpa`` /
-    ``nominal_stress_mpa``, ``True stress (MPa)`` -> ``cauchy_stress_mpa``, ``Time (s)`` -> ``time``.
+    ``nominal_stress_mpa``, ``True stress (MPa)`` -> ``cauchy_stress_mpa``, ``Time (s)`` -> ``time``,
+    ``Load (N)`` -> ``force_n``, ``Position (mm)`` -> ``displacement_mm`` (:mod:`hbm.data.machine`).
     A known quantity with a unit hbm does not convert is a DataError naming what is accepted.
     """
     m = _UNIT_SUFFIX_RE.match(text.strip().lower())
     word, unit = (m.group("word"), (m.group("u1") if m.group("u1") is not None else m.group("u2")).strip()) \
         if m else (text.strip().lower(), None)
     word = re.sub(r"[\s_]+", " ", word).strip()
-    if word in ("force", "load"):
-        raise DataError(f"{where}: column {_show(text)} is a force; hbm needs stress = force / cross-sectional "
-                        "area (a stress column in MPa, kPa or Pa)")
+    machine = machine_header(word, unit, text, where)
+    if machine is not None:
+        return machine
     if word in _STRAIN_WORDS:
         if unit == "%":
             return "strain_percent"
@@ -197,20 +201,22 @@ def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
     index: dict[str, int] = {}
     names: dict[str, str] = {}
     seen: dict[str, int] = {}
-    deformation, unit, measure = "strain", None, None
+    deformation, unit, measure, force = "strain", None, None, None
     for j, cell in enumerate(cells):
         text = cell.strip()
         col = text.lower()
         where = f"{name}: line {lineno}, column {j + 1}"
-        if col not in DEFORMATIONS and col not in ("time", "test") and not _STRESS_COL_RE.match(col):
+        if (col not in DEFORMATIONS and col not in ("time", "test") and not _STRESS_COL_RE.match(col)
+                and machine_column(col) is None):
             col = mode_column(col) or _canonical_header(text, where) or col
         if col in seen:
             raise DataError(f"{where}: duplicate column name {col!r} (also column {seen[col] + 1})")
         seen[col] = j
         m = _STRESS_COL_RE.match(col)
-        if col in DEFORMATIONS:
+        machine = machine_column(col)
+        if col in DEFORMATIONS or (machine is not None and machine[0] == "displacement"):
             role = "deformation"
-        elif m:
+        elif m or machine is not None:
             role = "stress"
         elif col in ("time", "test"):
             role = col
@@ -226,13 +232,16 @@ def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
         index[role], names[role] = j, text
         if role == "deformation":
             deformation = col
+        elif role == "stress" and machine is not None:
+            # force / area in N/mm2 = MPa, a nominal stress by construction (hbm.data.machine)
+            measure, unit, force = "nominal", "MPa", machine[1]
         elif role == "stress":
             measure, unit = m.group(1), _UNIT_NAMES.get(m.group(2) or "")
     for role, need in (("deformation", "strain"), ("stress", "stress")):
         if role not in index:
             raise DataError(f"{name}: line {lineno}: header has no {need!r} column, expected columns "
                             f"strain,stress[,time][,test] (see {_EXPECTED_COLUMNS}), got {_show(line.strip())}")
-    return _Columns(index, names, deformation, unit, measure)
+    return _Columns(index, names, deformation, unit, measure, force)
 
 
 def _declared(name: str, attrs: Mapping[str, str], meta_line: Mapping[str, int], key: str,
@@ -337,7 +346,7 @@ def _strain(name: str, raw: np.ndarray, deformation: str, sl0: float | None,
         strain = raw / 100.0
     elif deformation == "sarcomere_length_um":
         strain = raw / sl0 - 1.0
-    else:
+    else:  # strain, or a displacement already divided by the gauge length (hbm.data.machine)
         strain = raw
     lo, hi = STRAIN_RANGE
     bad = np.flatnonzero(~((strain >= lo) & (strain <= hi)))
@@ -354,9 +363,13 @@ def _strain(name: str, raw: np.ndarray, deformation: str, sl0: float | None,
             raise DataError(f"{where}: expected a sarcomere length in micrometres within "
                             f"[{(1 + lo) * sl0:.4g}, {(1 + hi) * sl0:.4g}] (strain SL/SL0 - 1 in [{lo}, {hi}] "
                             f"with SL0 = {sl0!r} um), got {raw[i]!r}")
+        if machine_column(deformation) is not None:
+            raise DataError(f"{where}: the displacement is strain {strain[i]:.4g} of the gauge length, expected "
+                            f"strain in [{lo}, {hi}]: the column must be the change of length from the gauge length "
+                            "(zero at the start: subtract the start of an absolute crosshead position)")
         raise DataError(f"{where}: expected engineering strain in [{lo}, {hi}] (a fraction, not percent), "
                         f"got {strain[i]!r}")
-    if deformation != "strain_percent" and np.all(raw == np.round(raw)):
+    if deformation in DEFORMATIONS and deformation != "strain_percent" and np.all(raw == np.round(raw)):
         # a curve needs varying deformation; whole numbers only = decimal commas split the cells
         raise DataError(f"{name}: lines {linenos[0]}-{linenos[-1]}, column {column!r}: every value is a whole "
                         f"number ({', '.join(map(repr, np.unique(raw)[:4].tolist()))}), expected a varying "
@@ -377,7 +390,9 @@ def _check_plausible(name: str, raw: np.ndarray, strain: np.ndarray, stress: np.
     where = f"{name}: line {linenos[i]}, column {cols.names['stress']!r}"
     have = unit or "MPa"
     guess = suggest_unit(found, have)
-    if guess is None:
+    if cols.force is not None:
+        fix = "check the force unit in the header and the cross-section keys"
+    elif guess is None:
         fix = "check the values and their unit"
     elif cols.unit is not None:
         prefix = f"{cols.measure}_" if cols.measure else ""

@@ -23,6 +23,7 @@ from .columns import (
     GROUP_KEY, MIN_POINTS, STRESS_UNITS, _Columns, _DECIMAL_COMMA_RE, _MEASURES, _META_RE,
     _SEPARATOR_HINT, _UNIT_NAMES, _check_plausible, _check_sign, _check_sl0, _columns, _declared,
     _is_float, _number, _read_text, _record, _reference_sl, _same_labels, _show, _strain, _test_column)
+from .machine import convert_machine, machine_column
 from .modes import MODE_COLUMNS, read_mode_columns
 from .specimen import Series, Specimen, Test
 
@@ -144,7 +145,13 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
         raw[role] = np.asarray([_number(cells[j], f"{name}: line {lineno}, column {column!r}")
                                 for lineno, cells in rows], dtype=float)
 
-    data: dict[str, np.ndarray] = {"strain": _strain(name, raw["deformation"], cols.deformation, ref,
+    deformation = cols.deformation
+    if cols.force is not None or machine_column(deformation) is not None:
+        # a machine export: force -> nominal stress (MPa), displacement -> strain (hbm.data.machine)
+        for key, value in convert_machine(name, attrs, meta_line, cols.names, cols.index, cols.force, deformation,
+                                          raw, header_lineno).items():
+            _record(name, attrs, meta_line, key, value)
+    data: dict[str, np.ndarray] = {"strain": _strain(name, raw["deformation"], deformation, ref,
                                                      cols.names["deformation"], linenos)}
     for role in ("time", "test"):
         if role in raw:

@@ -16,6 +16,9 @@ from ..model.core import Loading
 
 
 from .columns import GROUP_KEY, _KEY_RE
+from .machine import machine_summary
+from .prepare import dropped_summary
+from .reduction import reduction_summary
 from .specimen import Specimen, as_specimen
 
 
@@ -33,7 +36,7 @@ def specimen_loading(data) -> Loading:
 def provenance(ds: Specimen) -> str:
     """``"synthetic"``, ``"measured"`` or ``"unknown"`` from the ``provenance``/``source`` metadata."""
     prov = str(ds.attrs.get("provenance", "")).strip().lower()
-    word = prov.split(maxsplit=1)[0] if prov else ""
+    word = prov.split(maxsplit=1)[0].rstrip(",;:") if prov else ""
     if word in ("synthetic", "measured"):  # "measured (group mean of ...)" -> "measured"
         return word
     if prov:
@@ -93,7 +96,8 @@ def input_summary(ds: Specimen) -> str:
     """What the loader converted, from the attributes; ``""`` when the file held strain and MPa.
 
     Examples: ``"stress kPa->MPa, nominal->Cauchy; strain from sarcomere_length_um (SL0 2.0 um)"``,
-    ``"tests labelled load, unload, reload"``.
+    ``"tests labelled load, unload, reload"``, ``"stress nominal->Cauchy; strain from displacement (mm) / gauge
+    length 21.0 mm, stress from force (N) / cross-section 153.94 mm2, compression magnitudes negated"``.
     """
     a = ds.attrs
     parts = []
@@ -105,10 +109,16 @@ def input_summary(ds: Specimen) -> str:
     if stress:
         parts.append("stress " + ", ".join(stress))
     deformation = a.get("deformation_input")
-    if deformation:
+    machine = machine_summary(a)
+    if machine:  # a machine export: force and displacement with the specimen's geometry
+        parts.append(machine)
+    elif deformation:
         ref = a.get("reference_sarcomere_length_um")
         parts.append(f"strain from {deformation}" + (f" (SL0 {ref} um)" if ref and "sarcomere" in deformation
                                                      else ""))
+    for extra in (dropped_summary(a), reduction_summary(a)):
+        if extra:
+            parts.append(extra)
     if a.get("test_labels"):
         try:
             labels = ", ".join(map(str, json.loads(a["test_labels"])))

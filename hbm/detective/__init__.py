@@ -32,7 +32,7 @@ from __future__ import annotations
 import time as _time
 import warnings
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -47,18 +47,22 @@ from ..errors import HbmError, HbmWarning
 from ..settings.fields import renamed_keyword
 from ..settings.rules import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
+from ..effects import applicable
 from ..model.core import Effect
 from ..likelihood.noise import noise_model_names
 from .controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend
-from .decision import Verdict, decide, gain, shape_preferred
+from .decision import Verdict, decide, shape_preferred
 from .fitting import FitInterrupted, Fitter, noise_evidence
+from .greedy import _Step, _final_verdict, _greedy, _named, _step_record, gain_beyond_controls  # noqa: F401 (tests)
 from .calibration import (
-    Calibration, CalibrationSetting, calibrate, calibrated_check, calibration_record, calibration_setting)
+    CalibrationSetting, calibrate, calibrated_check, calibration_record, calibration_setting)
 from .budget import cost_estimate, revised_estimate, stop_record, stop_reserve
 from .caveats import CORRELATED_CHOICES, caveat_line, digitised_reason, verdict_caveats, white_noise_view
-from .inputs import added_effects, as_data, resolve_candidates, resolve_effect, resolve_model, unit_anomaly
-from .noise_check import NoiseCheck, check_noise, misfit_windows, model_free_noise, noise_prior_box
+from .inputs import resolve_candidates, resolve_effect, resolve_model, unit_anomaly
+from .noise_check import check_noise, misfit_windows, model_free_noise, noise_prior_box
 from .power import detection_power
+from .records import artefact_caveats, artefact_problem, record_dict, record_noise
+from .records import prepare as prepare_record
 from .refits import refit_candidates, run_in_workers
 from .removal import removal_test
 from .results import CandidateResult, Diagnosis, Extension, FitSummary
@@ -107,26 +111,15 @@ def correlated_noises(noises: list[str], noise: str | None, correlated: str, dig
     return noises
 
 
-@dataclass(slots=True)
-class _Step:
-    """One round of steps 2–4 at the current model."""
-
-    base: FitSummary
-    check: NoiseCheck
-    results: list
-    controls: list
-    skipped: dict
-    verdict: Verdict
-    calibration: Calibration | None = None
-
-
 def _round(base: FitSummary, cands: list[Effect], fitter: Fitter, mf: dict, d, noises: list[str], top: int,
            seed: int, timings: dict, calib: CalibrationSetting | None = None, k: int = 0) -> _Step:
     """Where it fails, what is missing, the decision -- at the current model ``base`` (round ``k``)."""
     with _stopwatch(timings, "windows"):
         check = check_noise(base, mf, d, seed)
     with _stopwatch(timings, "screen"):
-        results, ctrls, skipped = screen_candidates(base, cands, check, d, fitter.log)
+        # (a further relaxation time is a candidate only once the model relaxes: effects' ``requires``)
+        results, ctrls, skipped = screen_candidates(base, [e for e in cands if applicable(e, base.model)], check, d,
+                                                    fitter.log)
     with _stopwatch(timings, "refits"):
         done = refit_candidates(results, ctrls, base, fitter, noises, top, seed)
         # the windows at the best base found, and what each refit leaves
@@ -192,7 +185,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
              correlated: str = "auto", max_time: float | None = None, tier: str = "full",
              workers: int | None = None, likelihood: str | None = None, calibration: str = "on",
-             replicates: int = CALIBRATION_REPLICATES) -> Diagnosis:
+             replicates: int = CALIBRATION_REPLICATES, reduce: str = "auto", artefacts: str = "flag") -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
@@ -268,6 +261,14 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         :mod:`.rules` (10 nats for a shape alone, 5 for a named effect, windows at 5 % each).
     replicates : int
         Null replicates of each greedy round (Monte-Carlo resolution 1/(replicates + 1)).
+    reduce : {"auto", "off"}
+        A record above :data:`hbm.data.reduction.DENSE_POINTS` rows is diagnosed as bin means of
+        its readings, each with its variance ("auto"), or row by row ("off").
+    artefacts : {"flag", "drop"}
+        Rows the artefact screen flags (:mod:`hbm.data.artefacts`) give the verdict
+        ``"data_problem"`` naming them and the fix ("flag"; under a robust noise model such as
+        ``noise="student_t"`` they are kept and named in a caveat), or are dropped first with a
+        record in the result ("drop"); :mod:`.records`.
 
     Returns
     -------
@@ -275,12 +276,12 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     """
     t_start, cpu_start = _time.perf_counter(), _time.process_time()
     timings: dict[str, float] = {}
-    d = as_data(data)
+    d, prep, record_notes = prepare_record(data, reduce, artefacts)
     base_model = resolve_model(model)
     cands = resolve_candidates(candidates, base_model)
     fix = _checked_fix(fix, base_model.parameter_names)
     noises = _noise_models(noise, noise_models)
-    mf = model_free_noise(d.stress, d.segment)
+    mf = record_noise(d)
     digitised = digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress)
     noises = correlated_noises(noises, noise, correlated, digitised)
     if sigma_bounds is None:
@@ -295,14 +296,16 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
     kids = _children_cpu()
     with fitter:             # (its worker processes stop at the end, also on an error)
-        timings["estimate"] = cost_estimate(base_model, cands, fitter, noises, top, max_effects)
-        fitter.log(timings["estimate"]["text"])
+        timings["estimate"] = cost_estimate(base_model, [e for e in cands if applicable(e, base_model)], fitter,
+                                            noises, top, max_effects)
+        for line in record_notes + [timings["estimate"]["text"]]:
+            fitter.log(line)
 
         with _stopwatch(timings, "base_fit"):     # 1. compare: the base fit at its best noise model
             base = fitter.fit(base_model, noises, None, _seed(seed, 0), global_restarts=2)
         fitter.log(revised_estimate(timings["estimate"], timings["base_fit"]))
         fitter.interruptible = True      # from here a fit running past the deadline stops at its next batch
-        problem = unit_anomaly(d)
+        problem = unit_anomaly(d) or artefact_problem(prep, noise)
         rounds: list[_Step] = []
         selected: list[str] = []
         current = base
@@ -364,6 +367,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                 resid=last.check.resid, d=d, white=view, digitised=digitised, correlated=correlated,
                 ar1_rejected=rejected if problem is None and noise is None else None,
                 removal=extra.get("removal", []), at_bounds=edges_found, verdict=verdict.verdict)
+            extra["caveats"] += artefact_caveats(prep, noise)
             verdict = replace(verdict, message=verdict.message + caveat_line(extra["caveats"]))
         if fitter.undecided:
             extra["stopped"] = stop_record(fitter, max_time, t_start)
@@ -409,8 +413,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
                         window_detail=[dict(w) for w in ck.windows], timings=timings, data=d, skipped=first.skipped,
                         residual_curve=ck.residual_curve(cov, d.segment), at_bounds=edges_found,
                         unexplained=verdict.unexplained, steps=[_step_record(r) for r in rounds],
-                        data_problem=problem, named_candidates=_named(rounds, selected),
-                        calibration=calibration_record([(r.base, r.calibration) for r in rounds], calib is not None), **extra)
+                        data_problem=problem, named_candidates=_named(rounds, selected), record=record_dict(prep),
+                        calibration=calibration_record([(r.base, r.calibration) for r in rounds], calib is not None),
+                        **extra)
     # the refit workers' CPU, counted once they have exited
     out.timings["cpu"] += _children_cpu() - kids
     return out
@@ -422,130 +427,6 @@ def _children_cpu() -> float:
         return 0.0
     r = _resource.getrusage(_resource.RUSAGE_CHILDREN)
     return float(r.ru_utime + r.ru_stime)
-
-
-def _named(rounds: list[_Step], selected: list[str]) -> list[CandidateResult]:
-    """The candidate result of each named effect, in order (round k named ``selected[k]``)."""
-    return [next(c for c in rounds[k].results if c.effect == name) for k, name in enumerate(selected)]
-
-
-def _step_record(r: _Step) -> dict:
-    named = next((c for c in r.results if r.verdict.selected and c.effect == r.verdict.selected[0]), None)
-    return {"model": added_effects(r.base.model), "verdict": r.verdict.verdict, "selected": r.verdict.selected,
-            "group": r.verdict.group, "message": r.verdict.message,
-            "windows": [(w["eps_lo"], w["eps_hi"], w["sign"]) for w in r.check.windows],
-            "candidates": {c.effect: round(float(gain(c)), 2) for c in r.results + r.controls if c.refit},
-            "placements": dict(named.placements) if named is not None else {},
-            "placement_ties": dict(named.placement_ties) if named is not None else {}}
-
-
-def _greedy(run_round, base: FitSummary, cands: list, max_effects: int, log=lambda msg: None,
-            fitter: Fitter | None = None):
-    """Steps 2–4 at the base model, then again after each named effect.
-
-    ``run_round(current_fit, remaining_candidates, k)`` returns a :class:`_Step`.  A tentatively
-    named effect (verdict ``"partial"``) is added and kept if the next round settles what it
-    left (:func:`_settles`), or if no generic shape replaces it -- with it the best evidence
-    (alone or with any control) beats the best without it by more than ``DELTA_LOGZ_MIN``
-    (:func:`gain_beyond_controls`): two hidden effects whose interplay leaves a small rest (an
-    offset that relaxes with the tissue) are both named, and the rest is reported as unexplained.
-    Otherwise the rounds after it are dropped and its round's unexplained verdict stands.
-
-    Returns
-    -------
-    (rounds, selected, current) : the rounds kept, the named effects in order, the final fit.
-    """
-    rounds: list[_Step] = []
-    selected: list[str] = []
-    current, remaining = base, list(cands)
-    tentative: int | None = None          # index of the round whose effect awaits the next round
-    for k in range(max(0, int(max_effects)) + 1):
-        st, why = None, "what the named effect leaves is not screened"
-        if not (k > 0 and fitter is not None and fitter.out_of_time()):
-            try:
-                st = run_round(current, remaining, k)
-            except FitInterrupted:
-                if k == 0:        # (its refits are guarded one by one: only a bug gets here)
-                    raise
-                why = "interrupted at --max-time: " + why
-        if st is None:
-            named = selected[-1] if selected else "?"
-            fitter.skip(f"greedy round {k} (with {named} added)", why + (
-                f"; {named} stays tentative: the verdict of the round that named it stands"
-                if tentative is not None else ""))
-            if tentative is not None:
-                rounds[tentative].verdict = rounds[tentative].verdict.fallback
-                return rounds, selected[:-1], rounds[tentative].base
-            break
-        rounds.append(st)
-        if tentative is not None:
-            t = rounds[tentative]
-            beyond = gain_beyond_controls(t, st)
-            if not _settles(st.verdict) and not beyond > DELTA_LOGZ_MIN:
-                # the next round does not explain the rest, and a generic shape does as well
-                # without the effect as with it: the effect may be absorbing an unknown misfit
-                log(f"{selected[-1]} alone leaves misfit the next round does not explain, and it gains "
-                    f"{beyond:.1f} nats beside the best generic shape: not named")
-                t.verdict = t.verdict.fallback
-                return rounds[:tentative + 1], selected[:-1], t.base
-            msg = t.verdict.message
-            if not _settles(st.verdict):
-                # a second, unexplained misfit: the effect is needed all the same
-                msg += f" (needed beside the best generic shape too: +{beyond:.1f} nats)"
-            t.verdict = replace(t.verdict, verdict="effect", fallback=None, message=msg)
-            tentative = None
-        if st.verdict.verdict == "partial":
-            if len(selected) >= max_effects:
-                st.verdict = st.verdict.fallback
-                break
-            tentative = len(rounds) - 1
-        elif st.verdict.verdict != "effect" or len(selected) >= max_effects:
-            break
-        chosen = next(c for c in st.results if c.effect == st.verdict.selected[0])
-        selected.append(chosen.effect)
-        log(f"named {chosen.effect}{' (tentatively)' if tentative is not None else ''}: adding it and re-screening")
-        current, remaining = chosen.fit, [e for e in remaining if e.name != chosen.effect]
-    return rounds, selected, current
-
-
-def gain_beyond_controls(prev: _Step, nxt: _Step) -> float:
-    """Evidence the effect named in round ``prev`` adds when a generic shape may be present too.
-
-    The best log-evidence with the effect (the model of round ``nxt``, alone or with any control
-    refitted there) minus the best without it (round ``prev``'s model, alone or with any control
-    refitted there), capped like :func:`.decision.gain` by the same difference of maximum
-    log-likelihoods (a noisy evidence must not create a gain the best fits do not show).  Large:
-    no generic shape replaces the effect -- it is needed even if a second, unexplained misfit is
-    hidden with it.  −inf when either round has no evidence.
-    """
-    def best(st: _Step) -> tuple[float, float]:
-        fits = [getattr(st.base, "log_evidence", np.nan), getattr(st.base, "max_log_likelihood", np.nan)]
-        out = [tuple(fits)] + [(c.fit.log_evidence, c.fit.max_log_likelihood) for c in st.controls
-                               if c.refit and c.fit is not None]
-        out = [o for o in out if np.isfinite(o[0]) and np.isfinite(o[1])]
-        return max(out, default=(np.nan, np.nan))
-    (z0, l0), (z1, l1) = best(prev), best(nxt)
-    if not (np.isfinite(z0) and np.isfinite(z1)):
-        return -np.inf
-    return float(min(z1 - z0, l1 - l0))
-
-
-def _settles(verdict: Verdict) -> bool:
-    """Does the round after a tentatively named effect account for what that effect left?
-    Yes when it names a further effect or group that explains it, or finds no misfit left."""
-    return verdict.verdict in ("effect", "group", "adequate")
-
-
-def _final_verdict(rounds: list[_Step], selected: list[str]) -> Verdict:
-    """The verdict over the greedy rounds: the named effects in order, and what is left."""
-    last = rounds[-1].verdict
-    if not selected:
-        return last
-    msgs = [r.verdict.message for r in rounds if r.verdict.verdict == "effect"]
-    msg = "; then ".join(msgs)
-    if last.verdict != "effect":
-        msg += f". With {' + '.join(selected)} added: {last.verdict} — {last.message}"
-    return Verdict("effect", list(selected), list(last.group), last.experiment, msg, last.unexplained)
 
 
 def _base_at_bounds(base: FitSummary, name: str) -> list[dict]:
@@ -578,7 +459,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
            max_evaluations: int | None = None, correlated: str = "auto",
            max_time: float | None = None, tier: str = "full", workers: int | None = None,
-           likelihood: str | None = None) -> Extension:
+           likelihood: str | None = None, reduce: str = "auto", artefacts: str = "flag") -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     One noise-model choice for the whole table, so that its Δlog Z are those of
@@ -603,6 +484,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         in order, at most ``max_steps`` effects in all.
     model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, tier, workers
         As in :func:`diagnose` (``likelihood=``: the tier's older, deprecated name).
+    reduce, artefacts
+        As in :func:`diagnose` (artefact rows flagged and kept are named in ``notes``).
 
     Returns
     -------
@@ -611,21 +494,22 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         log-evidence ± SE and predictive coverage.
     """
     t_start = _time.perf_counter()
-    d = as_data(data)
+    d, prep, record_notes = prepare_record(data, reduce, artefacts)
     current = resolve_model(model)
     fix = dict(fix or {})
     adds = _effects_to_add(add)
     noise_models = _noise_models(noise, noise_models)
     if not adds and not auto:
         raise HbmError("extend: give effects to add (--add EFFECT[,EFFECT...]) or auto=True (--auto)")
-    mf = model_free_noise(d.stress, d.segment)
+    _check_order(current, adds)
+    mf = record_noise(d)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
     tier = renamed_keyword(tier, likelihood, "extend", "likelihood", "tier")
     fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, tier)
     steps: list[FitSummary] = []
     decisions: list = []
-    notes: list[str] = []
+    notes: list[str] = record_notes + [c["text"] for c in artefact_caveats(prep, noise)]
     if adds:
         steps.append(fitter.fit(current, list(noise_models), None, _seed(seed, 0), global_restarts=2))
         for k, e in enumerate(adds):               # the given effects, in order
@@ -659,7 +543,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
                       noise=noise, max_effects=max_steps - len(adds), removal=False,
                       max_evaluations=max_evaluations, correlated=correlated, max_time=max_time,
-                      tier=tier, workers=workers)
+                      tier=tier, workers=workers, artefacts=artefacts)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         # the diagnosis's own fits: the same model as the last given step, fitted (and its noise
@@ -686,6 +570,15 @@ def place_as_diagnosed(model, name: str, moves: Mapping[str, str]):
         if old != name and old in model.effect_names:
             model = model.replacing(old, resolve_effect(new))
     return model, moves.get(name, name)
+
+
+def _check_order(model, adds: Sequence[Effect]) -> None:
+    """Every effect to add goes beside what it needs, in the given order (before any fit)."""
+    for e in adds:
+        if e.name not in model.effect_names and not applicable(e, model):
+            raise HbmError(f"extend: effect {e.name!r} goes beside {', '.join(getattr(e, 'requires', ()))}: add "
+                           "that first (e.g. --add viscoelastic,viscoelastic_2)")
+        model = model.with_effects(e) if e.name not in model.effect_names else model
 
 
 def _effects_to_add(add) -> list[Effect]:

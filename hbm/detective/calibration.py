@@ -390,8 +390,12 @@ def calibrate(base: FitSummary, check: NoiseCheck, candidates: Sequence[Effect],
         out[c.name].update(optimum=x, region=[axis, lo, hi], detail=c.describe(x),
                            shape=c.description.split(": ")[-1])
     crit_w = out["windows"]["critical"]
+    # the replicates draw from the fitted noise model itself (NoiseModel.simulate): t variates for
+    # student_t, Gaussian bin means of sd/sqrt(count) for a reduced dense record (BinnedNoise)
+    binned = getattr(lik.noise_model, "counts", None) is not None
     null = (f"the fitted {' + '.join(getattr(base, 'effects', []) or ['base'])} model with its fitted "
-            f"{base.noise} noise on this file's strains, times and histories")
+            f"{base.noise} noise on this file's strains, times and histories"
+            + (" (bin means: each with the sd of its readings' mean)" if binned else ""))
     return Calibration(replicates=int(replicates), alpha=float(alpha), stats=out,
                        p_family=float(min(s["p_family"] for s in out.values())),
                        window_thresholds={"fitted": float(c_fit * crit_w * scale0),

@@ -15,6 +15,7 @@ from typing import Mapping, Sequence
 import cma
 import numpy as np
 
+from ..data.reduction import DENSE_POINTS
 from ..runtime.blas import one_blas_thread
 from ..likelihood.collapsed import TIERS, CollapsedLikelihood, choose_tier, fit_collapsed
 from ..errors import HbmError, SettingError
@@ -22,6 +23,7 @@ from ..likelihood.core import make_likelihood
 from ..model.core import Model
 from ..fit.optimization import optimize
 from ..samplers.tmcmc import tmcmc
+from .dense import laplace_fit, polish
 from .inputs import SpecimenData, added_effects
 from .results import FitSummary
 from .rules import (
@@ -301,6 +303,8 @@ class Fitter:
         self.n_samples, self.sigma_bounds, self.progress = n_samples, sigma_bounds, progress
         self.max_evaluations = max_evaluations   # per TMCMC evidence run (``--max-evaluations``)
         self.n = data.stress.size
+        #: a dense record (reduced, or above DENSE_POINTS rows): optima polished, Laplace evidence (.dense)
+        self.dense = data.counts is not None or self.n > DENSE_POINTS
         self.refine_seconds = 0.0                 # wall time of the refined evidence reruns
         #: wall-clock (``time.time()``) moment of --max-time (None: no limit); the wall clock, not
         #: perf_counter, because the refits' worker processes read it too
@@ -365,6 +369,23 @@ class Fitter:
         :attr:`interruptible`).  Only the long loops are guarded -- the cheap steps after them
         (Laplace curvatures, predictions) run to their end, so a stop never leaves a fit half-read."""
         return _Guarded(lik, self)
+
+    def maximise(self, lik, x0s: Sequence[np.ndarray], sigma0: float, seed: int, maxfevals: int
+                 ) -> tuple[np.ndarray, float]:
+        """:func:`cma_maximise` under the deadline; on a dense record the optimum is then polished
+        (:func:`.dense.polish`: Gauss–Newton of the model parameters, a short CMA-ES of all)."""
+        x, f = cma_maximise(self.guard(lik), x0s, sigma0, seed, maxfevals=maxfevals)
+        return self.polished(lik, x, f, seed) if self.dense else (x, f)
+
+    def polished(self, lik, x: np.ndarray, f: float, seed: int, rounds: int = 2) -> tuple[np.ndarray, float]:
+        """A dense record's optimum ``(x, f)`` after rounds of :func:`.dense.polish` (the model
+        parameters at fixed noise parameters) and a short CMA-ES of all parameters from there."""
+        for r in range(rounds):
+            x, f = polish(lik, x, f, self.check_time)
+            x2, f2 = cma_maximise(self.guard(lik), [x], 0.003, seed + 3 + r, maxfevals=300)
+            if f2 > f:
+                x, f = x2, f2
+        return x, f
 
     def check_time(self) -> None:
         """Raise :class:`FitInterrupted` when the deadline has passed and fits are interruptible."""
@@ -527,15 +548,17 @@ class Fitter:
             guess = lik.noise_model.moment_guess(r)
             x0 = np.array([vals.get(n, guess.get(n, np.nan)) for n in lik.names])
             x0s = [fill_nan(x0, b)] + x0s[:1]
-            x, f = cma_maximise(self.guard(lik), x0s, 0.02, seed + 7 * k, maxfevals=800)
+            x, f = self.maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=800)
         elif global_restarts:
             x, f = global_fit(self.guard(lik), seed + 101 * k, global_restarts)
             if x0s:
                 x2, f2 = cma_maximise(self.guard(lik), x0s, 0.02, seed + 7 * k, maxfevals=1000)
                 if f2 > f:
                     x, f = x2, f2
+            if self.dense:
+                x, f = self.polished(lik, x, f, seed + 7 * k)
         else:
-            x, f = cma_maximise(self.guard(lik), x0s, 0.02, seed + 7 * k, maxfevals=1500)
+            x, f = self.maximise(lik, x0s, 0.02, seed + 7 * k, maxfevals=1500)
         return {"bic": self.bic(lik, f), "max_log_likelihood": f, "x": x, "lik": lik}
 
     def _cross_seed(self, noises: Sequence[str], table: dict, seed: int) -> None:
@@ -554,7 +577,7 @@ class Fitter:
                 own = dict(zip(lik.names, table[noise]["x"]))
                 x0 = np.array([vals[n] if (n in vals and n in lik.model.parameter_names) else own[n]
                                for n in lik.names])
-                x, f = cma_maximise(self.guard(lik), [fill_nan(x0, b)], 0.01, seed + 31, maxfevals=500)
+                x, f = self.maximise(lik, [fill_nan(x0, b)], 0.01, seed + 31, maxfevals=500)
                 if f > table[noise]["max_log_likelihood"]:
                     table[noise].update(x=x, max_log_likelihood=f, bic=self.bic(lik, f))
 
@@ -562,9 +585,26 @@ class Fitter:
         """The evidence run at the chosen noise model (collapsed tier where :meth:`collapsed`
         allows, else full-space TMCMC): evidence, samples, coverage; returns the TMCMC stages run."""
         lik = fs.likelihood
-        cl, note = self.collapsed(lik)
+        cl, note = (None, "") if self.dense else self.collapsed(lik)
         fs.tier, fs.tier_note = ("full", note) if cl is None else ("collapsed", note)
-        if cl is not None:
+        if self.dense:
+            # a dense record's posterior is narrow and Gaussian: its Laplace evidence (hbm.detective.dense)
+            log_z, samples, evals = laplace_fit(lik, fs.theta_max, fs.max_log_likelihood, self.n_samples, seed)
+            ll = np.asarray(lik(samples), float)
+            if np.max(ll) > fs.max_log_likelihood + 0.5:
+                # a draw beats the optimum: it was not converged -- polish from the draw, then again
+                fs.theta_max, fs.max_log_likelihood = self.polished(lik, samples[int(np.argmax(ll))], float(np.max(ll)),
+                                                                    seed)
+                log_z, samples, evals = laplace_fit(lik, fs.theta_max, fs.max_log_likelihood, self.n_samples, seed)
+            fs.tier, fs.tier_note = "laplace", ("Laplace evidence at the polished optimum (a dense record: its "
+                                                "posterior is narrow and Gaussian; hbm.detective.dense)")
+            ll, stages, log_z_se = np.asarray(lik(samples), float), 0, 0.0
+            if fs.max_log_likelihood > fs.noise_fits[fs.noise]["max_log_likelihood"]:
+                fs.bic = self.bic(lik, fs.max_log_likelihood)
+                fs.noise_fits[fs.noise].update(x=fs.theta_max, max_log_likelihood=fs.max_log_likelihood, bic=fs.bic)
+                fs.rmse = rmse(lik, fs.theta_max, self.data)
+            fs.tier_info = {}
+        elif cl is not None:
             cf = sample_tier(self.guard(cl), self.n_samples, seed, self.max_evaluations)
             samples, log_z, log_z_se = cf.samples, cf.log_evidence, cf.log_evidence_se
             ll, stages, evals = cf.log_likelihood, len(cf.tmcmc.stages), cf.n_evaluations
@@ -582,6 +622,8 @@ class Fitter:
             samples, log_z, log_z_se = res.samples, res.log_evidence, res.log_evidence_se
             ll, stages, evals = res.log_likelihood, len(res.stages), res.n_evaluations
             fs.tier_info = {}
+        if self.dense:
+            evals += len(samples)
         fs.n_evaluations = int(evals)
         fs.samples = np.asarray(samples)
         fs.log_evidence = float(log_z)
@@ -610,7 +652,7 @@ class Fitter:
         """
         if np.isfinite(fs.refined_log_evidence) or fs.likelihood is None:
             return
-        if fs.tier == "collapsed":
+        if fs.tier in ("collapsed", "laplace"):
             # the collapsed run is not under-mixed the way the 25-step full-space runs are (its
             # importance finish converges to |Δlog Z| ≲ 0.1): it is its own refined value
             fs.refined_log_evidence, fs.refined_log_evidence_se = fs.log_evidence, fs.log_evidence_se

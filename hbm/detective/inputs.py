@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..data import STRESS_UNITS, Specimen, as_specimen, load_specimen
+from ..data.reduction import bin_counts
 from ..effects import REGISTRY, family, load_effect, make_effect
 from ..errors import HbmError, HbmWarning
 from ..model.core import Effect, Loading, Model
@@ -34,6 +35,8 @@ class SpecimenData:
     ar_first: np.ndarray         # True where the likelihood's AR(1) noise restarts (history starts)
     loading: Loading
     name: str
+    #: a reduced dense record: the readings' worth of each bin mean (hbm.data.reduction), else None
+    counts: np.ndarray | None = None
 
 
 def as_data(data) -> SpecimenData:
@@ -64,7 +67,8 @@ def as_data(data) -> SpecimenData:
         starts[1:] |= test[1:] != test[:-1]
     starts |= loading.history_starts
     segment = np.cumsum(starts) - 1
-    return SpecimenData(spec, strain, stress, time, test, segment, loading.history_starts.copy(), loading, spec.id)
+    return SpecimenData(spec, strain, stress, time, test, segment, loading.history_starts.copy(), loading, spec.id,
+                        bin_counts(spec))
 
 
 def unit_anomaly(d: SpecimenData) -> str | None:

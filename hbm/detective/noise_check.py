@@ -372,6 +372,12 @@ def check_noise(base: FitSummary, model_free: dict, d: SpecimenData, seed: int,
     lik = base.likelihood
     noise_par = fitted_noise_parameters(lik, base.theta_max)
     sd = np.asarray(lik.noise_sd(base.theta_max[None, :]))[0]
+    if lik.noise_model.robust:
+        # a heavy-tailed noise chosen on purpose: an outlying row gets the sd of its weight, so the
+        # windows and the screens are as robust as the fit (hbm.likelihood.student_t)
+        q = lik.to_natural(base.theta_max[None, :])[:, lik.n_model:]
+        resid0 = d.stress - np.asarray(lik.predict(base.theta_max[None, :]))[0]
+        sd = np.asarray(lik.noise_model.effective_sd(q, resid0[None, :]))[0]
     rho_fit = float(noise_par.get("rho", 0.0))
     mf = model_free
     noise = {"model": base.noise, **noise_par, "bic": base.noise_bic, "model_free": mf,

@@ -28,6 +28,7 @@ from typing import Sequence
 import numpy as np
 from scipy import optimize as _sopt
 
+from ..effects import applicable
 from ..errors import HbmError
 from ..model.core import Effect, Model
 from .controls import controls_for
@@ -195,6 +196,8 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
     noise_fit : FitSummary, optional
         Take the noise from this fit instead (diagnose: the final model's, once effects were
         named, so a misfit of the starting model does not inflate the noise of the replicates).
+        Effects that need another first (a further relaxation time, ``requires``) are assessed
+        at this fit when its model has what they need (their rows say ``beside``).
     run_tasks : callable, optional
         ``run_tasks(task, calls)`` returns ``[task(*c) for c in calls]``, e.g. in worker processes
         (diagnose passes its refit workers); every effect's limit is computed independently, from
@@ -212,9 +215,7 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
         nulls), ``protocol`` (what would reveal it when not detectable)); ``method``;
         ``replicates``; ``text``.
     """
-    model, lik = fit.model, fit.likelihood
-    theta = np.asarray(lik.model_theta(fit.theta_max[None, :]))[0]
-    free = [n for n in lik.names if n in model.parameter_names]
+    model, theta, free = _at(fit)
     nf = fit if noise_fit is None else noise_fit
     sd = np.asarray(nf.likelihood.noise_sd(nf.theta_max[None, :]))[0]
     rho = float(dict(zip(nf.likelihood.names, nf.theta_max)).get("rho", 0.0))
@@ -222,9 +223,14 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
     rng = np.random.default_rng(seed)
     E = rng.standard_normal((int(n_rep), d.stress.size))   # whitened noise: common to every effect
     have = set(model.effect_names)
-    usable = []
+    usable, later = [], []
     for e in candidates:
         if e.name in have:
+            continue
+        if not applicable(e, model):
+            # a further relaxation time: assessed beside the relaxation the final model names
+            if noise_fit is not None and e.name not in noise_fit.model.effect_names and applicable(e, noise_fit.model):
+                later.append(e)
             continue
         try:
             model.with_effects(e).stress(d.loading, model.with_effects(e).null_theta(theta))
@@ -236,7 +242,16 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
     crit = {k: v["critical"] for k, v in calibration.stats.items()} if calibration is not None else {}
     calls = [(e, model, [o for o in usable if o is not e], ctrls, theta, free, whiten, d, E, n_levels, refine, level,
               feats, crit.get(e.name)) for e in usable]
+    if later:
+        # (not among the calibrated candidates of the starting model: these rows use the fixed rule)
+        final, theta_f, free_f = _at(noise_fit)
+        rivals = [o for o in candidates if o.name not in final.effect_names and applicable(o, final)]
+        calls += [(e, final, [o for o in rivals if o is not e], ctrls, theta_f, free_f, whiten, d, E, n_levels,
+                   refine, level, feats, None) for e in later]
     rows = run_tasks(_effect_limit, calls) if run_tasks is not None else [_effect_limit(*c) for c in calls]
+    if calibration is not None:
+        for row in rows[len(usable):]:
+            row["rule"] = f"fixed (gain > {DELTA_LOGZ_MIN:g} nats): not among the calibrated candidates"
     out = {"effects": rows, "replicates": int(n_rep), "level": level,
            "method": "Laplace screen: linearised refits of every candidate and control at their noiseless optima"
            + (f"; named by the calibrated rule (likelihood gain beyond its family-wise {calibration.alpha:.0%} null "
@@ -245,6 +260,13 @@ def detection_power(fit: FitSummary, d: SpecimenData, candidates: Sequence[Effec
            "protocol": describe_protocol(feats)}
     out["text"] = _text(out)
     return out
+
+
+def _at(fit: FitSummary) -> tuple[Model, np.ndarray, list[str]]:
+    """The fitted model, its full parameter row at the optimum and its free model parameters."""
+    lik = fit.likelihood
+    theta = np.asarray(lik.model_theta(fit.theta_max[None, :]))[0]
+    return fit.model, theta, [n for n in lik.names if n in fit.model.parameter_names]
 
 
 def _effect_limit(e: Effect, model: Model, others: list, ctrls: list, theta: np.ndarray, free: list, whiten,
@@ -278,7 +300,8 @@ def _effect_limit(e: Effect, model: Model, others: list, ctrls: list, theta: np.
         limit_frac = None if hit is None else levels[hit][0]
     levels.sort()
     val = (lambda f: float(q.null + f * (far - q.null)))
-    return {"effect": e.name, "parameter": q.name, "unit": q.unit,
+    beside = [n for n in getattr(e, "requires", ()) if n in model.effect_names]
+    return {**({"beside": beside} if beside else {}), "effect": e.name, "parameter": q.name, "unit": q.unit,
             "limit": None if limit_frac is None else val(limit_frac),
             "levels": [[val(f), s] for f, s in levels],
             "shape": {p.name: p.null for p in e.parameters if p.name != q.name},
@@ -291,6 +314,10 @@ def _text(p: dict) -> str:
              "each effect at their nulls)"]
     for r in p["effects"]:
         shape = ", ".join(f"{k}={v:g}" for k, v in r["shape"].items())
+        if r.get("beside"):
+            shape += f"{', ' if shape else ''}beside the fitted {' + '.join(r['beside'])}"
+        if r.get("rule"):
+            shape += f"{', ' if shape else ''}{r['rule'].split(':')[0]} rule"
         if r["limit"] is not None:
             lines.append(f"  {r['effect']:<18} {r['parameter']} >= {r['limit']:.3g} {r['unit']}"
                          + (f"  ({shape})" if shape else ""))

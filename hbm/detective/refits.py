@@ -21,7 +21,7 @@ import numpy as np
 
 from ..effects import placements
 from ..model.core import Effect, Model
-from .fitting import FitInterrupted, Fitter, cma_maximise, laplace_occam
+from .fitting import FitInterrupted, Fitter, laplace_occam
 from .results import CandidateResult, FitSummary, gain
 from .rules import (
     DELTA_LOGZ_MIN, EVIDENCE_RUN_MIN_GAIN, MIN_REFIT_SCORE, N_CONTROL_REFITS, RUNNER_UP_MARGIN, TMCMC_SE_FACTOR)
@@ -259,7 +259,7 @@ def reoptimise_base(base: FitSummary, refitted: Sequence[CandidateResult], fitte
                 continue
             vals = dict(zip(ent["lik"].names, ent["x"]))
             x0 = np.array([vals.get(n, v) for n, v in zip(own["lik"].names, own["x"])], float)
-            x, f = cma_maximise(fitter.guard(own["lik"]), [x0], 0.01, seed + 13 * k, maxfevals=300)
+            x, f = fitter.maximise(own["lik"], [x0], 0.01, seed + 13 * k, maxfevals=300)
             if f > own["max_log_likelihood"] + 1e-9:
                 own.update(x=x, max_log_likelihood=f, bic=fitter.bic(own["lik"], f))
                 changed = True
@@ -503,7 +503,10 @@ def _evidence_gain(c: CandidateResult, fs: FitSummary, base: FitSummary) -> None
     dz_l = (c.delta_max_log_likelihood + laplace_occam(fs.likelihood, fs.theta_max, fs.names, new, fs.samples)
             - laplace_occam(base.likelihood, base.theta_max, base.names, gone, base.samples))
     c.delta_log_evidence_tmcmc, c.delta_log_evidence_laplace = dz_t, dz_l
-    if np.isfinite(dz_t):
+    if np.isfinite(dz_t) and fs.tier == "laplace":
+        # a dense record: both evidences are Laplace approximations (hbm.detective.dense)
+        c.delta_log_evidence, c.evidence_method = dz_t, "laplace-dense"
+    elif np.isfinite(dz_t):
         c.delta_log_evidence, c.evidence_method = dz_t, "tmcmc-refined" if refined else "tmcmc"
     else:
         c.delta_log_evidence, c.evidence_method = dz_l, "laplace"

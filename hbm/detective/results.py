@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import plots  # plots.diagnose (matplotlib) loads when a figure is drawn
 from ..fit.specimen import format_at_bounds
 from ..model.core import Effect, Model
 from .rules import BAND, DELTA_LOGZ_MIN, TMCMC_SE_FACTOR
@@ -242,6 +243,9 @@ class Diagnosis:
     #: the candidate result of each named effect, in order, each from the round that named it
     #: (``hbm extend --auto`` tabulates their fits and gains)
     named_candidates: list = field(default_factory=list, repr=False)
+    #: what was done to the record before the diagnosis: artefact rows flagged or dropped, a dense
+    #: record reduced (:func:`hbm.detective.records.record_dict`); None for a record taken as it is
+    record: dict | None = None
 
     @property
     def named_fits(self) -> list:
@@ -278,6 +282,7 @@ class Diagnosis:
             "stopped": jsonable(self.stopped),
             "power": jsonable({k: v for k, v in self.power.items() if k != "text"}) if self.power else None,
             "calibration": jsonable({k: v for k, v in self.calibration.items() if k != "text"}),
+            **({"record": jsonable(self.record)} if self.record else {}),
         }
 
     def to_json(self) -> str:
@@ -309,7 +314,9 @@ class Diagnosis:
         else:
             lines.append("misfit windows: none")
         lines.append("")
-        lines.append("Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
+        lines.append("Δlog Z: Laplace difference against the best base (a dense record: narrow, Gaussian posteriors, "
+                     "no sampling SE); intervals: Laplace posterior 95 %" if b.tier == "laplace" else
+                     "Δlog Z: TMCMC difference against the best base, SE calibrated to the seed-to-seed scatter "
                      "(Laplace: the screen's estimate); intervals: TMCMC posterior 95 %")
         lines.append(f"{'candidate':<20}{'score z':>8}{'local z':>8}{'absorbed':>9}{'dlogZ ± SE':>15}"
                      f"{'Laplace':>9}{'RMSE before':>12}{'after':>11}  noise  interval of new parameter")
@@ -451,9 +458,8 @@ class Extension:
 
 def _figures():
     """:mod:`hbm.plots.diagnose`, imported when a figure is drawn."""
-    # matplotlib is heavy and optional: the detective itself never needs it
-    import hbm.plots.diagnose as figures
-    return figures
+    # matplotlib is heavy and optional: the detective itself never needs it (hbm.plots is lazy)
+    return plots.diagnose
 
 
 def _num(x):

@@ -298,7 +298,7 @@ def screen_candidates(base: FitSummary, candidates: Sequence[Effect], check: Noi
                                        score_start=sc["start"], local_full=lr["full"]))
     ctrls = screen_controls(controls_for(d), base_model, theta_model, free, resid, whiten, d, base.rmse)
     # rank by the stronger of the two screens (score test at the null, cheap local refit)
-    results.sort(key=lambda c: -max(c.score, c.local_z))
+    results.sort(key=_rank)
     log("screen: " + ", ".join(f"{c.effect} z={c.score:.1f}/{c.local_z:.1f}" for c in results)
         + "; controls " + ", ".join(f"{c.effect} z={c.local_z:.1f}" for c in ctrls))
     return results, ctrls, skipped
@@ -337,5 +337,19 @@ def screen_controls(controls: Sequence[Control], model: Model, theta_model: np.n
             min(max(_stats.chi2.sf(chi2_lin, 1) * max(len(grid), 1), 1e-300), 0.5))), chi2=float(chi2_lin), dof=1,
             absorbed=float("nan"), physical=False, rmse_before=rmse_before, start=lr["start"], local_z=lr["z"],
             local_chi2=lr["chi2"], effect_instance=ctl, score_start=starts[0], local_full=lr["full"]))
-    out.sort(key=lambda c: -c.local_z)
+    out.sort(key=lambda c: _rank(c, local_only=True))
     return out
+
+
+#: the screens' z at their p-value floor (1e-300): a strong signal saturates every candidate there
+Z_CEILING = float(_stats.norm.isf(1e-300))
+
+
+def _rank(c: CandidateResult, local_only: bool = False) -> tuple[float, float]:
+    """Sort key of a screened candidate: the stronger of its screens' z, best first; where z sits
+    at its ceiling (a dense or strongly misfitting record saturates several candidates) the larger
+    χ² (≈ 2 Δlog L) decides, so that the ranking -- which candidates are refitted -- does not
+    fall back on the registry's order."""
+    z = c.local_z if local_only else max(c.score, c.local_z)
+    chi2 = c.local_chi2 if local_only else max(c.chi2, c.local_chi2)
+    return (-z, -chi2 if z >= Z_CEILING - 1e-9 else 0.0)

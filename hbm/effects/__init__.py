@@ -16,13 +16,17 @@ id                            stage        parameters (null)
 ``dispersion``                elastic      DISP (0)
 ``series_compliance``         kinematics   C_S (0)
 ``viscoelastic``              history      G1 (0), LOGTAU1   — needs a time column
+``viscoelastic_2``            history      G2 (0), LOGTAU2   — a second relaxation time (beside viscoelastic)
+``viscoelastic_3``            history      G3 (0), LOGTAU3   — a third one (beside viscoelastic_2)
 ``damage``                    history      DMG (0)           — needs load-unload-reload
 ============================  ===========  ==========================================
 
 ``make_effect(id, **kwargs)`` builds a library effect, ``load_effect("path.py:ClassName")`` a
 user's effect from their own file, ``resolve_effect(spec)`` either.  ``placements(effect)``
 lists the other placements of an effect (``prestress`` is ``offset`` carried by the tissue,
-before the history stage).  ``CONFUSABLE_GROUPS`` and ``SEPARATING_EXPERIMENT`` record which effects one monotonic curve cannot tell apart
+before the history stage).  An effect with ``requires`` (a further relaxation time) is a
+candidate only beside the effects it names (:func:`applicable`).
+``CONFUSABLE_GROUPS`` and ``SEPARATING_EXPERIMENT`` record which effects one monotonic curve cannot tell apart
 (DESIGN.md §2) and what experiment would.
 """
 
@@ -42,6 +46,7 @@ from .fiber_exponential import FiberExponential
 from .offset import Offset
 from .prestress import Prestress
 from .recruitment import Recruitment
+from .relaxation import SecondRelaxation, ThirdRelaxation
 from .series_compliance import SeriesCompliance, solve_series
 from .slack import Slack
 from .viscoelastic import Viscoelastic
@@ -50,7 +55,7 @@ from .viscoelastic import Viscoelastic
 REGISTRY: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (Offset, Prestress, Slack, FiberExponential, Recruitment, Dispersion, SeriesCompliance, Viscoelastic,
-                Damage)
+                Damage, SecondRelaxation, ThirdRelaxation)
 }
 
 #: groups of effects whose signatures on one monotonic ramp look alike (DESIGN.md §2)
@@ -83,6 +88,14 @@ def group_of(effect_id: str) -> frozenset[str] | None:
         if effect_id in g:
             return g
     return None
+
+
+def applicable(effect: Effect, model) -> bool:
+    """Can ``effect`` be added to ``model``?  Every effect its ``requires`` names is in the model
+    (a second relaxation time needs the first), and none of its parameter names is taken."""
+    names = set(model.effect_names)
+    return (all(r in names for r in getattr(effect, "requires", ()))
+            and not {q.name for q in effect.parameters} & set(model.parameter_names))
 
 
 def family(effect: Effect | type[Effect]) -> str:
@@ -180,6 +193,7 @@ def resolve_effect(spec: str, **kwargs) -> Effect:
     return make_effect(spec, **kwargs)  # raises the 'unknown effect' error
 
 
-__all__ = ["REGISTRY", "CONFUSABLE_GROUPS", "SEPARATING_EXPERIMENT", "group_of", "family", "placements",
+__all__ = ["REGISTRY", "CONFUSABLE_GROUPS", "SEPARATING_EXPERIMENT", "group_of", "applicable", "family", "placements",
            "make_effect", "load_effect", "resolve_effect", "solve_series", "Offset", "Prestress", "Slack",
-           "FiberExponential", "Recruitment", "Dispersion", "SeriesCompliance", "Viscoelastic", "Damage"]
+           "FiberExponential", "Recruitment", "Dispersion", "SeriesCompliance", "Viscoelastic", "Damage",
+           "SecondRelaxation", "ThirdRelaxation"]

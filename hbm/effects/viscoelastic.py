@@ -50,6 +50,8 @@ class Viscoelastic(Effect):
     description = "quasi-linear viscoelasticity (Fung), Prony series, along each loading history"
     reference = "Fung YC (1981) Biomechanics: Mechanical Properties of Living Tissues, Springer"
     preserves_linearity = True  # a linear operator on the elastic stress: it filters each column
+    #: index of the first Prony term (G1, LOGTAU1 ...); a further relaxation time (hbm.effects.relaxation) counts on
+    first = 1
     parameters = (Parameter("G1", 0.0, 0.9, "-", "relaxing fraction of the Prony term 1", null=0.0),
                   Parameter("LOGTAU1", -1.0, 3.5, "log10 s", "log10 relaxation time of Prony term 1", null=1.0))
 
@@ -62,7 +64,7 @@ class Viscoelastic(Effect):
         self.terms, self.tau = terms, taus
         gmax = 0.9 if terms == 1 else 0.45
         params = []
-        for i in range(1, terms + 1):
+        for i in range(self.first, self.first + terms):
             params.append(Parameter(f"G{i}", 0.0, gmax, "-", f"relaxing fraction of Prony term {i}", null=0.0))
             if taus is None:
                 params.append(Parameter(f"LOGTAU{i}", -1.0, 3.5, "log10 s",
@@ -83,13 +85,13 @@ class Viscoelastic(Effect):
     def _taus(self, p):
         if self.tau is not None:
             return [np.asarray(t) for t in self.tau]
-        return [10.0 ** p[f"LOGTAU{i}"] for i in range(1, self.terms + 1)]
+        return [10.0 ** p[f"LOGTAU{i}"] for i in range(self.first, self.first + self.terms)]
 
     def modify(self, state, p, stress):
         loading = state.loading
         if loading.time is None:
             raise HbmError("viscoelastic effect needs a 'time' column (s) in the specimen; this loading has none")
-        g = [p[f"G{i}"] for i in range(1, self.terms + 1)]  # (..., 1)
+        g = [p[f"G{i}"] for i in range(self.first, self.first + self.terms)]  # (..., 1)
         taus = self._taus(p)
         shape = np.broadcast_shapes(stress.shape, *(x.shape for x in g), *(np.shape(t) for t in taus))
         stress = np.broadcast_to(stress, shape)

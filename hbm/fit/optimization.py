@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..runtime.progress import progress_bar
 from ..errors import HbmError
 from ..likelihood.core import Likelihood
 from ..settings.rules import check_int
@@ -214,8 +215,7 @@ def optimize(likelihood: Likelihood, *, restarts: int = 4, seed: int = 0, object
 def _bar(total, progress, desc):
     if not progress:
         return None
-    from tqdm.auto import tqdm
-    return tqdm(total=total, desc=desc, leave=False)
+    return progress_bar(total, desc, leave=False)
 
 
 def _multistart(lik, objective, restarts, rng, popsize, maxfevals, tolfun, progress):

@@ -16,7 +16,7 @@ from ..io import SpecimenResult
 from ..settings.fit import FitRecord
 from ..model.spec import spec_of
 from ..likelihood.noise import get_noise
-from ..samplers.hierarchical import rhat_ess
+from ..samplers.convergence import rhat_ess
 
 #: a value lies "at" a box edge within this fraction of the box width (log width for loguniform)
 EDGE_TOL = 0.02

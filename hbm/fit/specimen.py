@@ -28,11 +28,13 @@ import numpy as np
 from .sensitivity import sobol as _sobol
 from .._version import __version__
 from ..data import as_specimen, input_line, input_summary
+from ..data.prepare import prepare_record
 from ..errors import HbmWarning
 from ..runtime import seeds
 from ..io import SpecimenResult, json_default, write_specimen_result
 from ..likelihood.collapsed import choose_tier, fit_collapsed
 from ..likelihood.core import make_likelihood
+from ..likelihood.noise import get_noise
 from ..model import COMBINATIONS, spyrou_model  # (COMBINATIONS: the default base's, re-exported)
 from ..model.spec import DEFAULT_BASE, spec_of
 from ..likelihood.prior import PriorError, load_prior
@@ -281,9 +283,23 @@ def check_data_size(sid: str, lik, samples: int, max_evaluations: int | None = N
         evaluations = min(evaluations, int(max_evaluations))
     if per_row * evaluations > 120.0:
         warnings.warn(f"{sid}: {n} points: one evaluation costs {1e3 * per_row:.2g} ms, the TMCMC fit about "
-                      f"{per_row * evaluations / 60:.0f} min (~{evaluations:.2g} evaluations); neighbouring points "
-                      "of a dense record are rarely independent: thin the curve or use the ar1 noise, and "
-                      "--max-evaluations caps the cost", HbmWarning, stacklevel=2)
+                      f"{per_row * evaluations / 60:.0f} min (~{evaluations:.2g} evaluations); a dense record is "
+                      "fitted as bin means of its readings unless --reduce off (hbm.data.reduction), neighbouring "
+                      "points are rarely independent (the ar1 noise), and --max-evaluations caps the cost",
+                      HbmWarning, stacklevel=2)
+
+
+def prepared_record(data, sid: str, noise: str, reduce: str | None, artefacts: str | None):
+    """The record a fit uses (:func:`hbm.data.prepare.prepare_record`): a dense one reduced, artefact
+    rows dropped on request; rows flagged and kept are named in one :class:`~hbm.errors.HbmWarning`."""
+    prep = prepare_record(data, reduce=reduce or "auto", artefacts=artefacts or "flag")
+    if prep.artefacts:
+        keep = (f"kept: the {noise} noise is heavy-tailed and down-weights them" if get_noise(noise).robust else
+                "kept, and they pull the fit: drop them with --drop-artefacts (artefacts='drop'; recorded in the "
+                "result) or fit robustly with --noise student_t")
+        warnings.warn(f"{sid}: rows that are not the tissue: {prep.artefact_text()}; {keep}", HbmWarning,
+                      stacklevel=3)
+    return prep.data
 
 
 def _base_name(model) -> str | None:
@@ -337,7 +353,11 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
         posterior sample -- the stored posterior holds every free parameter as with the full
         likelihood; "full": the sampler over all parameters; the tier used and why are stored
         (``FitRecord.tier_used``/``tier_note``), evaluation counts count basis evaluations as model
-        evaluations.
+        evaluations; ``reduce`` -- "auto" (default) fits a record above
+        :data:`hbm.data.reduction.DENSE_POINTS` rows as bin means of its readings
+        (:mod:`hbm.data.reduction`), "off" row by row; ``artefacts`` -- rows the artefact screen
+        flags (:mod:`hbm.data.artefacts`) are named in an :class:`~hbm.errors.HbmWarning` and kept
+        ("flag", the default), or dropped with a record in the result ("drop").
     checkpoint_dir : path, optional
         TMCMC checkpoint ``<dir>/<id>.npz``: an interrupted fit resumes from its last stage.
         Removed once the result file is written.  It is resumed whatever made it: pass a folder
@@ -369,6 +389,7 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
     check_physical_bounds(s.bounds, spec_of(model).physical_range)
     data = as_specimen(data)
     sid = data.id
+    data = prepared_record(data, sid, s.noise, s.reduce, s.artefacts)
     prior = load_prior(s.prior)
     lik = make_likelihood(model, data, noise=s.noise, fix=s.fix, bounds=s.bounds, sigma_bounds=s.sigma_bounds,
                           prior=prior)

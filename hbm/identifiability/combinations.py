@@ -53,7 +53,7 @@ from ..model.spec import MixtureRoles, base_spec
 from ..runtime.seeds import as_generator
 
 __all__ = ["COMBINATION_PARAMS", "FEATURES", "CombinationCoordinates", "combination_box", "combination_features",
-           "fibre_point",
+           "fibre_point", "in_support", "support_constraints",
            "log_density", "onset_strain", "support_hull", "sample_conditional", "to_features"]
 
 #: the default base's roles (:attr:`hbm.model.spec.ModelSpec.mixture`) where a caller gives none
@@ -232,7 +232,7 @@ def log_density(phi, bounds, names: Sequence[str] | None = None, *, n_nodes: int
 
 
 def combination_features(names: Sequence[str], samples, bounds, *, roles: MixtureRoles | None = None,
-                         **quadrature) -> tuple[np.ndarray, np.ndarray]:
+                         density: bool = True, **quadrature) -> tuple[np.ndarray, np.ndarray | None]:
     """Features φ and their stage-1 prior log density for named parameter samples.
 
     Parameters
@@ -242,6 +242,8 @@ def combination_features(names: Sequence[str], samples, bounds, *, roles: Mixtur
     samples : array (n, len(names))
     bounds : array (len(names), 2) aligned with ``names``, or mapping name -> (lo, hi)
         The uniform prior box the samples were drawn under (a narrowed box works).
+    density : bool
+        Compute ``log_p0`` (a quadrature per row); False: None in its place.
     **quadrature
         ``n_nodes``, ``n_sub`` of :func:`log_density`.
 
@@ -249,7 +251,7 @@ def combination_features(names: Sequence[str], samples, bounds, *, roles: Mixtur
     -------
     phi : ndarray (n, 3)
         (log G, log c·P1, log (1−c)·T1).
-    log_p0 : ndarray (n,)
+    log_p0 : ndarray (n,) or None
         log density of φ under the uniform prior on the box of (VOLF, P1, T1, GF, GM).
 
     Raises
@@ -264,7 +266,57 @@ def combination_features(names: Sequence[str], samples, bounds, *, roles: Mixtur
     if np.any(f <= 0):
         raise HbmError("combinations: samples with G, c*P1 or (1-c)*T1 <= 0 have no log feature")
     phi = np.log(f)
-    return phi, log_density(phi, box, **quadrature)
+    return phi, log_density(phi, box, **quadrature) if density else None
+
+
+def _volf_interval(phi: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The interval (lo, hi) of c = VOLF compatible with φ (..., 3) inside ``box`` and whether it is
+    not empty: each box limit of P1 = e^{y1}/c, T1 = e^{y2}/(1−c) and of G = c·GF + (1−c)·GM is a
+    half-line in c."""
+    (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = box
+    with np.errstate(over="ignore"):
+        G, a, b = np.exp(phi[..., 0]), np.exp(phi[..., 1]), np.exp(phi[..., 2])
+    lo = np.maximum(ca, a / pb)
+    hi = np.minimum(cb, 1.0 - b / tb)
+    if pa > 0:
+        hi = np.minimum(hi, a / pa)
+    if ta > 0:
+        lo = np.maximum(lo, 1.0 - b / ta)
+    ok = np.ones(G.shape, bool)
+    # G >= ma + c (fa − ma) and G <= mb + c (fb − mb): each a half-line in c
+    for base, slope, below in ((ma, fa - ma, True), (mb, fb - mb, False)):
+        if slope == 0:
+            ok &= (G >= base) if below else (G <= base)
+            continue
+        t = (G - base) / slope
+        if below == (slope > 0):
+            hi = np.minimum(hi, t)
+        else:
+            lo = np.maximum(lo, t)
+    return lo, hi, ok & (lo < hi)
+
+
+def support_constraints(box: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The support of p0 as linear constraints with one latent scalar: φ is in it iff some c satisfies
+    P·(G, c·P1, (1−c)·T1) + Q·c ≤ R row by row (strictly, as :func:`in_support`: the interval of c is not
+    a point).  The rows are the box limits of c, P1 = a/c, T1 = b/(1 − c) and G = c·GF + (1−c)·GM of
+    :func:`_volf_interval` (for a compiled sampler: :mod:`hbm.samplers.hierarchical.amplitudes`)."""
+    (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = np.asarray(box, float)
+    rows = [((0, 0, 0), -1.0, -ca), ((0, 0, 0), 1.0, cb),             # ca <= c <= cb
+            ((0, 1, 0), -pb, 0.0),                                     # a <= pb c
+            ((0, 0, 1), tb, tb),                                       # b <= tb (1 - c)
+            ((-1, 0, 0), fa - ma, -ma), ((1, 0, 0), -(fb - mb), mb)]   # G between the two moduli
+    if pa > 0:
+        rows.append(((0, -1, 0), pa, 0.0))                             # a >= pa c
+    if ta > 0:
+        rows.append(((0, 0, -1), -ta, -ta))                            # b >= ta (1 - c)
+    return (np.array([r[0] for r in rows], float), np.array([r[1] for r in rows]), np.array([r[2] for r in rows]))
+
+
+def in_support(phi, box: np.ndarray) -> np.ndarray:
+    """Whether φ (..., 3) lies in the support of p0 (a point of its fibre exists) for a built
+    :func:`combination_box` ``box``: exactly where :func:`log_density` is finite."""
+    return _volf_interval(np.asarray(phi, float), box)[2]
 
 
 def fibre_point(phi, bounds, names: Sequence[str] | None = None, *,
@@ -296,25 +348,8 @@ def fibre_point(phi, bounds, names: Sequence[str] | None = None, *,
     phi = _check_phi(phi)
     box = combination_box(bounds, names, roles=roles) if box is None else box
     (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = box
+    lo, hi, ok = _volf_interval(phi, box)
     G, a, b = np.exp(phi[:, 0]), np.exp(phi[:, 1]), np.exp(phi[:, 2])
-    lo = np.maximum(ca, a / pb)
-    hi = np.minimum(cb, 1.0 - b / tb)
-    if pa > 0:
-        hi = np.minimum(hi, a / pa)
-    if ta > 0:
-        lo = np.maximum(lo, 1.0 - b / ta)
-    ok = np.ones(phi.shape[0], bool)
-    # G >= ma + c (fa − ma) and G <= mb + c (fb − mb): each a half-line in c
-    for base, slope, below in ((ma, fa - ma, True), (mb, fb - mb, False)):
-        if slope == 0:
-            ok &= (G >= base) if below else (G <= base)
-            continue
-        t = (G - base) / slope
-        if below == (slope > 0):
-            hi = np.minimum(hi, t)
-        else:
-            lo = np.maximum(lo, t)
-    ok &= lo < hi
     c = np.where(ok, 0.5 * (lo + hi), 0.5 * (ca + cb))
     span = c * (fb - fa) + (1 - c) * (mb - ma)
     frac = np.clip((G - c * fa - (1 - c) * ma) / span, 0.0, 1.0)

@@ -50,11 +50,17 @@ and a ``groups`` group: (chain, draw, group) ``mean_<P>`` (group means, transfor
 manifolds and identified combinations (see :func:`write_population_summary`).
 """
 
-from .common import is_complete, json_default, read_attrs
-from .specimen import SpecimenResult, read_specimen_result, specimen_path, to_inference_data, write_specimen_result
-from .population import (
-    HierarchicalFile, read_hierarchical, read_population_summary, write_hierarchical, write_population_summary)
-from .organ import ORGAN_SOURCES, OrganFile, read_organ, write_organ
+from ..runtime.lazy import attach
+
+# xarray and netCDF load when a result is read or written, not with the package (hbm.runtime.lazy)
+__getattr__, __dir__ = attach(__name__, {
+    ".common": ["is_complete", "json_default", "read_attrs"],
+    ".specimen": ["SpecimenResult", "read_specimen_result", "specimen_path", "to_inference_data",
+                  "write_specimen_result"],
+    ".population": ["HierarchicalFile", "read_hierarchical", "read_population_summary", "write_hierarchical",
+                    "write_population_summary"],
+    ".organ": ["ORGAN_SOURCES", "OrganFile", "read_organ", "write_organ"],
+})
 
 __all__ = ["SpecimenResult", "HierarchicalFile", "write_specimen_result", "read_specimen_result",
            "is_complete", "read_attrs", "write_hierarchical", "read_hierarchical", "write_population_summary",

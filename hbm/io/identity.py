@@ -42,7 +42,8 @@ __all__ = ["MEANING_ATTRS", "data_key", "model_key", "settings_key", "content_ke
 
 #: dataset attributes that change what the arrays mean (hbm.data records its conversions here)
 MEANING_ATTRS = ("id", "units_stress", "units_stress_original", "stress_measure", "stress_measure_original",
-                 "deformation_input", "reference_sarcomere_length_um", "test_labels")
+                 "deformation_input", "reference_sarcomere_length_um", "test_labels", "stress_input",
+                 "cross_section_mm2", "conversion_steps", "dropped_rows", "reduction")
 
 
 def _sha(*parts: bytes) -> str:

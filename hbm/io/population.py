@@ -58,6 +58,12 @@ class HierarchicalFile:
         (:func:`hbm.samplers.hierarchical.reuse_diagnostics`): the numbers of :data:`REUSE_VARS`
         are stored as variables ``reuse_<name>`` over ``specimen`` in the diagnostics group,
         the flag as ``reuse_unreliable`` (0/1), the reasons in the attributes.
+    chains : int
+        The rows of ``hyper_samples`` and ``updated`` are this many chains, chain-major (stored over
+        ``(chain, draw)``, so that ArviZ's R-hat and ESS of the file are those of the sampler's chains);
+        1 for the reuse layer's TMCMC population and for files written before issue 37.
+    evaluations : int or None
+        Model evaluations of the layer (root attribute ``evaluations``); None when not recorded.
     """
 
     param_names: list[str]
@@ -75,6 +81,8 @@ class HierarchicalFile:
     pooled_names: list[str] = field(default_factory=list)
     groups: dict | None = None
     reuse: dict = field(default_factory=dict)
+    chains: int = 1
+    evaluations: int | None = None
 
     def hyper(self, name: str) -> np.ndarray:
         return self.hyper_samples[:, self.hyper_names.index(name)]
@@ -83,10 +91,13 @@ class HierarchicalFile:
 def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
     """Write the hierarchical layer's results atomically."""
     path = Path(path)
-    n = h.hyper_samples.shape[0]
-    draws = {"chain": [0], "draw": np.arange(n)}
+    n, nc = h.hyper_samples.shape[0], int(h.chains)
+    if nc < 1 or n % nc:
+        raise HbmError(f"hierarchical result: {n} hyper draws do not split into {nc} chains")
+    draws = {"chain": np.arange(nc), "draw": np.arange(n // nc)}
     transforms = dict(h.attrs.get("transforms") or {})
-    post = xr.Dataset({nm: (("chain", "draw"), h.hyper_samples[None, :, i], hyper_attrs(nm, transforms))
+    hyper = h.hyper_samples.reshape(nc, n // nc, -1)
+    post = xr.Dataset({nm: (("chain", "draw"), hyper[:, :, i], hyper_attrs(nm, transforms))
                        for i, nm in enumerate(h.hyper_names)}, coords=draws)
     groups: dict[str, xr.Dataset] = {G_POSTERIOR: annotate(post, "other")}
     stats: dict[str, Any] = {"log_marginal_likelihood": (("chain",), [float(h.log_evidence)]),
@@ -96,9 +107,11 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
     groups[G_STATS] = xr.Dataset(stats, coords=coords)
     if h.updated is not None:
         m = h.updated.shape[0]
+        uc = nc if m == n else 1  # the updated individuals of the joint sampler are its chains' draws
+        up = h.updated.reshape((uc, m // uc) + h.updated.shape[1:])
         groups[G_UPDATED] = xr.Dataset(
-            {nm: (("chain", "draw", "specimen"), h.updated[None, :, :, i]) for i, nm in enumerate(h.param_names)},
-            coords={"chain": [0], "draw": np.arange(m), "specimen": list(h.specimen_ids)})
+            {nm: (("chain", "draw", "specimen"), up[..., i]) for i, nm in enumerate(h.param_names)},
+            coords={"chain": np.arange(uc), "draw": np.arange(m // uc), "specimen": list(h.specimen_ids)})
     if h.new_specimen is not None:
         m = h.new_specimen.shape[0]
         groups[G_NEW] = annotate(xr.Dataset({nm: (("chain", "draw"), h.new_specimen[None, :, i])
@@ -113,10 +126,12 @@ def write_hierarchical(h: HierarchicalFile, path: str | os.PathLike) -> Path:
                                                                     for k, v in h.reuse.items()})})
     if h.groups is not None:
         groups[G_GROUPS] = _groups_dataset(h.groups, h.specimen_ids)
-    root = xr.Dataset(attrs={"param_names": _dumps(list(h.param_names)),
-                             "pooled_names": _dumps(list(h.pooled_names or h.param_names)),
-                             "specimen_ids": _dumps(list(h.specimen_ids)),
-                             "extra": _dumps(h.attrs), "hbm_version": __version__, "complete": 0})
+    root_attrs = {"param_names": _dumps(list(h.param_names)), "pooled_names": _dumps(list(h.pooled_names or h.param_names)),
+                  "specimen_ids": _dumps(list(h.specimen_ids)), "extra": _dumps(h.attrs), "hbm_version": __version__,
+                  "complete": 0}
+    if h.evaluations is not None:
+        root_attrs["evaluations"] = int(h.evaluations)
+    root = xr.Dataset(attrs=root_attrs)
     tree = xr.DataTree.from_dict({"/": root, **groups})
     return _write_tree(tree, path, h.complete)
 
@@ -134,7 +149,9 @@ def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
                          hyper_samples=np.stack([post[v].values.reshape(-1) for v in hn], axis=1),
                          specimen_ids=ids, attrs=json.loads(tree.attrs.get("extra", "{}")),
                          complete=int(tree.attrs.get("complete", 0)) == 1,
-                         pooled_names=json.loads(tree.attrs.get("pooled_names", "[]")) or list(params))
+                         pooled_names=json.loads(tree.attrs.get("pooled_names", "[]")) or list(params),
+                         chains=int(post.sizes.get("chain", 1)),
+                         evaluations=int(tree.attrs["evaluations"]) if "evaluations" in tree.attrs else None)
     stats = _ds(tree, G_STATS)
     if stats is not None:
         h.log_evidence = float(stats["log_marginal_likelihood"].values[0])
@@ -142,10 +159,10 @@ def read_hierarchical(path: str | os.PathLike) -> HierarchicalFile:
         h.stages = _read_stage_stats(stats)
     up = _ds(tree, G_UPDATED)
     if up is not None:
-        h.updated = np.stack([up[nm].values[0] for nm in params], axis=-1)
+        h.updated = np.stack([up[nm].values.reshape(-1, len(ids)) for nm in params], axis=-1)
     new = _ds(tree, G_NEW)
     if new is not None:
-        h.new_specimen = np.stack([new[nm].values[0] for nm in h.pooled_names], axis=-1)
+        h.new_specimen = np.stack([new[nm].values.reshape(-1) for nm in h.pooled_names], axis=-1)
     diag = _ds(tree, G_DIAG)
     if diag is not None:
         if "importance_ess" in diag:

@@ -36,10 +36,12 @@ from typing import Mapping
 
 import numpy as np
 
+from ..data.reduction import bin_counts
 from ..data.specimen import Specimen, as_specimen
 from ..errors import DataError, HbmError
 from ..model.core import Model
 from ..model.spyrou import compression_check, model_form
+from .binned import BinnedNoise
 from .noise import NoiseModel, eq120_weights, get_noise, noise_model_names
 from .prior import Prior, PriorError, load_prior
 
@@ -117,6 +119,10 @@ class Likelihood:
         if not np.all(self.weights > 0):
             raise DataError(f"{self.label}: stress is identically zero; the weights of eq. 1.20 are undefined")
         self.noise_model: NoiseModel = noise_cls(observed=stress, history_starts=self.loading.history_starts)
+        counts = bin_counts(data)
+        if counts is not None:
+            # a reduced dense record: each point is a bin mean of ``counts`` readings (hbm.data.reduction)
+            self.noise_model = BinnedNoise(self.noise_model, counts)
 
         names = model.parameter_names
         box = model.bounds.copy()

@@ -85,6 +85,8 @@ class NoiseModel:
         Names of the noise parameters, in column order of ``q`` (class attribute).
     needs_model_stress : bool
         Whether :meth:`sd` depends on the model stress (class attribute).
+    robust : bool
+        Heavy-tailed, so robust to artefact rows (class attribute; :mod:`hbm.likelihood.student_t`).
     observed : ndarray or None
     history_starts : ndarray of bool
     n_points : int
@@ -93,6 +95,7 @@ class NoiseModel:
     name: ClassVar[str] = ""
     names: ClassVar[tuple[str, ...]] = ()
     needs_model_stress: ClassVar[bool] = False
+    robust: ClassVar[bool] = False  # heavy-tailed: robust to artefact rows (kept, down-weighted)
 
     def __init__(self, *, observed=None, history_starts=None) -> None:
         if observed is None and history_starts is None:
@@ -177,6 +180,11 @@ class NoiseModel:
     def variance(self, q, model_stress: np.ndarray | None = None) -> np.ndarray:
         """Marginal variance per point (n, n_points) (default ``sd²``)."""
         return self.sd(q, model_stress) ** 2
+
+    def effective_sd(self, q, residual, model_stress: np.ndarray | None = None) -> np.ndarray:
+        """The sd of a point's weight at this residual (n, n_points): the marginal sd, larger for an
+        outlier of a :attr:`robust` model (its IRLS weight; the detective's windows and screens)."""
+        return self.sd(q, model_stress)
 
     def autocorrelation(self, q, lag) -> np.ndarray:
         """Correlation of the noise at points ``lag`` apart within one history (standardised).

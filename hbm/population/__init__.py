@@ -2,16 +2,22 @@
 
 :func:`run_population` takes the specimens' stage-1 results (:class:`hbm.io.SpecimenResult`,
 from :func:`hbm.fit.fit_specimen` or ``<out>/specimens/*.nc``), their datasets and the model,
-and fits :func:`hbm.samplers.hierarchical.hierarchical` on the model parameters, reusing the
+and samples the joint posterior of the population and every specimen with its real likelihood
+(:mod:`.layer`, the default ``exact="gibbs"``: batched Metropolis-within-Gibbs,
+:func:`hbm.samplers.hierarchical.batched_gibbs`), or — without the datasets, with groups, or with
+``exact=None`` — fits :func:`hbm.samplers.hierarchical.hierarchical` over the population reusing the
 stage-1 samples; the result goes to ``<out>/hierarchical.nc``.  It is phase 2 of ``hbm run``
-(:mod:`hbm.workflow`) and runs without dask; a dask client, when given, only runs the fresh
-TMCMC refinements of collapsed specimens in parallel.  By concept:
+(:mod:`hbm.workflow`); with a dask client of two workers or more the joint sampler's shards of
+specimens run on them (the draws are the same), and the reuse layer's fresh TMCMC refinements of
+collapsed specimens run as tasks.  By concept:
 
 * :mod:`.config` -- :class:`PopulationConfig` (``sampler_options`` reaches every TMCMC run of
   the layer) and the defaults;
 * :mod:`.pooling` -- the stage-1 data packed once and the pooling strategies as objects;
-* :mod:`.fallbacks` -- the exact Gibbs fallback and the fresh TMCMC refinements;
-* :mod:`.driver` -- the one driver: pool → fit → flag → fallback → new-specimen draw → write.
+* :mod:`.batch`, :mod:`.layer` -- the specimens' likelihoods a shard at a time and the joint sampler;
+* :mod:`.fallbacks` -- the reuse layer's fresh TMCMC refinements;
+* :mod:`.driver` -- the one driver: pool → sample (joint, or reuse + refinements) → new-specimen draw
+  → write.
 
 Pooling (``PopulationConfig.pooled``): "combinations" (a population over log G, log c·P1,
 log (1−c)·T1, T2, THETA — what a uniaxial curve identifies — with the exact stage-1 prior
@@ -25,12 +31,13 @@ population → group → specimen layer (:func:`hbm.samplers.hierarchical.groupe
 the same transformed coordinates and with every pooling mode; its group-level draws go to
 ``hierarchical.nc`` too.  Without groups the two-level layer runs.
 
-Reuse diagnostics (issue 15): per specimen PSIS k̂ and the mass beyond the stage-1 samples
-(:func:`~hbm.samplers.hierarchical.reuse_diagnostics`, in ``hierarchical.nc`` and the report); a
-specimen flagged unreliable, or whose ESS collapsed, goes to a fallback (:mod:`.fallbacks`).
+Reuse diagnostics (issue 15, the reuse layer only): per specimen PSIS k̂ and the mass beyond the
+stage-1 samples (:func:`~hbm.samplers.hierarchical.reuse_diagnostics`, in ``hierarchical.nc`` and the
+report); a specimen flagged unreliable, or whose ESS collapsed, gets a fresh TMCMC run (:mod:`.fallbacks`).
 
-Seeds: the streams ``hierarchical`` (``grouped`` with groups), ``new_specimen``, ``refine`` k and
-``joint`` of :mod:`hbm.runtime.seeds`.
+Seeds: the streams ``layer`` and ``layer_specimen`` k of the joint sampler; ``hierarchical``
+(``grouped`` with groups), ``refine`` k of the reuse layer; ``new_specimen`` of
+:mod:`hbm.runtime.seeds`.
 """
 
 from .config import (

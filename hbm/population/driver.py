@@ -1,4 +1,4 @@
-"""The population layer's one driver: pool → fit → flag → fallback → new-specimen draw → write."""
+"""The population layer's one driver: pool → sample (joint, or reuse + refinements) → new-specimen draw → write."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ from ..model import spyrou_model
 from ..samplers.hierarchical import GroupedResult, grouped_hierarchical, hierarchical
 from ..runtime.progress import log_progress as _log
 from .config import PopulationConfig
-from .fallbacks import exact_applies, exact_gibbs, refine_collapsed, to_refine
+from .fallbacks import refine_collapsed, to_refine
+from .layer import sample_layer
 from .pooling import Layout, pack_results, pooling_strategy
 
 __all__ = ["run_population"]
@@ -32,8 +33,8 @@ def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping |
     results : mapping of specimen id -> SpecimenResult
         Stage-1 results, all fitted with the same parameters and prior boxes.
     datasets : mapping of specimen id -> Specimen (or xarray.Dataset), optional
-        The specimens' data (Datasets are converted once); needed only when a specimen's reused samples are unreliable (its
-        updated posterior then comes from the exact fallback or a fresh TMCMC run).
+        The specimens' data (Datasets are converted once): the joint sampler (the default) needs them;
+        without them the layer reuses the stage-1 samples (:func:`joint_applies`).
     model : Model, optional
         The stage-1 model; default :func:`hbm.spyrou_model`.
     config : PopulationConfig, optional
@@ -41,7 +42,8 @@ def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping |
     out : path, optional
         Folder of ``hierarchical.nc``; None: nothing is written.
     client : distributed.Client, optional
-        Run the refinements of collapsed specimens as dask tasks; None: in this process.
+        Run the joint sampler's shards as dask actors (when there are at least two) or the refinements
+        of collapsed specimens as dask tasks; None: in this process.  The draws do not depend on it.
 
     Returns
     -------
@@ -63,24 +65,52 @@ def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping |
     data = pack_results(results, model, cfg)
     strategy = pooling_strategy(cfg.pooled, data)
     layout = strategy.layout(data, cfg)
-    h, warn_msgs = _fit(cfg, layout, data.log_likelihood)
+    out = None if out is None else Path(out)
+    if joint_applies(cfg, datasets, results):
+        draws = sample_layer(cfg, data.results, datasets, model, layout, strategy, client)
+        new, new_names, new_attrs = strategy.new_specimen(draws, cfg)
+        return _write_joint(cfg, draws, out, data.names, new, new_names, {**layout.attrs, **new_attrs},
+                            _bounds(layout))
+    h, warn_msgs = _fit(cfg, layout.with_prior(), data.log_likelihood)
     updated = strategy.updated(h)
     to_fix = to_refine(h, datasets)
-    exact = None
-    exact_ids = exact_applies(cfg, to_fix, datasets, h.specimens)
-    if exact_ids:
-        h, updated, exact = exact_gibbs(cfg, h, exact_ids, results, datasets, model,
-                                        {s: v[0] for s, v in layout.stage1.items()}, layout.log_prior,
-                                        strategy.coords)
-        to_fix = []
-    else:
-        updated.update(refine_collapsed(cfg, h, to_fix, datasets, model, results, client, augment=strategy.augment))
+    updated.update(refine_collapsed(cfg, h, to_fix, datasets, model, results, client, augment=strategy.augment))
     new, new_names, new_attrs = strategy.new_specimen(h, cfg)
-    attrs = {**layout.attrs, **new_attrs,
-             "bounds": {n: list(map(float, layout.bounds[layout.names.index(n)])) for n in layout.pooled},
-             **({"exact": exact} if exact else {})}
-    return _write(cfg, h, None if out is None else Path(out), data.names, updated, new, new_names, warn_msgs, to_fix,
-                  attrs)
+    attrs = {**layout.attrs, **new_attrs, "bounds": _bounds(layout)}
+    return _write(cfg, h, out, data.names, updated, new, new_names, warn_msgs, to_fix, attrs)
+
+
+def joint_applies(cfg: PopulationConfig, datasets, specimens) -> bool:
+    """Whether the joint sampler runs (``exact="gibbs"``, a two-level layer, every dataset at hand); the
+    reuse layer otherwise (a warning says why when the datasets are missing)."""
+    if cfg.exact != "gibbs" or cfg.groups:
+        return False
+    missing = [sid for sid in specimens if datasets is None or sid not in datasets]
+    if missing:
+        _log(f"population layer: no dataset for {', '.join(sorted(missing))}: TMCMC over the population reusing "
+             "the stage-1 samples instead of the joint sampler (pass datasets=...)", cfg.progress)
+        return False
+    return True
+
+
+def _bounds(layout: Layout) -> dict:
+    return {n: list(map(float, layout.bounds[layout.names.index(n)])) for n in layout.pooled}
+
+
+def _write_joint(cfg: PopulationConfig, draws, out: Path | None, names: Sequence[str], new_specimen: np.ndarray,
+                 pooled_names: Sequence[str], attrs: dict, bounds: dict):
+    """The HierarchicalFile of the joint sampler, written to ``<out>/hierarchical.nc`` unless ``out`` is None."""
+    info = draws.info
+    attrs.update({"bounds": bounds, "layer": info, "warnings": list(info.get("warnings", [])),
+                  "evaluations": int(info["evaluations"]), "refined": [],
+                  "hyperprior": {"mu": "uniform on transformed box",
+                                 "sd": f"loguniform on {tuple(cfg.sd_range)} x mu range"}})
+    hf = io.HierarchicalFile(param_names=list(names), hyper_names=list(draws.hyper_names),
+                             hyper_samples=np.asarray(draws.hyper), specimen_ids=list(draws.specimens),
+                             updated=np.stack([draws.updated[s] for s in draws.specimens], axis=1),
+                             new_specimen=np.asarray(new_specimen), attrs=attrs, pooled_names=list(pooled_names),
+                             chains=int(draws.chains), evaluations=int(info["evaluations"]))
+    return hf, (io.write_hierarchical(hf, out / "hierarchical.nc") if out is not None else None)
 
 
 def _unique(msgs: Sequence[str]) -> list[str]:
@@ -133,7 +163,7 @@ def _write(cfg: PopulationConfig, h, out: Path | None, names: Sequence[str], upd
            attrs: dict):
     """The HierarchicalFile of a hierarchical result, written to ``<out>/hierarchical.nc`` unless ``out`` is
     None; ``attrs``: the pooling strategy's own attributes."""
-    attrs.update({"estimator": cfg.estimator, "log_evidence_parts": h.log_evidence_parts,
+    attrs.update({"method": "reuse", "estimator": cfg.estimator, "log_evidence_parts": h.log_evidence_parts,
                   "warnings": list(warn_msgs), "refined": list(refined), "ess_summary": h.ess_summary,
                   "hyperprior": {"mu": "uniform on transformed box",
                                  "sd": f"loguniform on {tuple(cfg.sd_range)} x mu range"}})

@@ -17,8 +17,9 @@ Parameter names, transforms and roles come from the model's spec (:mod:`hbm.mode
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -119,8 +120,9 @@ class Layout:
 
     ``names``/``bounds``: the layer's columns and box (the stage-1 columns, plus derived ones);
     ``stage1``: specimen -> (rows, log Z, SE); ``log_prior``: the stage-1 prior log density of the
-    pooled columns of every row (None: the uniform box); ``attrs``: what ``hierarchical.nc`` records
-    about the choice (``transforms``, ``pooled``, ``pool_reasons``, ``mode``).
+    pooled columns of every row (None: the uniform box, or not computed yet: ``prior`` computes it,
+    :meth:`with_prior`); ``attrs``: what ``hierarchical.nc`` records about the choice
+    (``transforms``, ``pooled``, ``pool_reasons``, ``mode``).
     """
 
     names: list
@@ -130,6 +132,14 @@ class Layout:
     stage1: dict
     log_prior: dict | None
     attrs: dict
+    prior: Callable[[], dict] | None = None
+
+    def with_prior(self) -> "Layout":
+        """The layout with ``log_prior`` computed (the reuse layer needs it; the joint sampler does not:
+        the exact density of the combinations costs ~30 µs per stage-1 row)."""
+        if self.prior is None:
+            return self
+        return dataclasses.replace(self, log_prior=self.prior(), prior=None)
 
 
 def pooling_strategy(pooled, data: Stage1Data):
@@ -297,11 +307,13 @@ class CombinationPooling:
         choice = auto_pool(data.samples(), names, bounds, data.transforms, candidates=model_names)
         self.extra = extra = [n for n in model_names if n in spec.shape_parameters
                               and (n not in spec.pooled_when_informed or n in choice.pooled)]
-        feats = {sid: combination_features(names, r.samples, bounds, roles=roles) for sid, r in data.results.items()}
+        # φ of every stage-1 row; its prior density only when the reuse layer asks (the joint sampler does not)
+        phis = {sid: combination_features(names, r.samples, bounds, roles=roles, density=False)[0]
+                for sid, r in data.results.items()}
         # box of the φ columns: the support hull of the combinations (a zero lower end, an amplitude from 0,
         # is floored; widened if a sample lies below the floor so every sample is inside)
         hull = np.log(support_hull(bounds, names, roles=roles))
-        allphi = np.concatenate([f[0] for f in feats.values()])
+        allphi = np.concatenate(list(phis.values()))
         hull[:, 0] = np.minimum(hull[:, 0], allphi.min(axis=0) - 1e-9)
         hull[:, 1] = np.maximum(hull[:, 1], allphi.max(axis=0) + 1e-9)
         columns = list(combination_columns(roles))
@@ -319,9 +331,14 @@ class CombinationPooling:
         self.names, self.bounds, self.model_names, self.roles = list(names), bounds, list(model_names), roles
         self.augment = CombinationAugment(names, bounds, log_u, roles)
         self.coords = PhiCoordinates(names, bounds, hull, log_u, roles)
-        return Layout(aug_names, aug_bounds, tr, pooled, data.stage1({sid: f[0] for sid, f in feats.items()}),
-                      {sid: feats[sid][1] + log_u for sid in data.results},
-                      {"transforms": tr, "pooled": pooled, "pool_reasons": reasons, "mode": POOL_COMBINATIONS})
+        cbox = combination_box(bounds, names, roles=roles)
+
+        def prior() -> dict:  # p0(φ) × the uniform densities of the other pooled columns, per stage-1 row
+            return {sid: log_density(phis[sid], cbox) + log_u for sid in data.results}
+
+        return Layout(aug_names, aug_bounds, tr, pooled, data.stage1(phis), None,
+                      {"transforms": tr, "pooled": pooled, "pool_reasons": reasons, "mode": POOL_COMBINATIONS},
+                      prior=prior)
 
     def updated(self, h) -> dict[str, np.ndarray]:
         """The updated individuals' stage-1 columns (the φ columns dropped)."""

@@ -20,7 +20,6 @@ import contextlib
 import logging
 import os
 import re
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Mapping
@@ -30,6 +29,7 @@ import numpy as np
 from . import seeds
 from .dask_worker import drop_dask_unraisables
 from .blas import BLAS_ENV, single_thread_env
+from .progress import progress_bar
 from ..errors import HbmError, OutputError, OutputLockedError
 from ..samplers.checkpoint import checkpoint_progress
 from ..settings.rules import check_workers
@@ -316,8 +316,7 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
     t0 = time.perf_counter()
     bar = None
     if progress and order:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=len(order), desc=prefix, unit="specimen", file=sys.stderr)
+        bar = progress_bar(len(order), prefix, unit="specimen")
     try:
         if client is None:
             for sid in order:

@@ -2,10 +2,11 @@
 
 Imported by ``hbm/__init__.py`` before numpy, scipy and xarray (this module imports only the
 standard library).  In the command's own process, Ctrl-C during the package's imports prints
-``hbm: interrupted`` and exits 130; ``restore_sigint()`` ends that once the imports are done
-(from then on :func:`hbm.cli.main` turns Ctrl-C into that line).  In the dask worker processes
-the command spawns, Ctrl-C is ignored: the command shuts them down.  Any other process that
-imports hbm (a script, a notebook) is left alone.
+``hbm: interrupted`` and exits 130; :func:`hbm.cli.main` ends that with ``restore_sigint()`` once it
+has imported the invoked command's module, and turns Ctrl-C into that line itself from then on (the
+package imports little and the command's module loads inside ``main``: the guard covers them all).  In the dask
+worker processes the command spawns, Ctrl-C is ignored: the command shuts them down.  Any other
+process that imports hbm (a script, a notebook) is left alone.
 """
 
 from __future__ import annotations

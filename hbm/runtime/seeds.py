@@ -19,8 +19,14 @@ stream                     spawn key                 draws
 ``reference`` k            ``(10001, k)``            defensive reference draws of specimen k for the
                                                      population layer (hbm.population)
 ``joint``                  ``(10002,)``              the exact fallback of the population layer
-                                                     (joint Metropolis-within-Gibbs): child 0
-                                                     starting points, 1 sampler, 2 θ given φ
+                                                     before issue 37 (retired; its key stays taken)
+``layer``                  ``(10003,)``              the population sampler (hbm.population.layer):
+                                                     child 0 starting population, 1 ψ moves, 2
+                                                     amplitude moves, 3 non-centred moves, 4 θ
+                                                     given φ of the output, 5 new-specimen draws
+``layer_specimen`` k       ``(10004, k)``            specimen k in the population sampler: child 0
+                                                     its proposal fit, 1 its moves, 2 its chains'
+                                                     starting rows
 ``organ_posterior`` k      ``(20000, 0, k)``         organ bands: subsample of specimen k's posterior
 ``organ_updated`` k        ``(20000, 1, k)``         organ bands: subsample of k's updated draws
 ``organ_new_specimen``     ``(20000, 2)``            organ bands: population-predictive draws
@@ -77,6 +83,8 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "refine": lambda k: (_HIER, 1 + int(k)),
     "reference": lambda k: (_HIER + 1, int(k)),
     "joint": lambda: (_HIER + 2,),
+    "layer": lambda: (_HIER + 3,),
+    "layer_specimen": lambda k: (_HIER + 4, int(k)),
     "organ_posterior": lambda k: (_ORGAN, 0, int(k)),
     "organ_updated": lambda k: (_ORGAN, 1, int(k)),
     "organ_new_specimen": lambda: (_ORGAN, 2),
@@ -150,9 +158,10 @@ def run_keys(n_specimens: int) -> dict[tuple[int, ...], str]:
         named += [(f"specimen {k} {p}", STREAMS["specimen"](k) + (j,)) for j, p in enumerate(PHASES)]
         named.append((f"refine {k}", STREAMS["refine"](k)))
         named.append((f"reference {k}", STREAMS["reference"](k)))
+        named.append((f"layer_specimen {k}", STREAMS["layer_specimen"](k)))
         named.append((f"organ_posterior {k}", STREAMS["organ_posterior"](k)))
         named.append((f"organ_updated {k}", STREAMS["organ_updated"](k)))
-    for name in ("hierarchical", "new_specimen", "organ_new_specimen", "grouped", "joint"):
+    for name in ("hierarchical", "new_specimen", "organ_new_specimen", "grouped", "joint", "layer"):
         named.append((name, STREAMS[name]()))
     out: dict[tuple[int, ...], str] = {}
     for name, key in named:

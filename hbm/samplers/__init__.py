@@ -11,10 +11,15 @@ fitted to posterior draws, by weighted EM there and by k-means in the hierarchic
 ``hbm.tmcmc``).
 """
 
-from .checkpoint import checkpoint_progress
-from .moves import MOVES, LocalWalk, Manifold, Move, RandomWalk, register_move
-from .tmcmc import init, step
-from .types import DEFAULT_N_SAMPLES, StageInfo, TMCMCConfig, TMCMCResult, TMCMCState
+from ..runtime.lazy import attach
+
+# a module that needs only the types (hbm.io) does not load the sampler and scipy (hbm.runtime.lazy)
+__getattr__, __dir__ = attach(__name__, {
+    ".checkpoint": ["checkpoint_progress"],
+    ".moves": ["MOVES", "LocalWalk", "Manifold", "Move", "RandomWalk", "register_move"],
+    ".tmcmc": ["init", "step"],
+    ".types": ["DEFAULT_N_SAMPLES", "StageInfo", "TMCMCConfig", "TMCMCResult", "TMCMCState"],
+})
 
 __all__ = ["DEFAULT_N_SAMPLES", "StageInfo", "TMCMCConfig", "TMCMCResult", "TMCMCState", "checkpoint_progress",
            "init", "step", "MOVES", "Move", "RandomWalk", "Manifold", "LocalWalk", "register_move"]

@@ -8,11 +8,10 @@ its mixture's density:
   weighted EM with soft responsibilities (:func:`weighted_em`) and are then used as heavy-tailed
   t components beside a defensive one (:class:`TMixture`), since the evidence needs a proposal
   whose tails are wider than the target's;
-* the exact hierarchical fallback (:mod:`hbm.samplers.hierarchical.chain_states`) fits its
+* the population layer's joint sampler (:mod:`hbm.samplers.hierarchical.shards`) fits its
   independence proposal once to a specimen's equally weighted stage-1 rows: hard k-means clusters
   (:func:`kmeans_mixture`, whitened Lloyd iterations; clusters too small for a covariance are
-  dropped) with Gaussian components, whose density (:func:`gaussian_mixture_logpdf`, all
-  components in one batch) and component choice (:func:`pick`) run several times per sweep.
+  dropped) with Gaussian components, evaluated every sweep for all specimens at once.
 
 Why two fitters: one cannot serve both callers without changing what either produces.  EM needs
 the weights and a component density for its responsibilities, k-means needs neither; they seed
@@ -32,7 +31,7 @@ from scipy.special import gammaln, logsumexp
 
 from .linalg import safe_cholesky
 
-__all__ = ["TMixture", "weighted_moments", "weighted_em", "kmeans_mixture", "gaussian_mixture_logpdf", "pick"]
+__all__ = ["TMixture", "weighted_moments", "weighted_em", "kmeans_mixture"]
 
 
 # -- t components by weighted EM (the importance finish) --------------------------------------------
@@ -139,21 +138,3 @@ def kmeans_mixture(rows: np.ndarray, n_components: int, inflate: float, rng: np.
     L = np.stack([safe_cholesky(np.cov(rows[lab == m], rowvar=False).reshape(d, d)) * inflate for m in keep])
     logdet = np.sum(np.log(np.diagonal(L, axis1=1, axis2=2)), axis=1)
     return logw - np.log(np.exp(logw).sum()), mu, L, logdet
-
-
-def gaussian_mixture_logpdf(y: np.ndarray, mix) -> np.ndarray:
-    """log density at the rows of ``y`` of a Gaussian mixture ``mix`` as :func:`kmeans_mixture` returns it."""
-    logw, mu, L, logdet = mix
-    # all components at once (one batched inverse of the few small factors instead of a solve
-    # per component: this runs several times per sweep, so numpy call overhead dominates)
-    a = np.einsum("mij,mnj->nmi", np.linalg.inv(L), y[None, :, :] - mu[:, None, :])
-    terms = logw - 0.5 * np.einsum("nmi,nmi->nm", a, a) - logdet
-    mx = terms.max(axis=1)
-    return mx + np.log(np.exp(terms - mx[:, None]).sum(axis=1)) - 0.5 * y.shape[1] * np.log(2 * np.pi)
-
-
-def pick(logp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One index per row of ``logp`` (n, M), drawn with probabilities ∝ exp(logp) (inverse CDF)."""
-    w = np.exp(logp - logp.max(axis=1, keepdims=True))
-    cw = np.cumsum(w, axis=1)
-    return np.minimum((cw < (rng.random(logp.shape[0]) * cw[:, -1])[:, None]).sum(axis=1), logp.shape[1] - 1)

@@ -28,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -39,6 +38,7 @@ from scipy.optimize import brentq
 from scipy.special import logsumexp
 
 from ..errors import HbmError
+from ..runtime.progress import progress_bar
 from .chains import ISLAND_NOTE, Chains, block_chains
 from .checkpoint import checkpoint_progress, fingerprint, load_checkpoint, save_checkpoint
 from .coordinates import Bijection, BoxCoordinates, LogitCoordinates, check_bounds, log_likelihood_of
@@ -504,9 +504,9 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
 
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=1000, file=sys.stderr, desc="tmcmc", unit="‰β", leave=False,
-                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {postfix}")
+        # a tqdm bar on a terminal, one line per stage in a log (hbm.runtime.progress)
+        bar = progress_bar(1000, "tmcmc", unit="‰β", leave=False,
+                           bar_format="{desc}: {percentage:3.0f}%|{bar}| {postfix}")
         bar.update(int(1000 * state.beta))
     try:
         while state.beta < 1.0:
@@ -515,10 +515,10 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
             if path is not None:
                 save_checkpoint(path, state, stages, fp, settings)
             if bar is not None:
-                bar.update(int(1000 * state.beta) - bar.n)
                 bar.set_postfix_str(f"stage {state.stage} β={state.beta:.3g} "
                                     f"logZ={state.log_evidence:.2f} acc={info.acceptance_rate:.2f} "
                                     f"steps={info.n_steps}")
+                bar.update(int(1000 * state.beta) - bar.n)
     finally:
         if bar is not None:
             bar.close()

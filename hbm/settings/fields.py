@@ -56,6 +56,8 @@ class Setting:
     omit_default : bool
         Stored (:meth:`Settings.to_attrs`) only when not at its default, so files of runs that do not
         use a setting added later stay byte for byte what they were.
+    const : object or None
+        A switch: the flag takes no value and sets this one (``--drop-artefacts`` -> ``"drop"``).
     """
 
     help: str
@@ -67,14 +69,16 @@ class Setting:
     aliases: tuple[str, ...] = ()
     old_names: tuple[str, ...] = ()
     omit_default: bool = False
+    const: Any = None
 
 
 def setting(default: Any = None, *, help: str, rule: Rule | None = None, flag: str | None = None,  # noqa: A002
             metavar: str | None = None, stored: str | None = None, keyed: bool = True,
-            aliases: tuple[str, ...] = (), old_names: tuple[str, ...] = (), omit_default: bool = False):
+            aliases: tuple[str, ...] = (), old_names: tuple[str, ...] = (), omit_default: bool = False,
+            const: Any = None):
     """A field of a settings record (a ``dataclasses.field`` carrying its :class:`Setting`)."""
     meta = {"setting": Setting(help, rule, flag, metavar, stored, keyed, tuple(aliases), tuple(old_names),
-                               omit_default)}
+                               omit_default, const)}
     if isinstance(default, (dict, list)):
         return field(default_factory=lambda: type(default)(default), metadata=meta)
     return field(default=default, metadata=meta)
@@ -277,6 +281,9 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type[Settings], names: I
         default = (defaults or {}).get(name, cls.default(name))
         text = (helps or {}).get(name) or s.help.replace("{default}", str(default))
         kw: dict[str, Any] = {"dest": name, "default": default, "help": text}
+        if s.const is not None:   # a switch: no value on the command line
+            parser.add_argument(s.flag, action="store_const", const=s.const, **kw)
+            continue
         if isinstance(s.rule, ChoiceRule):
             kw["choices"] = s.rule.choices
             if refuse and name in refuse:

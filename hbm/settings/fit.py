@@ -40,6 +40,9 @@ def registry(module: str, attribute: str):
 #: the moves of :data:`hbm.samplers.moves.MOVES`, the noise models of :mod:`hbm.likelihood.noise`
 #: and the likelihood tiers of :data:`hbm.likelihood.collapsed.TIERS`
 MOVE_RULE = ChoiceRule(registry("hbm.samplers.moves", "MOVES"), "TMCMC move")
+#: what a fit does to a raw record first (:mod:`hbm.data.prepare`): reduce a dense one, drop artefact rows
+REDUCE_RULE = ChoiceRule(registry("hbm.data.prepare", "REDUCE_CHOICES"), "record reduction")
+ARTEFACT_RULE = ChoiceRule(registry("hbm.data.prepare", "ARTEFACT_CHOICES"), "artefact handling")
 NOISE_RULE = ChoiceRule(registry("hbm.likelihood.noise", "noise_model_names"), "noise model")
 TIER_RULE = ChoiceRule(registry("hbm.likelihood.collapsed.likelihood", "TIERS"), "likelihood tier")
 
@@ -155,6 +158,15 @@ class FitSettings(Settings):
                                                "no cap); a binding cap gives a cruder posterior and evidence, flagged "
                                                "in the result")
     prior: Any = setting(None, help="user prior (hbm.likelihood.prior.Prior, TOML path or mapping)")
+    # (None = unset: "auto" / "flag"; an unset one leaves the result's key and config as they were before it existed)
+    reduce: str | None = setting(None, rule=REDUCE_RULE, flag="--reduce", omit_default=True,
+                                 help="auto (default): a dense record (more rows than hbm.data.reduction.DENSE_POINTS) is fitted as bin means of its readings, "
+                                      "each with its variance (the cost of its information, not of its sampling rate; "
+                                      "said in the first output line); off: every row (hbm.data.reduction)")
+    artefacts: str | None = setting(None, rule=ARTEFACT_RULE, flag="--drop-artefacts", const="drop", omit_default=True,
+                                    help="drop the rows the artefact screen flags (pre-test readings, spikes, dropouts, "
+                                         "dips during holds, post-failure tails; listed by 'hbm data check'), recorded "
+                                         "in the result (Python: artefacts='drop'; default 'flag': named and kept)")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -264,6 +276,9 @@ class FitRecord:
                 out[key] = list(value) if name == "seed_spawn_key" else value
         if s.prior is not None:
             out["prior"] = s.prior.to_dict() if hasattr(s.prior, "to_dict") else s.prior
+        for name in ("reduce", "artefacts"):   # only when set: older results stay what they were
+            if getattr(s, name) is not None:
+                out[name] = getattr(s, name)
         out.update(dict(self.extra))
         return out
 
@@ -282,10 +297,10 @@ class FitRecord:
             sweep=tuple(c["sweep"]) if c.get("sweep") else None, sobol_n=c.get("sobol_n") or None,
             maxfevals=maxfevals, optimize_options=cma or None,
             sigma_bounds=tuple(c["sigma_bounds"]) if c.get("sigma_bounds") else None, tmcmc_options=opts or None,
-            max_evaluations=budget, prior=c.get("prior"))
+            max_evaluations=budget, prior=c.get("prior"), reduce=c.get("reduce"), artefacts=c.get("artefacts"))
         known = set(cls.OUTCOMES.values()) | {"samples", "kernel", "noise", "fix", "bounds", "restarts", "sweep",
                                                "sobol_n", "optimize_options", "sigma_bounds", "tmcmc_options",
-                                               "prior"}
+                                               "prior", "reduce", "artefacts"}
         outcome = {name: c[key] for name, key in cls.OUTCOMES.items() if key in c}
         if "seed_spawn_key" in outcome:
             outcome["seed_spawn_key"] = tuple(outcome["seed_spawn_key"])

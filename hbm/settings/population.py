@@ -24,7 +24,7 @@ POOL_INFORMED = "informed"
 #: list of model parameters
 POOL_MODES = ("auto", POOL_COMBINATIONS, POOL_INFORMED, "all")
 
-_EXACT = ChoiceRule(lambda: ("gibbs",), "exact fallback (or None)")
+_EXACT = ChoiceRule(lambda: ("gibbs",), "joint sampler (or None)")
 _ESTIMATOR = ChoiceRule(lambda: ("raw", "kernel"), "importance estimator")
 
 
@@ -40,8 +40,8 @@ class PopulationSettings(Settings):
     pooled : str, list of str or None
         "auto", "combinations", "informed", "all" or parameter names (:mod:`hbm.population`).
     samples : int
-        Hyper-posterior draws (TMCMC population of the layer).  When the exact fallback runs,
-        the layer's draws are all its chains × kept draws, at least ``samples``.
+        Hyper-posterior draws: of the joint sampler (all its chains × kept draws, at least
+        ``samples``), or the TMCMC population of the reuse layer.
     max_steps : int
         MH steps per TMCMC stage of the layer and of the refinements.
     sampler_options : dict, optional
@@ -68,25 +68,15 @@ class PopulationSettings(Settings):
     group_by : str, optional
         The metadata key the groups come from (``group``, ``species`` ...), for the report's words.
     exact : str or None
-        "gibbs" (default): when a specimen's reuse is flagged unreliable (or its ESS collapsed),
-        sample the joint posterior of (population, specimens) by Metropolis-within-Gibbs
-        (:func:`hbm.samplers.hierarchical.joint_gibbs`): flagged specimens with their real
-        likelihoods, the others by their reweighted stage-1 samples; its hyper-posterior and
-        updated individuals replace the reuse ones (:func:`hbm.population.fallbacks.exact_gibbs`;
-        needs the datasets; two-level layer only).  On the gold benchmark it brings every
-        hyper-parameter median within 0.05 and every 5/95 % quantile within 0.21 NUTS sd (reuse:
-        0.41 / 1.21) at max R-hat <= 1.048 (results/benchmarks/hierarchical_gold.md).
-        None: reuse (+ fresh TMCMC refinement of flagged specimens).
-    exact_all : bool
-        With ``exact="gibbs"``, once some specimen is flagged: real likelihoods for every specimen
-        (default; on the gold the unflagged ones' reweighted samples left the medians 0.21 NUTS sd
-        off, real likelihoods 0.19, for +30 % CPU); False: only for the flagged ones.
-    exact_chains, exact_burn, exact_keep, exact_thin : int
-        Chains, adaptive burn-in sweeps, kept draws per chain and sweeps between kept draws.
-    exact_block_rounds : int
-        Cheap rounds per sweep of the amplitude block (:mod:`hbm.population.blocks`: a specimen's
-        linear amplitudes moved given its φ, with the population, at one basis evaluation per
-        sweep); 0: off (the amplitudes move only with the other parameters).
+        "gibbs" (default): the joint posterior of the population and every specimen, each with its real
+        likelihood, by batched Metropolis-within-Gibbs (:mod:`hbm.population.layer`); it needs the
+        datasets and runs for a two-level layer.  None — and without datasets, or with groups —: TMCMC
+        over the population reusing the stage-1 samples (:func:`hbm.samplers.hierarchical.hierarchical`,
+        the hyper-evidence and the reuse diagnostics), specimens whose reuse is unreliable refined by a
+        fresh TMCMC run.
+    layer_chains, layer_burn, layer_keep, layer_thin : int
+        The joint sampler's chains, burn-in rounds, kept draws per chain (at least ``samples`` in all)
+        and rounds per kept draw.
     """
 
     #: settings that left the layer (issue 25: reference rows and the second pass, superseded by the
@@ -115,16 +105,15 @@ class PopulationSettings(Settings):
     progress: bool = setting(True, keyed=False, help="progress lines and bars on stderr")
     groups: dict | None = setting(None, omit_default=True, help="specimen id -> group name: the three-level layer")
     group_by: str | None = setting(None, omit_default=True, help="the metadata key the groups come from")
-    exact: str | None = setting("gibbs", rule=_EXACT, help="exact fallback for flagged specimens (gibbs or None)")
-    exact_all: bool = setting(True, help="real likelihoods for every specimen once one is flagged")
-    exact_chains: int = setting(128, rule=IntRule(4), help="chains of the exact fallback")
-    # gold benchmark with the amplitude block: 400 + 120 x 10 sweeps gave worst median 0.05 / tail 0.21 NUTS sd
-    # (R-hat <= 1.048); 200 + 60 x 10 did not converge (R-hat 1.08-1.10)
-    exact_burn: int = setting(400, rule=NON_NEGATIVE_INT, help="adaptive burn-in sweeps of the exact fallback")
-    exact_keep: int = setting(120, rule=IntRule(4), help="kept draws per chain of the exact fallback")
-    exact_thin: int = setting(10, rule=POSITIVE_INT, help="sweeps between kept draws of the exact fallback")
-    exact_block_rounds: int = setting(4, rule=NON_NEGATIVE_INT,
-                                      help="cheap rounds per sweep of the amplitude block (0: off)")
+    exact: str | None = setting("gibbs", rule=_EXACT, help="the joint sampler of the population and every "
+                                                            "specimen (gibbs), or None: reuse the stage-1 samples")
+    # the shipped six: 6 chains × (300 + 3000 × 2) rounds, 0.68 M model evaluations, every hyper-parameter's
+    # R-hat ≤ 1.01 and bulk ESS ≥ 400 (results/benchmarks/population_layer.md): R-hat needs long chains (its
+    # excess is about the autocorrelation time over the chain's length), so few of them
+    layer_chains: int = setting(6, rule=IntRule(2), help="chains of the joint sampler")
+    layer_burn: int = setting(300, rule=NON_NEGATIVE_INT, help="burn-in rounds of the joint sampler")
+    layer_keep: int = setting(3000, rule=IntRule(4), help="kept draws per chain of the joint sampler")
+    layer_thin: int = setting(2, rule=POSITIVE_INT, help="rounds per kept draw of the joint sampler")
 
     def __post_init__(self) -> None:
         super().__post_init__()

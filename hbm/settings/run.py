@@ -62,15 +62,16 @@ class RunSettings(FitSettings):
     scheduler: str | None = setting(None, keyed=False, help="existing dask scheduler address")
     sobol: bool = setting(True, help="compute Sobol indices (False: skip)")
     hierarchical: bool = setting(True, help="fit the population layer")
-    hier_samples: int = setting(1000, rule=SAMPLE_SIZE, help="TMCMC population over the hyperparameters")
+    hier_samples: int = setting(1000, rule=SAMPLE_SIZE, help="hyper-posterior draws (at least)")
     hier_max_steps: int = setting(25, rule=POSITIVE_INT, help="MH steps per stage of the layer")
     hier_pooled: Any = setting("auto", help="what gets a population distribution")
     hier_estimator: str = setting("raw", rule=ChoiceRule(lambda: ("raw", "kernel"), "importance estimator"),
                                   help="estimator of p(d_i|psi)")
     hier_transforms: dict | None = setting(None, help="population transforms over the model's")
     hier_sd_range: tuple = setting(DEFAULT_SD_RANGE, help="population sd range as a fraction of mu's range")
-    #: exact fallback of the population layer for flagged specimens ("gibbs") or None (reuse + TMCMC refinement)
-    hier_exact: str | None = setting("gibbs", help="exact fallback for flagged specimens (gibbs or None)")
+    #: the population layer: the joint sampler ("gibbs") or None (reuse + TMCMC refinement)
+    hier_exact: str | None = setting("gibbs", help="the joint sampler of the population and every specimen "
+                                                   "(gibbs or None)")
     figures: bool = setting(True, keyed=False, help="draw the figures")
     progress: bool = setting(True, keyed=False, help="progress lines and bars")
     retries: int = setting(1, rule=NON_NEGATIVE_INT, keyed=False, help="dask retries per specimen task")
@@ -123,6 +124,6 @@ class RunSettings(FitSettings):
                                   transforms=self.hier_transforms, sd_range=self.hier_sd_range,
                                   stage1_samples=self.samples, noise=self.noise, fix=self.fix, bounds=self.bounds,
                                   retries=self.retries, progress=self.progress, exact=self.hier_exact,
-                                  # a smoke run: the fallback's chains shorter too (a tenth of the draws kept)
-                                  **({"exact_burn": 200, "exact_keep": 12} if self.quick else {}))
+                                  # a smoke run: the joint sampler's chains shorter too
+                                  **({"layer_burn": 100, "layer_keep": 50} if self.quick else {}))
 

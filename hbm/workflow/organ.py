@@ -37,7 +37,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from .. import io
+from .. import io, plots  # plots.organ (matplotlib) loads when figures are drawn
 from ..runtime import seeds
 from ..effects import REGISTRY, make_effect
 from ..errors import HbmError, HbmWarning
@@ -468,11 +468,9 @@ def predict_organ_results(specimens: Mapping[str, io.SpecimenResult], geometry: 
         out = Path(out)
         if figures:
             t = time.perf_counter()
-            from ..plots.organ import organ_figures  # matplotlib: loaded only when figures are drawn
-
             comparison = {sid: (optima_difference(c["optima"])[0], optima_spread(c["optima"]))
                           for sid, c in organ.curves.items() if "optima" in c and c["optima"].sizes["optimum"] >= 1}
-            pred.figures = organ_figures(organ, out / "figures", optima_specimen=optima_specimen,
+            pred.figures = plots.organ.organ_figures(organ, out / "figures", optima_specimen=optima_specimen,
                                          optima_comparison=comparison)
             timings["figures"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all

@@ -91,9 +91,13 @@ def _timings(wres, base: Path) -> str:
         trow.append((f"{lab} (sum over specimens, in tasks{', as stored' if reused else ''})", t.get(f"{ph}_cpu")))
     hier_label = "hierarchical layer" + ("; reused from an earlier run (unchanged specimens and settings)"
                                          if t.get("hierarchical_reused") else "")
-    trow += [(hier_label, t.get("hierarchical")), ("identifiability + manifolds", t.get("identify")),
+    trow += [(hier_label, t.get("hierarchical"))]
+    if t.get("hierarchical_evaluations") is not None:
+        trow.append(("hierarchical layer: model evaluations (count, not seconds)", t["hierarchical_evaluations"]))
+    trow += [("identifiability + manifolds", t.get("identify")),
              ("figures", t.get("figures")), ("total before report", t.get("total_before_report"))]
-    return "## Timings (seconds)\n\n" + _table(["phase", "s"], [(a, fmt(b, 3)) for a, b in trow])
+    return "## Timings (seconds)\n\n" + _table(["phase", "s"], [(a, f"{b:,}" if isinstance(b, int) else fmt(b, 3))
+                                                               for a, b in trow])
 
 
 def _specimen(wres, sid: str, base: Path) -> str:
@@ -300,8 +304,20 @@ def _population(wres, base: Path) -> str:
 
 
 def _how_sampled(h) -> str:
-    """Where the hyper-posterior and the hyper-evidence come from (the exact fallback replaces the first
-    but does not estimate the second)."""
+    """Where the hyper-posterior and the hyper-evidence come from (the joint sampler, or for files made
+    before issue 37 the exact fallback, replaces the first but does not estimate the second)."""
+    layer = h.attrs.get("layer") or {}
+    if layer:
+        rhat_s = layer.get("rhat_specimen_max")
+        return (f"hyper-posterior and updated individuals by joint sampling of the population and every specimen "
+                f"with its real likelihood (batched Metropolis-within-Gibbs, {layer.get('chains')} chains × "
+                f"{layer.get('n_keep')} kept draws after {layer.get('n_burn')} burn-in rounds; "
+                f"{layer.get('evaluations'):,} model evaluations, {fmt(layer.get('wall_s'), 3)} s). Convergence: "
+                f"max R-hat {fmt(layer.get('rhat_hyper_max'), 4)} and min bulk ESS {fmt(layer.get('ess_hyper_min'), 4)} "
+                f"over the hyper-parameters, max R-hat {fmt(rhat_s, 4)} over the specimens' columns"
+                + (" (**not converged**: see the warnings)" if h.attrs.get("warnings") else "")
+                + ". No hyper-evidence: this sampler does not estimate it (`--hier-exact none`, TMCMC over the "
+                "population reusing the stage-1 samples, does).")
     ev = f"**{h.log_evidence:.3f} ± {h.log_evidence_se:.3f}**"
     if not (h.attrs.get("exact") or {}):
         return f"hyper-posterior by TMCMC reusing the stage-1 samples. Hyper-evidence {ev}."

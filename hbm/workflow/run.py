@@ -34,7 +34,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..io import identity
-from .. import io
+from .. import io, plots  # plots.population/.specimen (matplotlib) load when figures are drawn
 from ..runtime.blas import single_thread_env
 from .._version import __version__
 from ..data import GROUP_KEY, load_specimens, specimen_groups
@@ -259,6 +259,8 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
             _log(f"hierarchical layer over {len(results)} specimens", cfg.progress)
             wres.hierarchical, wres.hierarchical_path = run_population(results, datasets, model, config=pop_cfg,
                                                                        out=out, client=cl)
+            if wres.hierarchical is not None and wres.hierarchical.evaluations is not None:
+                timings["hierarchical_evaluations"] = int(wres.hierarchical.evaluations)  # type: ignore[assignment]
             if wres.hierarchical is not None and wres.hierarchical_path is not None:
                 wres.hierarchical.attrs["content_key"] = hkey
                 io.write_hierarchical(wres.hierarchical, wres.hierarchical_path)
@@ -280,8 +282,6 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
     if cfg.figures and results:
         t = time.perf_counter()
         _log("figures", cfg.progress)
-        from ..plots import population as ppop  # matplotlib: loaded only when figures are drawn
-
         if fig_futures:
             for sid in sorted(fig_futures):
                 try:
@@ -292,7 +292,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
             for sid in sorted(results):
                 wres.figures += [Path(p) for p in _figures_task(str(paths[sid]), str(fig_dir), model)]
         try:
-            wres.figures += ppop.population_figures(results, wres.hierarchical, wres.manifolds, fig_dir)
+            wres.figures += plots.population.population_figures(results, wres.hierarchical, wres.manifolds, fig_dir)
         except Exception as exc:  # a figure must not sink the run
             _log(f"population figures failed: {type(exc).__name__}: {exc}", True)
         timings["figures"] = time.perf_counter() - t
@@ -313,10 +313,8 @@ def _with_groups(pop_cfg: PopulationSettings, cfg: RunSettings, datasets: Mappin
 
 def _figures_task(path: str, fig_dir: str, model=None) -> list[str]:
     """Per-specimen figures from a result file (a dask task: matplotlib runs on the worker)."""
-    from ..plots import specimen as pspec  # matplotlib, on the worker that draws
-
     r = io.read_specimen_result(path)
-    return [str(p) for p in pspec.specimen_figures(r, fig_dir, model=model)]
+    return [str(p) for p in plots.specimen.specimen_figures(r, fig_dir, model=model)]
 
 
 def _fit_one(item, *, seed, model) -> str:

@@ -19,8 +19,9 @@ posterior of (ψ, θ_1..θ_6) with the real likelihoods, 3 chains; first its pyt
 against ``hbm.identifiability.combinations.log_density``.  Cached in ``--cache`` (keyed by the spec).
 
 Variants (``--variant`` label): ``--exact none`` plain reuse (+ fresh TMCMC of flagged specimens), the
-default the exact fallback (joint Metropolis-within-Gibbs, real likelihoods for all specimens once one is
-flagged), ``--exact-all 0`` the fallback with real likelihoods for the flagged specimens only.
+default the joint sampler (batched Metropolis-within-Gibbs, every specimen with its real likelihood, issue
+37; ``--layer-*`` its schedule).  The exact fallback of issues 15/27 that it replaced is at commit 68827b1
+(its variants' records stay in the json).
 
 Output: ``results/benchmarks/hierarchical_gold.md`` and ``.json``: per hyper-parameter the median,
 5 % and 95 % quantiles, layer vs NUTS, differences in NUTS posterior sd; the updated individuals'
@@ -119,12 +120,30 @@ def stage1(datasets: dict, model, cache: Path, samples: int, seed: int) -> dict:
 
 
 def layer(results, datasets, model, seed: int, **cfg) -> tuple:
+    """The layer (written to a scratch file and read back: the ArviZ diagnostics are those of the file)."""
+    import tempfile
+
     t = time.perf_counter()
     c = time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        hf, _ = run_population(results, datasets, model, seed=seed, progress=False, **cfg)
+        with tempfile.TemporaryDirectory() as tmp:
+            _, path = run_population(results, datasets, model, seed=seed, progress=False, out=tmp, **cfg)
+            hf = io.read_hierarchical(path)
+            hf.attrs["arviz"] = _arviz(path)
     return hf, time.perf_counter() - t, time.process_time() - c
+
+
+def _arviz(path) -> dict:
+    """Max R-hat and min bulk ESS over the hyper-parameters, by ArviZ from ``hierarchical.nc``."""
+    try:
+        import arviz as az
+    except ImportError:  # pragma: no cover - a test extra
+        return {}
+    post = az.from_netcdf(path).posterior
+    rhat, ess = az.rhat(post), az.ess(post, method="bulk")  # unrounded (az.summary rounds to 2 decimals)
+    return {"rhat_max": float(max(rhat[v] for v in rhat.data_vars)),
+            "ess_bulk_min": float(min(ess[v] for v in ess.data_vars)), "chains": int(post.sizes["chain"])}
 
 
 def peer_spec(results, datasets, hf) -> dict:
@@ -292,14 +311,11 @@ def main(argv=None) -> int:
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--tune", type=int, default=1000)
     ap.add_argument("--exact", default=None, choices=("gibbs", "none"),
-                    help="PopulationConfig.exact: the joint Metropolis-within-Gibbs fallback for flagged specimens")
-    ap.add_argument("--exact-all", type=int, choices=(0, 1), default=None,
-                    help="PopulationConfig.exact_all (1: real likelihoods for all specimens, 0: flagged ones only)")
-    ap.add_argument("--exact-keep", type=int, default=None, help="PopulationConfig.exact_keep (kept draws per chain)")
-    ap.add_argument("--exact-burn", type=int, default=None, help="PopulationConfig.exact_burn (burn-in sweeps)")
-    ap.add_argument("--exact-thin", type=int, default=None, help="PopulationConfig.exact_thin (sweeps per kept draw)")
-    ap.add_argument("--exact-block-rounds", type=int, default=None,
-                    help="PopulationConfig.exact_block_rounds (0: no amplitude block, the fallback before issue 27)")
+                    help="PopulationConfig.exact: gibbs = the joint sampler (default), none = reuse + refinements")
+    ap.add_argument("--layer-chains", type=int, default=None, help="PopulationConfig.layer_chains")
+    ap.add_argument("--layer-keep", type=int, default=None, help="PopulationConfig.layer_keep (kept draws per chain)")
+    ap.add_argument("--layer-burn", type=int, default=None, help="PopulationConfig.layer_burn (burn-in rounds)")
+    ap.add_argument("--layer-thin", type=int, default=None, help="PopulationConfig.layer_thin (rounds per kept draw)")
     ap.add_argument("--nuts-from", default=None, metavar="VARIANT",
                     help="compare with the NUTS quantiles stored under VARIANT in hierarchical_gold.json (same "
                          "population seed) instead of running the peer (no PyMC needed)")
@@ -319,9 +335,7 @@ def main(argv=None) -> int:
     cfg = {}
     if a.exact:
         cfg["exact"] = None if a.exact == "none" else a.exact
-        if a.exact_all is not None:
-            cfg["exact_all"] = bool(a.exact_all)
-    for key in ("exact_keep", "exact_burn", "exact_thin", "exact_block_rounds"):
+    for key in ("layer_chains", "layer_keep", "layer_burn", "layer_thin"):
         if getattr(a, key) is not None:
             cfg[key] = int(getattr(a, key))
     hfs = [layer(results, datasets, model, s, **cfg)[0:3:2] for s in seeds]  # (hf, cpu seconds)
@@ -354,6 +368,9 @@ def write_variant(variant: str, pop_seed: int, seeds: list, hfs: list, info: dic
            "reuse": [hf.reuse for hf, _ in hfs], "refined": [hf.attrs.get("refined") for hf, _ in hfs],
            "exact": [{k: v for k, v in (hf.attrs.get("exact") or {}).items() if k not in ("rhat", "ess")}
                      for hf, _ in hfs],
+           "layer": [{k: v for k, v in (hf.attrs.get("layer") or {}).items() if k not in ("hyper", "specimens")}
+                     for hf, _ in hfs],
+           "arviz": [hf.attrs.get("arviz", {}) for hf, _ in hfs],
            "worst_median_sd": wh, "worst_tail_sd": wt, **cmp}
     jpath = out / "hierarchical_gold.json"
     allrec = json.loads(jpath.read_text()) if jpath.exists() else {}
@@ -367,6 +384,15 @@ def write_variant(variant: str, pop_seed: int, seeds: list, hfs: list, info: dic
           f"Layer CPU s per seed: {', '.join(f'{c:.1f}' for _, c in hfs)}; refined: "
           f"{[hf.attrs.get('refined') for hf, _ in hfs]}.  Worst |Δ median| {wh:.2f} sd, worst |Δ 5 %/95 %| {wt:.2f} sd "
           f"(target 0.2 / 0.5).", ""]
+    lay = [hf.attrs.get("layer") for hf, _ in hfs]
+    if any(lay):
+        md += ["Joint sampler per seed: " + "; ".join(
+            f"{e['chains']} chains × {e['n_keep']} kept (burn-in {e['n_burn']}, thin {e['thin']}), "
+            f"{e['evaluations']:,} model evaluations, {e['cpu_s']:.0f} CPU s / {e['wall_s']:.0f} s wall, ArviZ from the "
+            f"file: max R-hat {hf.attrs.get('arviz', {}).get('rhat_max', float('nan')):.3f}, min bulk ESS "
+            f"{hf.attrs.get('arviz', {}).get('ess_bulk_min', float('nan')):.0f} (hyper-parameters); max R-hat over "
+            f"the specimens' columns {e['rhat_specimen_max']:.3f}" if e else "not run"
+            for e, (hf, _) in zip(lay, hfs)) + ".", ""]
     ex = [hf.attrs.get("exact") for hf, _ in hfs]
     if any(ex):
         md += ["Exact fallback (joint Metropolis-within-Gibbs) per seed: " + "; ".join(

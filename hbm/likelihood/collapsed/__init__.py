@@ -8,8 +8,8 @@ parameters), :mod:`~hbm.likelihood.collapsed.quadrature` (the box-truncated Gaus
 
 from .induced import CollapseError, ColumnPrior, Term
 from .likelihood import TIERS, CollapsedLikelihood, choose_tier, collapse_reason
-from .quadrature import BoxGaussianIntegral, box_qp, truncated_normal_log_mass
+from .quadrature import BoxGaussianIntegral, box_qp
 from .sampling import FIT_ROUTE, CollapsedFit, CollapsedRoute, fit_collapsed, sample_collapsed
 
-__all__ = ["CollapseError", "ColumnPrior", "Term", "BoxGaussianIntegral", "box_qp", "truncated_normal_log_mass",
+__all__ = ["CollapseError", "ColumnPrior", "Term", "BoxGaussianIntegral", "box_qp",
            "TIERS", "CollapsedLikelihood", "choose_tier", "collapse_reason", "CollapsedFit", "CollapsedRoute", "FIT_ROUTE", "fit_collapsed", "sample_collapsed"]

@@ -41,12 +41,13 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from scipy.special import log_ndtr, ndtr
+from scipy.special import ndtr
 
+from ...samplers.truncnorm import log_mass
 from .kernels import closed_form_linear, draw_linear_gaussian
 
 
-__all__ = ["BoxGaussianIntegral", "box_qp", "truncated_normal_log_mass"]
+__all__ = ["BoxGaussianIntegral", "box_qp"]
 
 _LOG_SQRT_2PI = 0.5 * float(np.log(2.0 * np.pi))
 #: a column is flat when its whole box moves Q by less than this (h·width² in whitened units)
@@ -57,28 +58,6 @@ INTERIOR_MARGIN = 6.0
 #: largest bound on the neglected relative mass of a row integrated by the one-kinked-column rule
 #: (:meth:`BoxGaussianIntegral._interior`): its error in log I, far below the quadrature's
 INTERIOR_TOL = 1e-6
-
-
-def truncated_normal_log_mass(z0, z1) -> tuple[np.ndarray, np.ndarray]:
-    """log(Φ(z1) − Φ(z0)) and the mean of the standard normal truncated to [z0, z1] (z0 ≤ z1).
-
-    Stable 40 sd into either tail: the interval is reflected to the left tail, where log Φ is
-    accurate, and the mean ratio φ/ΔΦ is formed from logs.  Zero-width intervals give −inf and
-    their point.
-    """
-    z0, z1 = np.broadcast_arrays(np.asarray(z0, float), np.asarray(z1, float))
-    flip = (z0 + z1) > 0
-    a = np.where(flip, -z1, z0)
-    b = np.where(flip, -z0, z1)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        la, lb = log_ndtr(a), log_ndtr(b)
-        logd = lb + np.log1p(-np.exp(la - lb))
-        m = np.exp(-0.5 * a * a - _LOG_SQRT_2PI - logd) - np.exp(-0.5 * b * b - _LOG_SQRT_2PI - logd)
-    m = np.where(flip, -m, m)
-    mid = 0.5 * (z0 + z1)
-    m = np.where(np.isfinite(m), np.clip(m, z0, z1), mid)
-    logd = np.where(b > a, logd, -np.inf)
-    return logd, m
 
 
 def box_qp(P, q, lo, hi) -> np.ndarray:
@@ -240,7 +219,7 @@ class BoxGaussianIntegral:
             p0, p1 = pr.knot_values[:, i][:, None], pr.knot_values[:, i + 1][:, None]
             full = pr.knots[:, i + 1][:, None] - pr.knots[:, i][:, None]
             slope = np.where(full > 0, (p1 - p0) / np.where(full > 0, full, 1.0), 0.0)
-            logd, mz = truncated_normal_log_mass((a0 - mu) / s, (a1 - mu) / s)
+            logd, mz = log_mass((a0 - mu) / s, (a1 - mu) / s, mean=True)
             am = np.clip(mu + s * mz, a0, a1)
             pm = p0 + slope * (am - a0)
             with np.errstate(divide="ignore"):

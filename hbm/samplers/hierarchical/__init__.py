@@ -2,7 +2,8 @@
 
 Each specimen's stage-1 posterior samples (drawn under a uniform prior) are reused to estimate
 p(d_i | ψ) for a population ψ of its parameters, and TMCMC samples the hyper-posterior on the
-sum of their logs.  By concept:
+sum of their logs; or the joint posterior of the population and every specimen is sampled with
+the specimens' real likelihoods (:mod:`.batched`).  By concept:
 
 * :mod:`.model` -- the population model (transforms, hyperprior, the vectorised importance
   ratios as a matrix product), :func:`draw_population` of a new specimen;
@@ -15,10 +16,10 @@ sum of their logs.  By concept:
   population → group → specimen) -- the drivers;
 * :mod:`.pooling` -- which parameters to pool (:func:`auto_pool`);
 * :mod:`.refine` -- fresh TMCMC of one specimen's updated posterior (:func:`refine_individual`);
-* :mod:`.joint_gibbs` -- the exact fallback, Metropolis-within-Gibbs on the joint posterior
-  (conditional blocks: columns whose likelihood is cheap given the rest, :class:`ConditionalBlock`),
-  with the specimens' lock-step states and moves (:mod:`.chain_states`), its Gaussian-mixture
-  proposal (:func:`hbm.samplers.mixtures.kmeans_mixture`) and R-hat/ESS (:mod:`.convergence`);
+* :mod:`.batched` -- the joint sampler of the population and every specimen with its real
+  likelihood (batched Metropolis-within-Gibbs, issue 37): the specimens' moves a shard at a time
+  (:mod:`.shards`, in this process or as dask actors), their linear amplitudes by importance
+  particles (:mod:`.amplitudes`), R-hat/ESS (:mod:`.convergence`);
 * :mod:`.psis` -- Pareto-smoothed importance sampling k̂;
 * :mod:`.result` -- :class:`HierarchicalResult` (the products of TMCMC over ψ that it shares with
   :mod:`.posterior`'s ``LayerFit``: :class:`~.result.LayerProducts`).
@@ -28,22 +29,22 @@ This package is sampler-layer code: it knows nothing about muscles.
 
 from .diagnostics import reuse_diagnostics, reuse_unreliable
 from .grouped import (
-    GroupedModel, GroupedResult, group_differences, grouped_hierarchical, truncnorm_ppf, variance_split)
+    GroupedModel, GroupedResult, group_differences, grouped_hierarchical, variance_split)
 from ..convergence import rhat_ess
-from .joint_gibbs import ConditionalBlock, ExactSpecimen, JointGibbsResult, ReuseSpecimen, joint_gibbs
+from .batched import BatchedResult, HyperLevel, PooledFeatures, ShardSpec, batched_gibbs, one_population
 from .model import TRANSFORMS, HierarchicalModel, draw_population, kernel_bandwidth
 from .pooling import PoolChoice, auto_pool, prior_sd_transformed
 from ..psis import K_HAT_THRESHOLD, pareto_khat
 from .refine import refine_individual
 from .result import HierarchicalResult
-from .reuse import ESTIMATORS, defensive_log_weights, mixture_log_weights
+from .reuse import ESTIMATORS
 from .two_level import hierarchical
 
 __all__ = [
     "HierarchicalResult", "HierarchicalModel", "hierarchical", "refine_individual",
     "kernel_bandwidth", "auto_pool", "PoolChoice", "prior_sd_transformed", "TRANSFORMS", "ESTIMATORS",
-    "reuse_diagnostics", "reuse_unreliable", "defensive_log_weights", "mixture_log_weights", "draw_population",
-    "GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences", "variance_split", "truncnorm_ppf",
-    "ConditionalBlock", "ExactSpecimen", "ReuseSpecimen", "JointGibbsResult", "joint_gibbs", "rhat_ess", "K_HAT_THRESHOLD",
-    "pareto_khat",
+    "reuse_diagnostics", "reuse_unreliable", "draw_population",
+    "GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences", "variance_split",
+    "BatchedResult", "HyperLevel", "PooledFeatures", "ShardSpec", "batched_gibbs", "one_population", "rhat_ess",
+    "K_HAT_THRESHOLD", "pareto_khat",
 ]

@@ -26,7 +26,8 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from ...errors import HbmError
-from .model import HierarchicalModel, log_norm_mass
+from ..truncnorm import log_mass
+from .model import HierarchicalModel
 from ..psis import K_HAT_THRESHOLD, pareto_khat
 
 __all__ = ["ess_checks", "evidence_parts", "reuse_diagnostics", "reuse_unreliable"]
@@ -192,7 +193,7 @@ def reuse_diagnostics(
         # an exponential tilt of a normal is the normal shifted by tilt·sd²
         m = mu[:, k] + tilt * sd[:, k] ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
-            return log_norm_mass((a - m) / sd[:, k], (b - m) / sd[:, k])
+            return log_mass((a - m) / sd[:, k], (b - m) / sd[:, k])
 
     U = np.zeros(len(rows))
     by = {}

@@ -60,37 +60,16 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from scipy.special import ndtr, ndtri
 
 from ...errors import HbmError
+from ..truncnorm import ppf
 from .model import HierarchicalModel, draw_population
 from .posterior import fit_layer
 from .result import HierarchicalResult, thin_rows
 from .reuse import ReuseEstimator, check_box, pack_stage1
 
-__all__ = ["GroupedModel", "GroupedResult", "grouped_hierarchical", "truncnorm_ppf", "group_differences",
+__all__ = ["GroupedModel", "GroupedResult", "grouped_hierarchical", "group_differences",
            "variance_split"]
-
-# u = 0 or 1 exactly would map to ±inf for an untruncated side
-_U_EDGE = 1e-12
-
-
-def truncnorm_ppf(u: np.ndarray, mu: np.ndarray, sd: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Quantile function of Normal(mu, sd²) truncated to [lo, hi], elementwise (broadcasting).
-
-    Increasing and continuous in u, mu and sd (the TMCMC moves see a smooth map).  In the upper
-    tail (a = (lo − mu)/sd > 0) it works on the mirror image so that the cdf values stay small
-    (no cancellation); both branches agree at a = 0.
-    """
-    u = np.clip(np.asarray(u, float), _U_EDGE, 1.0 - _U_EDGE)
-    a = (lo - mu) / sd
-    b = (hi - mu) / sd
-    flip = a > 0
-    with np.errstate(invalid="ignore"):
-        fa, fb = ndtr(a), ndtr(b)
-        fma, fmb = ndtr(-a), ndtr(-b)
-        x = np.where(flip, -ndtri(fmb + (1.0 - u) * (fma - fmb)), ndtri(fa + u * (fb - fa)))
-    return np.clip(mu + sd * x, lo, hi)
 
 
 class GroupedModel:
@@ -137,7 +116,7 @@ class GroupedModel:
             raise HbmError(f"grouped hierarchical: expected {(3 + G) * d} sampler coordinates, got {x.shape[1]}")
         mu, sdb, sdw = x[:, :d], self._sd(x[:, d : 2 * d]), self._sd(x[:, 2 * d : 3 * d])
         u = x[:, 3 * d :].reshape(-1, G, d)
-        m = truncnorm_ppf(u, mu[:, None, :], sdb[:, None, :], self.base.mu_lo, self.base.mu_hi)
+        m = ppf(u, mu[:, None, :], sdb[:, None, :], self.base.mu_lo, self.base.mu_hi)
         return mu, sdb, sdw, m
 
     def specimen_raw(self, x: np.ndarray, g: int | None = None) -> np.ndarray | list[np.ndarray]:
@@ -347,7 +326,7 @@ def grouped_hierarchical(
     n = x.shape[0]
     mu, sdb = x[:, : model.d], model._sd(x[:, model.d : 2 * model.d])
     # a new group: m_new ~ N_trunc(mu, sd_between), then a specimen ~ N(m_new, sd_within)
-    m_new = truncnorm_ppf(rng_p.random(mu.shape), mu, sdb, base.mu_lo, base.mu_hi)
+    m_new = ppf(rng_p.random(mu.shape), mu, sdb, base.mu_lo, base.mu_hi)
     new_raw = np.concatenate([m_new, x[:, 2 * model.d : 3 * model.d]], axis=1)
     predictive = draw_population(base, new_raw, n, rng_p)
     group_pred = np.stack([draw_population(base, raw, n, rng_p) for raw in fit.raws], axis=1)

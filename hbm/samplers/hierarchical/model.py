@@ -43,7 +43,7 @@ The layer reuses stage-1 samples θ_ij through the ratios r_ij(ψ) = p(θ_ij|ψ)
 (:mod:`hbm.samplers.hierarchical.reuse`).  ``log r`` is a quadratic form in z, so for the whole ψ
 population at once it is the matrix product ``coef(ψ) (n_ψ, n_f) @ F(θ)ᵀ (n_f, N)`` with features
 F = [z, z², z_k z_l (pairs in the full-covariance block)] plus per-ψ constants (normal and
-truncation normalisers via ``scipy.special.log_ndtr``) and per-sample constants (Jacobian,
+truncation normalisers by :func:`hbm.samplers.truncnorm.log_mass`) and per-sample constants (Jacobian,
 prior).  Samples are processed in chunks with an online log-sum-exp, so memory is bounded and
 time is linear in N.  The per-specimen importance ESS (Σr)²/Σr² comes out of the same pass.
 
@@ -65,12 +65,12 @@ from __future__ import annotations
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy.special import log_ndtr, ndtri
 
 from ...runtime.blas import single_thread_blas
 from ...errors import HbmError
+from ..truncnorm import log_mass, ppf
 
-__all__ = ["HierarchicalModel", "TRANSFORMS", "draw_population", "kernel_bandwidth", "log_norm_mass"]
+__all__ = ["HierarchicalModel", "TRANSFORMS", "draw_population", "kernel_bandwidth"]
 
 TRANSFORMS = ("identity", "log", "logit")
 _LOG2PI = np.log(2.0 * np.pi)
@@ -82,20 +82,6 @@ _EDGE = 1e-12
 # --------------------------------------------------------------------------------------
 # small numerical helpers
 # --------------------------------------------------------------------------------------
-def log_norm_mass(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """log(Φ(b) − Φ(a)) for a < b, accurate in both tails."""
-    a, b = np.broadcast_arrays(np.asarray(a, float), np.asarray(b, float))
-    # In the upper tail use the mirror image so that both Φ values are small (no cancellation).
-    flip = a > 0
-    lo = np.where(flip, -b, a)
-    hi = np.where(flip, -a, b)
-    lhi = log_ndtr(hi)
-    llo = log_ndtr(lo)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = lhi + np.log1p(-np.exp(np.minimum(llo - lhi, 0.0)))
-    return out
-
-
 def _cpc_to_corr_chol(cpc: np.ndarray, m: int) -> np.ndarray:
     """Cholesky factors (n, m, m) of correlation matrices from canonical partial correlations.
 
@@ -225,6 +211,7 @@ class HierarchicalModel:
             else:
                 zlo[k], zhi[k] = -np.inf, np.inf
         self.zlo, self.zhi = zlo, zhi
+        self._truncated = np.isfinite(zlo) | np.isfinite(zhi)  # columns whose population is truncated to the box
         mu_lo = np.where(np.isfinite(zlo), zlo, -logit_range)
         mu_hi = np.where(np.isfinite(zhi), zhi, logit_range)
         for p, (a, b) in dict(mu_bounds or {}).items():
@@ -316,7 +303,7 @@ class HierarchicalModel:
         sd = raw[:, self.d : 2 * self.d]
         scale = (self.mu_hi - self.mu_lo) / 2.0
         # half-normal truncated to [sd_lo, sd_hi], relative to the uniform on the same interval
-        lognorm = log_norm_mass(self.sd_lo / scale, self.sd_hi / scale)
+        lognorm = log_mass(self.sd_lo / scale, self.sd_hi / scale)
         logpdf = -0.5 * (sd / scale) ** 2 - np.log(scale) - 0.5 * _LOG2PI - lognorm
         logu = -np.log(self.sd_hi - self.sd_lo)
         free_sd = np.array([f"sd_{p}" not in self.fix for p in self.names])
@@ -394,6 +381,8 @@ class HierarchicalModel:
         sd = raw[:, d : 2 * d]
         sd = np.exp(sd) if self.sd_prior == "loguniform" else sd
         sdt = sd / self.s
+        if not self.m and extra_var is None:
+            return self._diagonal_coefficients(mu, sdt)
         ext = None
         if extra_var is not None:
             ext = np.asarray(extra_var, float) / self.s**2  # standardised units
@@ -412,7 +401,7 @@ class HierarchicalModel:
         const = -0.5 * np.sum(mu[:, diag] ** 2 * prec[:, diag], axis=1) - np.sum(np.log(sdt[:, diag]), axis=1)
         a = (self.zlo[diag] - self.c[diag]) / self.s[diag]
         b = (self.zhi[diag] - self.c[diag]) / self.s[diag]
-        const -= np.sum(log_norm_mass((a - mu[:, diag]) / sdt[:, diag], (b - mu[:, diag]) / sdt[:, diag]), axis=1)
+        const -= np.sum(log_mass((a - mu[:, diag]) / sdt[:, diag], (b - mu[:, diag]) / sdt[:, diag]), axis=1)
         const -= 0.5 * d * _LOG2PI
         cross = np.zeros((n, self.q))
         if self.m:
@@ -435,6 +424,44 @@ class HierarchicalModel:
                 cross[:, t] = -P[:, i, j]  # off-diagonal appears twice in zᵀPz
         coef = np.concatenate([lin, -0.5 * prec, cross], axis=1)
         return coef, const
+
+    def _diagonal_coefficients(self, mu: np.ndarray, sdt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`coefficients` of independent columns (no full covariance, no extra variance): the same
+        numbers by fewer operations (the joint sampler calls it for every ψ move); the truncation mass
+        is computed only where the transformed box is finite (elsewhere it is exactly 0)."""
+        d = self.d
+        prec = 1.0 / sdt**2
+        const = -0.5 * np.sum(mu**2 * prec, axis=1) - np.sum(np.log(sdt), axis=1)
+        lnm = np.zeros(mu.shape)
+        t = self._truncated
+        if t.any():
+            a = (self.zlo[t] - self.c[t]) / self.s[t]
+            b = (self.zhi[t] - self.c[t]) / self.s[t]
+            lnm[:, t] = log_mass((a - mu[:, t]) / sdt[:, t], (b - mu[:, t]) / sdt[:, t])
+        const -= np.sum(lnm, axis=1)
+        const -= 0.5 * d * _LOG2PI
+        return np.concatenate([mu * prec, -0.5 * prec], axis=1), const
+
+    def column_terms(self, raw: np.ndarray, SF: np.ndarray, n: int) -> np.ndarray:
+        """Σ over ``n`` samples of log r split by pooled column, (n_ψ, d), for a population without full
+        covariance: column k's coefficients times its two summed features ``SF`` (n_ψ, n_f) plus n times
+        its constant (the per-sample constants are left out).  Their sum over k is coef·SF + n·cconst of
+        :meth:`coefficients`; given the samples the columns' populations are independent, so a sampler
+        can move each (mu_k, sd_k) alone."""
+        raw = np.atleast_2d(raw)
+        d = self.d
+        mu = (raw[:, :d] - self.c) / self.s
+        sd = raw[:, d : 2 * d]
+        sdt = (np.exp(sd) if self.sd_prior == "loguniform" else sd) / self.s
+        prec = 1.0 / sdt**2
+        lnm = np.zeros(mu.shape)
+        t = self._truncated
+        if t.any():
+            a = (self.zlo[t] - self.c[t]) / self.s[t]
+            b = (self.zhi[t] - self.c[t]) / self.s[t]
+            lnm[:, t] = log_mass((a - mu[:, t]) / sdt[:, t], (b - mu[:, t]) / sdt[:, t])
+        const = -0.5 * mu**2 * prec - np.log(sdt) - lnm - 0.5 * _LOG2PI
+        return mu * prec * SF[:, :d] - 0.5 * prec * SF[:, d : 2 * d] + n * const
 
     def log_ratio_stats(
         self, F: np.ndarray, const: np.ndarray, coef: np.ndarray, cconst: np.ndarray, chunk_bytes: float = 4e6
@@ -546,16 +573,8 @@ def draw_population(model: HierarchicalModel, raw: np.ndarray, n: int, rng: np.r
     diag[model.S] = False
     if diag.any():
         # inverse-CDF sampling of the truncated normal in the transformed space
-        a = (model.zlo[diag] - mu[:, diag]) / sd[:, diag]
-        b = (model.zhi[diag] - mu[:, diag]) / sd[:, diag]
-        la, lb = np.exp(log_ndtr(a)), np.exp(log_ndtr(b))
         u = rng.random((n, int(diag.sum())))
-        # mirror in the upper tail for accuracy
-        flip = a > 0
-        lam, lbm = np.exp(log_ndtr(-b)), np.exp(log_ndtr(-a))
-        x = np.where(flip, -ndtri(lam + u * (lbm - lam)), ndtri(la + u * (lb - la)))
-        zz = mu[:, diag] + sd[:, diag] * x
-        z[:, diag] = np.clip(zz, model.zlo[diag], model.zhi[diag])
+        z[:, diag] = ppf(u, mu[:, diag], sd[:, diag], model.zlo[diag], model.zhi[diag])
     if model.m:
         L = _cpc_to_corr_chol(raw[idx, 2 * d :], model.m) * sd[:, model.S][:, :, None]
         z[:, model.S] = mu[:, model.S] + np.einsum("nab,nb->na", L, rng.standard_normal((n, model.m)))

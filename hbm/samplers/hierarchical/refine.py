@@ -26,7 +26,6 @@ def refine_individual(
     sampler: Callable | None = None,
     augment: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
     bounds=None,
-    return_mixture: bool = False,
     **tmcmc_options,
 ) -> Any:
     """Fresh TMCMC of p(θ_i | all data) for a specimen whose importance ESS collapsed.
@@ -63,13 +62,10 @@ def refine_individual(
     bounds : array (d, 2), optional
         Box of θ for the fresh run; default ``result.bounds`` (required with ``augment``,
         whose θ are not the hierarchical model's columns).
-    return_mixture : bool
-        Also return the mixture (raw hyper draws (M, ·), normalised weights (M,)) that defines
-        the population part of the target, e.g. for :func:`mixture_log_weights`.
 
     Returns
     -------
-    TMCMCResult (or (TMCMCResult, raw, weights) with ``return_mixture``)
+    TMCMCResult
         ``.samples`` are draws of the updated posterior of the specimen (the columns of θ);
         ``.log_evidence`` is log ∫ p(d_i|θ) Σ_m w_m p(θ|ψ_m) dθ.
     """
@@ -122,6 +118,4 @@ def refine_individual(
     box = result.bounds if bounds is None else np.asarray(bounds, float)
     res = sampler(target, box, int(n_samples), seed=int(s_run.generate_state(1)[0]), progress=progress,
                   **tmcmc_options)
-    if return_mixture:
-        return res, raw, w / w.sum()
     return res

@@ -36,13 +36,13 @@ the gain is small (auto pool: 10 % quantiles +0 to +21 % over raw), so the defau
 The updated individuals always reweight the stage-1 samples with the *raw* ratios (no
 smoothing bias; ``ess_raw`` is their ESS and triggers ``ess_collapsed``).
 
-Defensive reference draws (``log_weights``, ``stage1_rows``)
------------------------------------------------------------
+Weighted rows (``log_weights``, ``stage1_rows``)
+-----------------------------------------------
 A caller may append draws from a reference density q that covers such tails to a specimen's
-stage-1 samples, with their real log-likelihoods, and pass ω = post/q_mix
-(:func:`defensive_log_weights`): p(d_i|ψ) = Z_i · mean_j ω_j r_ij(ψ) is then the deterministic
-mixture estimator, unbiased wherever q has mass, and the stage-1 results and log Z_i are
-untouched.  The updated individuals reweight all rows.
+stage-1 samples, with their real log-likelihoods, and pass their log importance weights ω = post/q_mix
+(the deterministic mixture q_mix = a·post + (1 − a)·q, Owen & Zhou 2000): p(d_i|ψ) = Z_i · mean_j ω_j
+r_ij(ψ) is then unbiased wherever q has mass, and the stage-1 results and log Z_i are untouched.  The
+updated individuals reweight all rows.
 
 Updated individuals ("shrinkage")
 ---------------------------------
@@ -70,8 +70,7 @@ from ...errors import HbmError
 from ..resampling import resample
 from .model import HierarchicalModel
 
-__all__ = ["ESTIMATORS", "ReuseEstimator", "Stage1", "check_box", "pack_stage1",
-           "defensive_log_weights", "mixture_log_weights"]
+__all__ = ["ESTIMATORS", "ReuseEstimator", "Stage1", "check_box", "pack_stage1"]
 
 ESTIMATORS = ("raw", "kernel")
 
@@ -286,91 +285,3 @@ class ReuseEstimator:
                 weights[key], ess[key] = w, _ess(w)
                 updated[key] = self.data.samples[i][resample(w, n, rng)]
         return updated, weights, ess
-
-
-def defensive_log_weights(log_lik: np.ndarray, log_rho: np.ndarray, log_z: float, n_post: int,
-                          n_drawn: int) -> np.ndarray:
-    """Log importance weights ω = post/q_mix of stage-1 samples plus reference draws (defensive mixture).
-
-    Rows: ``n_post`` stage-1 posterior samples, then the kept reference draws (of ``n_drawn``
-    drawn from a reference density q; draws outside the support were dropped).  With the
-    stage-1 posterior post(θ) = L(θ) p0(θ)/Z and ρ(θ) = q(θ)/p0(θ), the rows are a draw from the
-    deterministic mixture q_mix = a·post + (1 − a)·q, a = n_post/(n_post + n_drawn) (Owen & Zhou
-    2000, "Safe and effective importance sampling"), so
-
-        ω = post/q_mix = (L/Z) / (a·L/Z + (1 − a)·ρ),
-
-    and mean_j ω_j r_j(ψ) over the n_post + n_drawn draws estimates p(d|ψ)/Z without bias —
-    also where the posterior samples never went, as long as q goes there; ω ≤ 1/a bounds the
-    weights of the posterior samples.  Dropped draws count as zeros: ω is scaled by
-    (rows kept)/(n_post + n_drawn) so that the layer's mean over the kept rows is that estimate.
-
-    Parameters
-    ----------
-    log_lik : ndarray (R,)
-        Log-likelihood of every row.
-    log_rho : ndarray (R,)
-        log q(θ)/p0(θ) of every row.
-    log_z : float
-        Stage-1 log-evidence.
-    n_post, n_drawn : int
-        Stage-1 rows (leading) and reference draws made (kept + dropped).
-
-    Returns
-    -------
-    ndarray (R,)
-    """
-    log_lik, log_rho = np.asarray(log_lik, float), np.asarray(log_rho, float)
-    rows = log_lik.shape[0]
-    if log_rho.shape != (rows,) or not (0 < n_post <= rows) or n_drawn < rows - n_post:
-        raise HbmError(f"defensive_log_weights: need {rows} log_rho values and 0 < n_post <= rows <= "
-                       f"n_post + n_drawn, got {log_rho.shape}, {n_post}, {n_drawn}")
-    a = n_post / (n_post + n_drawn)
-    lp = log_lik - log_z
-    mix = np.logaddexp(np.log(a) + lp, np.log1p(-a) + log_rho) if a < 1 else lp
-    return lp - mix + np.log(rows / (n_post + n_drawn))
-
-
-def mixture_log_weights(log_pmix_ratio: np.ndarray, n_post: int, *, tol: float = 1e-10,
-                        max_iter: int = 10_000) -> np.ndarray:
-    """Log weights ω = post/q_mix of stage-1 samples plus draws of the posterior under a population mixture.
-
-    Rows: ``n_post`` stage-1 samples of post = L·p0/Z, then n_q draws of q = L·p_mix/Z_q, the
-    specimen's posterior under a mixture of populations p_mix (e.g. a fresh TMCMC run of
-    :func:`refine_individual`).  With l = p_mix/p0 (``log_pmix_ratio``, for pooled derived
-    columns the ratio of their densities) and a = n_post/R,
-
-        ω = post/(a·post + (1 − a)·q) = 1 / (a + (1 − a)·l/c),   c = Z_q/Z,
-
-    the likelihood cancels.  c is not taken from the TMCMC evidence (its error, 0.5–2.7 nats in
-    the gold benchmark's refits, biases the weights) but solved from both sample sets by the
-    two-state MBAR / optimal bridge fixed point c = Σ_rows l/(n_post + n_q·l/c) (Meng & Wong 1996;
-    Shirts & Chodera 2008), so the weights are self-consistent and mean_j ω_j r_j(ψ) estimates
-    p(d_i|ψ)/Z_i.  The mixture draws go where the populations of the hyper-posterior put mass,
-    which the stage-1 samples drawn under p0 may never reach (issue 15).
-
-    Parameters
-    ----------
-    log_pmix_ratio : ndarray (R,)
-    n_post : int
-        Leading stage-1 rows.
-
-    Returns
-    -------
-    ndarray (R,)
-    """
-    lr = np.asarray(log_pmix_ratio, float)
-    rows = lr.shape[0]
-    if not (0 < n_post < rows) or not np.all(np.isfinite(lr)):
-        raise HbmError(f"mixture_log_weights: need 0 < n_post < rows and finite ratios, got {n_post}, {rows}")
-    n_q = rows - n_post
-    log_c = float(np.logaddexp.reduce(lr[:n_post]) - np.log(n_post))  # importance identity as a start
-    for _ in range(int(max_iter)):
-        new = float(np.logaddexp.reduce(lr - np.logaddexp(np.log(n_post), np.log(n_q) + lr - log_c)))
-        if abs(new - log_c) < tol:
-            log_c = new
-            break
-        log_c = new
-    a = n_post / rows
-    return -np.logaddexp(np.log(a), np.log1p(-a) + lr - log_c)
-

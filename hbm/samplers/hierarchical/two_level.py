@@ -72,7 +72,7 @@ def hierarchical(
         Stage-1 prior log density of each row's pooled columns (derived features; default the box).
     log_weights, stage1_rows : mappings, optional
         Log importance weights of the rows (rows from a defensive mixture,
-        :func:`~hbm.samplers.hierarchical.reuse.defensive_log_weights`) and the number of leading
+        :mod:`~hbm.samplers.hierarchical.reuse`) and the number of leading
         rows that are stage-1 samples (for the coverage diagnostic).
     log_likelihood : mapping specimen -> ndarray, optional
         Log-likelihoods of the stage-1 rows: the coverage diagnostic extrapolates the likelihood
