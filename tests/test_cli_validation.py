@@ -17,6 +17,7 @@ import pytest
 import hbm
 import hbm.cli as cli
 from hbm.cli import _common as rules
+from hbm.cli import simulate as simulate_cli
 from hbm.settings import rules as setting_rules
 from hbm.model import spyrou_model
 
@@ -103,7 +104,8 @@ def _bad_values(action: argparse.Action, tmp_path: Path) -> list[str]:
              rules.sweep: ["VOLF", "VOLF:0", "VOLF:-0.1", "VOLF:nan"], rules.run_sweep: ["VOLF", "VOLF:0", "VOLF:nan"],
              rules.value_range: ["1:0", "1", "0:nan"], setting_rules.RANGE: ["1:0", "1", "0:nan"],
              rules.plot_path: [str(tmp_path / "nowhere" / "f.png"), str(tmp_path / "f.xyz"), str(tmp_path)],
-             rules.prior_file: [str(tmp_path / "none.toml"), str(tmp_path), _bad_prior(tmp_path)]}
+             rules.prior_file: [str(tmp_path / "none.toml"), str(tmp_path), _bad_prior(tmp_path)],
+             simulate_cli.theta_list: ["VOLF", "VOLF=nan", "=1", "VOLF=1,VOLF=2"]}
     if t in named:
         return named[t]
     name = getattr(t, "__name__", "")
@@ -121,6 +123,8 @@ def _valid_positionals(words, specimen, tmp_path) -> list[str]:
         return ["--out", str(tmp_path / "run-out")]
     if words[0] == "predict":
         return [str(tmp_path), "--geometry", str(GEOMETRY)]
+    if words[0] == "simulate":  # its required options, valid (a repeated --theta adds to the first)
+        return [specimen, "--theta", "VOLF=0.9", "--out", str(tmp_path / "sim.csv")]
     return [specimen]
 
 
@@ -142,7 +146,7 @@ def test_walk_covers_every_command_and_rule(tmp_path, specimen):
     cases = _cases(tmp_path, specimen)
     commands = {c[0][0] for c in cases}
     assert commands == {"run", "fit", "optimize", "sobol", "diagnose", "extend", "predict", "data",  # data: --sl0
-                        "export"}  # export: --to
+                        "export", "simulate"}  # export: --to; simulate: --theta, --form, --collagen3d, --sl0
     options = {(c[0][0], c[1]) for c in cases}
     for cmd in ("run", "fit", "optimize", "sobol", "diagnose", "extend", "predict"):
         assert (cmd, "--seed") in options, cmd
@@ -151,6 +155,7 @@ def test_walk_covers_every_command_and_rule(tmp_path, specimen):
         assert ("run", opt) in options, opt
     assert ("diagnose", "--plot") in options and ("extend", "--add") in options
     assert ("optimize", "--popsize") in options and ("predict", "--extrapolate") in options
+    assert ("simulate", "--theta") in options and ("fit", "--collagen3d") in options
     assert len(cases) >= 200  # 7 commands x their typed options x 1-4 bad values each
 
 

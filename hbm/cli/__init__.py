@@ -41,6 +41,7 @@ SUBCOMMANDS = {
     "diagnose": ("diagnose", "where does the model fail, which effect is missing"),
     "extend": ("diagnose", "add effects one at a time and show the error fall"),
     "predict": ("predict", "predictions from fitted specimens (organ-scale curves)"),
+    "simulate": ("simulate", "predict every observable of every test (virtual experiments)"),
     "data": ("data", "specimen data utilities (check CSV files)"),
     "export": ("export", "verified FE material card (FEBio, Abaqus) or parameter table"),
     "summary": ("summary", "parameter table (with units) of a fit, text or CSV"),

@@ -40,6 +40,10 @@ diagnose and extend --drop-artefacts drop them, with a record in the result).
 --json prints one object: per specimen the loaded series (engineering strain, Cauchy stress in
 MPa, time in s, test), the conversion record and the flagged rows.
 
+Tests as data (README "Loading modes"): a 'mode' column (uniaxial_f, uniaxial_c, planar_*,
+biaxial_*, shear_*; constant within a test) and the observables strain_2, stress_2, strain_c,
+strain_n, strain_f (empty cell = not measured); the check then lists each specimen's tests by mode.
+
 examples:
   hbm data check data/specimens
   hbm data check raw_machine_export.csv --json
@@ -57,7 +61,8 @@ def register(subparsers) -> None:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     check.add_argument("paths", nargs="+", metavar="PATH", help="CSV file or folder of CSV files")
     check.add_argument("--json", action="store_true",
-                       help="print one JSON object: per specimen its series, conversion record and flagged rows")
+                       help="print one JSON object: per specimen its series, tests by mode, conversion record and "
+                            "flagged rows")
     add_data_arguments(check)
     check.set_defaults(func=run_check)
     parser.set_defaults(func=_no_action)
@@ -99,8 +104,27 @@ def _row(spec) -> list[str]:
     if len(source) > 48:
         source = source[:45] + "..."
     return [spec.id, str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
-            f"{stress[np.argmax(np.abs(stress))]:.4g}", str(len(spec.tests)), "yes" if spec.time is not None else "-",
+            f"{stress[np.nanargmax(np.abs(stress))]:.4g}" if np.isfinite(stress).any() else "-", str(len(spec.tests)), "yes" if spec.time is not None else "-",
             _input(spec), provenance(spec), source]
+
+
+def tests_by_mode(spec) -> dict[str, list[dict]]:
+    """Mode -> its tests (id, label, points, the observables measured in it with their counts)."""
+    out: dict[str, list[dict]] = {}
+    for t in spec.tests:
+        measured = {k: int(np.isfinite(s.values[t.rows]).sum()) for k, s in spec.observed.items()}
+        out.setdefault(t.load_case, []).append(
+            {"id": t.id, "label": t.label, "points": t.n_points, "measured": {k: v for k, v in measured.items() if v}})
+    return out
+
+
+def _mode_line(spec) -> str:
+    parts = []
+    for mode, tests in tests_by_mode(spec).items():
+        names = ", ".join(str(t["label"] if t["label"] is not None else t["id"]) for t in tests)
+        seen = sorted({k for t in tests for k in t["measured"]})
+        parts.append(f"{mode}: {len(tests)} test(s) ({names}; measured {', '.join(seen)})")
+    return f"  {spec.id}: " + "; ".join(parts)
 
 
 #: dataset attributes that record a conversion (hbm.data: loader, machine, prepare)
@@ -130,7 +154,8 @@ def _specimen_json(f: Path, spec, found, lines) -> dict:
     units = {"strain": "1 (engineering strain)", **{k: sr.unit for k, sr in spec.observed.items()},
              "stress": "MPa (Cauchy)", "time": "s"}
     return {"id": spec.id, "file": str(f), "points": spec.n_points, "units": units,
-            "series": _series(spec), "conversion": {"summary": input_summary(spec), **record},
+            "series": _series(spec), "tests_by_mode": tests_by_mode(spec),
+            "conversion": {"summary": input_summary(spec), **record},
             "artefacts": [x.to_dict(lines) for x in found]}
 
 
@@ -142,6 +167,7 @@ def run_check(args: argparse.Namespace) -> int:
     flagged: list[str] = []
     specimens: list[dict] = []
     ids: dict[str, str] = {}
+    modes: list[str] = []
     for f in _files(args.paths, errors):
         try:
             ds = load_specimen(f, sl0=args.sl0)
@@ -156,6 +182,8 @@ def run_check(args: argparse.Namespace) -> int:
         ids[sid] = str(f)
         found, lines = screen_dataset(ds)
         rows.append(_row(ds))
+        if "test_load_cases" in ds.attrs or len(ds.observed) > 1:
+            modes.append(_mode_line(ds))
         specimens.append(_specimen_json(f, ds, found, lines) if args.json else {})
         if input_summary(ds):
             notes.append(f"{sid}: {input_summary(ds)}")
@@ -171,6 +199,10 @@ def run_check(args: argparse.Namespace) -> int:
         print("  ".join("-" * w for w in widths))
         for r in rows:
             print(line(r))
+        if modes:
+            print("tests by mode:")
+            for m in modes:
+                print(m)
         if notes:
             print("converted on loading (dataset: engineering strain, Cauchy stress in MPa):")
             for n in notes:

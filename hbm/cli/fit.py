@@ -18,7 +18,9 @@ from ..data.plausibility import edges_suggest_units
 from ..data.prepare import prepare_record
 from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
 from ..settings import FitSettings, add_arguments
+from ..likelihood.modes import is_multimode
 from ._common import n_noise_parameters
+from ._modes import add_modes_arguments, run_modes
 from ._common import (
     check_replaceable, add_model_arguments, build_model, build_prior, plot_path, print_json,
     check_population_memory, check_sobol_memory, free_parameters, load_specimen_arg)
@@ -63,6 +65,7 @@ def register(subparsers) -> None:
     p.add_argument("--plot", type=plot_path, default=None, metavar="FILE",
                    help="figure of data, best-fit curve and 90%% band (default: next to --out, .png)")
     p.add_argument("--no-plot", action="store_true", help="no figure")
+    add_modes_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -73,10 +76,15 @@ def run(args: argparse.Namespace) -> int:
     # the one settings record: it runs the fit and keys its result and checkpoint
     settings = FitSettings.from_args(args, fix=fix or None, bounds=None if prior is not None else (bounds or None),
                                      prior=prior)
+    data = load_specimen_arg(args.specimen, args.sl0, model)
+    if is_multimode(data):  # tests in several loading modes: the joint fit of hbm.fit.modes
+        out = Path(args.out) if args.out else specimen_path(DEFAULT_OUT, data.id)
+        prepare_output_file(out, "--out")
+        figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
+        return run_modes(args, model, fix, bounds, prior, settings, data, out, figure, _figure_modes)
     # the record as fitted (a dense one reduced, artefact rows dropped on request): the figure and the
     # quality lines compare the fit with it
-    data = prepare_record(load_specimen_arg(args.specimen, args.sl0, model), reduce=settings.reduce or "auto",
-                          artefacts=settings.artefacts or "flag").data
+    data = prepare_record(data, reduce=settings.reduce or "auto", artefacts=settings.artefacts or "flag").data
     points = data.n_points
     check_population_memory(f"--samples {settings.samples}", settings.samples, points,
                             model.n_params + n_noise_parameters(settings.noise))
@@ -129,6 +137,11 @@ def _figure(res, data, figure) -> None:
         warnings.warn(f"{res.result.specimen_id}: {units}", HbmWarning, stacklevel=1)
     if figure is not None:
         plots.fit.fit_plot(res, data, path=figure)
+
+
+def _figure_modes(fit, figure) -> None:
+    """The figure of a fit across modes: one panel per test in its own axes."""
+    plots.fit.modes_plot(fit, path=figure)
 
 
 def _print(args, res, figure) -> int:

@@ -42,6 +42,10 @@ then decimal commas are read):
   numbered 0, 1, 2 ... in order of first appearance and kept in the ``test_labels`` attribute
   (JSON list).  The rows of one test must be contiguous.
 
+* tests as data (issue 35, :mod:`hbm.data.modes`): ``mode`` (per test: ``uniaxial_f`` ... ``shear_cn``),
+  ``stress_measure`` (per test), ``strain_2``, ``stress_2``, ``strain_c``, ``strain_n``, ``strain_f``;
+  an empty cell is a value not measured.  A file without these columns is read exactly as before.
+
 Rules for ``time`` (DESIGN.md §2).  Inside a test, time is non-decreasing.  At the first row
 of a new test, time either *continues* (≥ the previous row's time): the new test is the next
 segment of the same loading history (load → unload → reload, ramp → relaxation hold), and

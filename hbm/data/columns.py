@@ -21,6 +21,7 @@ from ..errors import DataError, HbmWarning
 
 
 from .machine import machine_column, machine_header
+from .modes import mode_column
 from .plausibility import describe, implausible, suggest_unit
 
 
@@ -45,7 +46,8 @@ _DECIMAL_COMMA_RE = re.compile(r"^(\s*[+-]?[0-9]+),([0-9]+(?:[eE][+-]?[0-9]+)?\s
 _INT64 = 2 ** 63
 _EXPECTED_COLUMNS = ("strain|strain_percent|stretch|sarcomere_length_um|displacement_mm|displacement_um, stress (or "
                      "stress_MPa|stress_kPa|stress_Pa, nominal_stress[_unit], cauchy_stress[_unit], force_N|force_mN|"
-                     "force_kN), time, test")
+                     "force_kN), time, test, and per test mode, stress_measure, strain_2, stress_2, strain_c, "
+                     "strain_n, strain_f")
 _SEPARATOR_HINT = " (cells are separated by ',', numbers use '.')"
 # headers as labs write them: "Strain (%)", "Nominal stress [kPa]", "Time (s)" -> the canonical names
 _UNIT_SUFFIX_RE = re.compile(r"^(?P<word>[^()\[\]]*?)\s*(?:\((?P<u1>[^()]*)\)|\[(?P<u2>[^\[\]]*)\])$")
@@ -206,7 +208,7 @@ def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
         where = f"{name}: line {lineno}, column {j + 1}"
         if (col not in DEFORMATIONS and col not in ("time", "test") and not _STRESS_COL_RE.match(col)
                 and machine_column(col) is None):
-            col = _canonical_header(text, where) or col
+            col = mode_column(col) or _canonical_header(text, where) or col
         if col in seen:
             raise DataError(f"{where}: duplicate column name {col!r} (also column {seen[col] + 1})")
         seen[col] = j
@@ -217,6 +219,8 @@ def _columns(name: str, cells: list[str], lineno: int, line: str) -> _Columns:
         elif m or machine is not None:
             role = "stress"
         elif col in ("time", "test"):
+            role = col
+        elif mode_column(col) is not None:  # tests as data (hbm.data.modes)
             role = col
         else:
             hint = _SEPARATOR_HINT if any(c in text for c in ";\t") else ""

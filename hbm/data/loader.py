@@ -24,7 +24,8 @@ from .columns import (
     _SEPARATOR_HINT, _UNIT_NAMES, _check_plausible, _check_sign, _check_sl0, _columns, _declared,
     _is_float, _number, _read_text, _record, _reference_sl, _same_labels, _show, _strain, _test_column)
 from .machine import convert_machine, machine_column
-from .specimen import Series, Specimen
+from .modes import MODE_COLUMNS, read_mode_columns
+from .specimen import Series, Specimen, Test
 
 
 def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
@@ -129,8 +130,15 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
     linenos = [ln for ln, _ in rows]
     raw: dict[str, np.ndarray] = {}
     labels = None
+    by_test = [role for role in cols.index if role in MODE_COLUMNS]  # tests as data (hbm.data.modes)
     for role, j in sorted(cols.index.items(), key=lambda kv: kv[1]):
         column = cols.names[role]
+        if role in by_test:
+            continue
+        if role == "stress" and by_test:  # an empty cell is a value not measured
+            raw[role] = np.asarray([_number(cells[j], f"{name}: line {lineno}, column {column!r}")
+                                    if cells[j].strip() else np.nan for lineno, cells in rows], dtype=float)
+            continue
         if role == "test":
             raw[role], labels = _test_column(name, [cells[j] for _, cells in rows], linenos, column)
             continue
@@ -145,19 +153,29 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
             _record(name, attrs, meta_line, key, value)
     data: dict[str, np.ndarray] = {"strain": _strain(name, raw["deformation"], deformation, ref,
                                                      cols.names["deformation"], linenos)}
+    for role in ("time", "test"):
+        if role in raw:
+            data[role] = raw[role]
+    if by_test:
+        _check_tests_and_time(name, data.get("time"), data.get("test"), linenos, labels)
+        return _load_modes(name, path, cols, rows, linenos, raw, data, labels, unit, measure, attrs, meta_line,
+                           header_lineno, ref)
     stress = raw["stress"]
     if unit not in (None, "MPa"):
         stress = stress / STRESS_UNITS[unit]
     if measure == "nominal":
         stress = (1.0 + data["strain"]) * stress  # incompressible uniaxial: sigma = lambda * P
     data["stress"] = stress
-    for role in ("time", "test"):
-        if role in raw:
-            data[role] = raw[role]
     _check_tests_and_time(name, data.get("time"), data.get("test"), linenos, labels)
     _check_plausible(name, raw["stress"], data["strain"], stress, unit, measure == "nominal", cols, linenos)
     _check_sign(name, data["strain"], stress, cols, linenos)
 
+    _record_conversions(name, path, cols, attrs, meta_line, unit, measure, ref, labels)
+    return Specimen(str(attrs["id"]), data["strain"], data.get("time"), data.get("test"),
+                    {"stress": Series.known("stress", data["stress"])}, attrs)
+
+
+def _record_conversions(name, path, cols, attrs, meta_line, unit, measure, ref, labels) -> None:
     # the dataset holds Cauchy stress in MPa and strain: record what the file held
     if unit is not None:
         attrs["units_stress"] = "MPa"  # the declaration now describes the dataset
@@ -175,8 +193,44 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
         _record(name, attrs, meta_line, "test_labels", json.dumps(labels), same=_same_labels)
     attrs.setdefault("id", path.stem)
     attrs["source_file"] = str(path)
-    return Specimen(str(attrs["id"]), data["strain"], data.get("time"), data.get("test"),
-                    {"stress": Series.known("stress", data["stress"])}, attrs)
+
+
+def _load_modes(name, path, cols, rows, linenos, raw, data, labels, unit, measure, attrs, meta_line, header_lineno,
+                ref) -> Specimen:
+    """The rest of :func:`load_specimen` for a file with per-test columns (:mod:`hbm.data.modes`)."""
+    cells = {role: [r[j] for _, r in rows] for role, j in cols.index.items() if role in MODE_COLUMNS}
+    strain = data["strain"]
+    got = read_mode_columns(name, cols.names, cells, linenos, strain, raw["stress"], data.get("test"), labels,
+                            STRESS_UNITS.get(unit or "MPa", 1.0), measure, _number)
+    stress = got.stress
+    # the unit judge knows along-fibre tension: it sees the measured along-fibre rows only
+    along = np.zeros(len(linenos), bool)
+    specimen_tests = _tests_of(data.get("test"), len(linenos), got.load_cases)
+    for t in specimen_tests:
+        if t.load_case == "uniaxial_f":
+            along[t.rows] = True
+    along &= np.isfinite(stress)
+    if along.sum() >= 2:
+        idx = np.flatnonzero(along)
+        _check_plausible(name, raw["stress"][idx], strain[idx], stress[idx], unit, measure == "nominal", cols,
+                         [linenos[i] for i in idx])
+    ok = np.flatnonzero(np.isfinite(stress))
+    if ok.size:
+        _check_sign(name, strain[ok], stress[ok], cols, [linenos[i] for i in ok])
+    _record_conversions(name, path, cols, attrs, meta_line, unit, measure, ref, labels)
+    attrs.update(got.attrs())
+    observed = {"stress": Series.known("stress", stress)}
+    observed.update({k: Series.known(k, v) for k, v in got.series.items()})
+    # the tests' modes travel in attrs["test_load_cases"] (saved files load back the same)
+    return Specimen(str(attrs["id"]), strain, data.get("time"), data.get("test"), observed, attrs,
+                    strain_2=got.strain_2)
+
+
+def _tests_of(test, n, load_cases) -> list[Test]:
+    if test is None:
+        return [Test(0, None, 0, n, load_cases[0])]
+    cut = np.flatnonzero(test[1:] != test[:-1]) + 1
+    return [Test(int(test[a]), None, int(a), int(b), c) for a, b, c in zip(np.r_[0, cut], np.r_[cut, n], load_cases)]
 
 
 def _check_tests_and_time(name: str, time: np.ndarray | None, test: np.ndarray | None,

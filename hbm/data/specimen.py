@@ -40,11 +40,17 @@ CONTROLS: dict[str, tuple[str, str]] = {
     "strain": ("-", "engineering strain"),
     "time": ("s", "time"),
     "test": ("-", "protocol segment (test) id"),
+    "strain_2": ("-", "engineering strain along the second axis of a biaxial test"),
 }
 #: measured quantities hbm knows -> (unit of the loaded data, long_name); a Dataset variable of another
 #: name is not an observation (issue 35 adds ``stress_2``, ``strain_f`` ...)
 OBSERVABLES: dict[str, tuple[str, str]] = {
     "stress": ("MPa", "Cauchy stress along the fibers"),
+    # tests as data (hbm.data.modes): the further observables of the load cases
+    "stress_2": ("MPa", "second Cauchy stress of the test's mode (see its load case)"),
+    "strain_f": ("-", "engineering strain along the fibres f (traction-free face)"),
+    "strain_c": ("-", "engineering strain along the cross-fibre axis c (traction-free face)"),
+    "strain_n": ("-", "engineering strain along the third axis n (traction-free face)"),
 }
 #: the series whose values :attr:`Specimen.stress` returns (what today's likelihood fits)
 MAIN_SERIES = "stress"
@@ -127,6 +133,21 @@ class Test:
         return self.stop - self.start
 
 
+def _with_load_cases(tests: tuple[Test, ...], attrs: Mapping[str, Any], sid: str) -> tuple[Test, ...]:
+    """The tests with the load cases of ``attrs["test_load_cases"]`` (a saved multi-mode specimen)."""
+    text = attrs.get("test_load_cases")
+    if not text:
+        return tests
+    try:
+        cases = json.loads(text) if isinstance(text, str) else list(text)
+    except (TypeError, ValueError):
+        cases = None
+    if not isinstance(cases, list) or len(cases) != len(tests):
+        raise DataError(f"{sid}: attribute test_load_cases must be a JSON list with one mode per test "
+                        f"({len(tests)}), got {text!r}")
+    return tuple(Test(t.id, t.label, t.start, t.stop, str(c)) for t, c in zip(tests, cases))
+
+
 def _labels(attrs: Mapping[str, Any]) -> list[str] | None:
     text = attrs.get("test_labels")
     if not text:
@@ -175,7 +196,11 @@ class Specimen:
         ``test_labels`` ...), ``source_file``; ``id`` is added when missing.
     tests : tuple of Test, optional
         The tests (default: derived from ``test``, labels from ``attrs["test_labels"]``, load case
-        ``"uniaxial_f"``); given ones must cover the same rows.
+        from ``attrs["test_load_cases"]`` (a JSON list, one per test) or ``"uniaxial_f"``); given ones
+        must cover the same rows.
+    strain_2 : array (n_points,), optional
+        The second control of biaxial tests (engineering strain along the second axis; NaN in the rows
+        of other modes).
 
     Raises
     ------
@@ -191,6 +216,7 @@ class Specimen:
     observed: Mapping[str, Series] = field(default_factory=dict)
     attrs: Mapping[str, Any] = field(default_factory=dict)
     tests: tuple[Test, ...] | None = None
+    strain_2: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         sid = self.id
@@ -227,7 +253,7 @@ class Specimen:
         elif str(attrs["id"]) != sid:
             raise DataError(f"{sid}: attrs['id'] is {attrs['id']!r}, expected the specimen's id")
         derived = _derive_tests(test, n, attrs, sid)
-        tests = derived if self.tests is None else tuple(self.tests)
+        tests = _with_load_cases(derived, attrs, sid) if self.tests is None else tuple(self.tests)
         if [(t.id, t.start, t.stop) for t in tests] != [(t.id, t.start, t.stop) for t in derived]:
             raise DataError(f"{sid}: the given tests do not cover the rows of the test column")
         object.__setattr__(self, "strain", strain)
@@ -236,11 +262,13 @@ class Specimen:
         object.__setattr__(self, "observed", MappingProxyType(observed))
         object.__setattr__(self, "attrs", MappingProxyType(attrs))
         object.__setattr__(self, "tests", tests)
+        if self.strain_2 is not None:
+            object.__setattr__(self, "strain_2", _frozen_array(self.strain_2, np.float64, f"{sid}: strain_2", n))
 
     def __reduce__(self):
         # read-only mappings do not pickle: rebuild from plain ones (workers, forked refits)
         return (Specimen, (self.id, self.strain, self.time, self.test, dict(self.observed), dict(self.attrs),
-                           self.tests))
+                           self.tests, self.strain_2))
 
     def __repr__(self) -> str:
         series = ", ".join(f"{k} ({s.unit})" for k, s in self.observed.items()) or "no series"
@@ -295,6 +323,8 @@ class Specimen:
         cases = {str(t.id): t.load_case for t in self.tests if t.load_case != DEFAULT_LOAD_CASE}
         if cases:
             extra["load_cases"] = cases
+        if self.strain_2 is not None:
+            extra["strain_2"] = self.strain_2
         return extra
 
     # -- new specimens from this one ----------------------------------------------------------
@@ -305,20 +335,28 @@ class Specimen:
         s = Series(name, default.values, default.unit if unit is None else unit,
                    default.long_name if long_name is None else long_name)
         return Specimen(self.id, self.strain, self.time, self.test, {**self.observed, name: s}, self.attrs,
-                        self.tests)
+                        self.tests, self.strain_2)
 
     def with_attrs(self, **attrs: Any) -> "Specimen":
         """A copy with some metadata replaced (``id=`` renames the specimen)."""
         new = {**self.attrs, **attrs}
-        return Specimen(str(new["id"]), self.strain, self.time, self.test, self.observed, new, self.tests)
+        return Specimen(str(new["id"]), self.strain, self.time, self.test, self.observed, new, self.tests,
+                        self.strain_2)
 
     def select(self, rows) -> "Specimen":
         """The specimen restricted to ``rows`` (a boolean mask or indices, in order); tests re-derived."""
         idx = np.arange(self.n_points)[rows]
         pick = (lambda a: None if a is None else a[idx])  # noqa: E731
+        attrs = dict(self.attrs)
+        if "test_load_cases" in attrs:  # each remaining test keeps its mode
+            case = np.empty(self.n_points, dtype=object)
+            for t in self.tests:
+                case[t.rows] = t.load_case
+            kept = _derive_tests(pick(self.test), idx.size, {}, self.id)
+            attrs["test_load_cases"] = json.dumps([str(case[idx][t.start]) for t in kept])
         return Specimen(self.id, self.strain[idx], pick(self.time), pick(self.test),
                         {k: Series(s.name, s.values[idx], s.unit, s.long_name) for k, s in self.observed.items()},
-                        self.attrs)
+                        attrs, strain_2=pick(self.strain_2))
 
     # -- xarray --------------------------------------------------------------------------------
     def to_dataset(self):
@@ -332,7 +370,7 @@ class Specimen:
         variables = {"strain": var(self.strain, *CONTROLS["strain"])}
         for name, s in self.observed.items():
             variables[name] = var(s.values, s.unit, s.long_name)
-        for name in ("time", "test"):
+        for name in ("time", "test", "strain_2"):
             arr = getattr(self, name)
             if arr is not None:
                 variables[name] = var(arr, *CONTROLS[name])
@@ -377,7 +415,8 @@ class Specimen:
                 raise DataError(f"{sid}: 'strain' and {name!r} must be of equal length, got {strain.size} and "
                                 f"{s.values.size}")
         return cls(sid, strain, values("time").astype(float) if "time" in names else None,
-                   values("test") if "test" in names else None, observed, attrs)
+                   values("test") if "test" in names else None, observed, attrs,
+                   strain_2=values("strain_2").astype(float) if "strain_2" in names else None)
 
 
 def as_specimen(obj) -> Specimen:

@@ -18,7 +18,7 @@ from ..errors import HbmError
 
 from ..runtime.files import atomic_path
 from .columns import _KEY_RE
-from .specimen import as_specimen
+from .specimen import DEFAULT_LOAD_CASE, as_specimen
 
 
 # ---------------------------------------------------------------------------------------
@@ -34,6 +34,12 @@ def _attr_text(key: str, value: Any) -> str:
     if "\n" in text or "\r" in text:
         raise HbmError(f"attribute {key!r}: metadata values must be one line, got {text[:40]!r}...")
     return text
+
+
+def _number(v) -> str:
+    """``repr`` of a float; an empty cell for NaN (a value not measured)."""
+    v = float(v)
+    return "" if v != v else repr(v)
 
 
 def save_specimen(specimen, path: str | Path) -> Path:
@@ -58,7 +64,13 @@ def save_specimen(specimen, path: str | Path) -> Path:
     if not spec.has_stress:
         raise HbmError("save_specimen: the specimen has no 'stress' series")
     arrays = {"strain": spec.strain, **{k: s.values for k, s in spec.observed.items()}}
-    arrays.update({k: a for k, a in (("time", spec.time), ("test", spec.test)) if a is not None})
+    arrays.update({k: a for k, a in (("time", spec.time), ("test", spec.test), ("strain_2", spec.strain_2))
+                   if a is not None})
+    if "test_load_cases" in spec.attrs or any(t.load_case != DEFAULT_LOAD_CASE for t in spec.tests):
+        mode = np.empty(spec.n_points, dtype=object)  # tests as data: the mode column (hbm.data.modes)
+        for t in spec.tests:
+            mode[t.rows] = t.load_case
+        arrays["mode"] = mode
     cols = list(arrays)
     n = spec.n_points
     buf = io.StringIO()
@@ -69,7 +81,7 @@ def save_specimen(specimen, path: str | Path) -> Path:
             raise HbmError(f"save_specimen: attribute name {key!r} is not a valid metadata key")
         buf.write(f"# {key}: {_attr_text(key, value)}\n")
     buf.write(",".join(cols) + "\n")
-    fmt = {c: (lambda v: str(int(v))) if c == "test" else (lambda v: repr(float(v))) for c in cols}
+    fmt = {c: (lambda v: str(int(v))) if c == "test" else str if c == "mode" else _number for c in cols}
     for i in range(n):
         buf.write(",".join(fmt[c](arrays[c][i]) for c in cols) + "\n")
     with atomic_path(path) as tmp:

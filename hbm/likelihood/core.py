@@ -103,6 +103,10 @@ class Likelihood:
                  prior: Prior | str | Mapping | None = None) -> None:
         noise_cls = get_noise(noise)
         data = as_specimen(data)
+        if data.key_extras():  # tests in other modes or further series: never fitted as along-fibre stress
+            raise DataError(f"{data.id}: tests in loading modes {', '.join(data.load_cases)} with series "
+                            f"{', '.join(data.observed)}: this likelihood fits along-fibre stress only; fit the "
+                            "file with 'hbm fit' (hbm.fit.modes.fit_modes), which predicts every mode")
         stress = observed_stress(data)
         self.loading = data.loading
         self.model = model

@@ -12,6 +12,7 @@ from ..data.specimen import as_specimen
 from ..fit.specimen import FitResult, fit_quality, map_estimate, map_prediction
 from ..model.core import Loading
 from . import plt, save
+from .modes import modes_plot  # noqa: F401 - the figure of a fit across modes, drawn by hbm fit
 from .tests_view import TEST_COLORS, dense_path, draw_curve, draw_tests, test_ids, toe_axes, wrapped
 
 __all__ = ["fit_plot"]

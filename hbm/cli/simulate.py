@@ -1,0 +1,67 @@
+"""``hbm simulate TESTS.csv --theta NAME=VALUE,... --out OUT.csv``: virtual experiments in every loading mode."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from ..data import load_specimen
+from ..fit.simulate import simulate_tests, write_simulation
+from ..model import spyrou_model
+from ..model.energy3d import COLLAGEN_READINGS
+from ._common import add_data_arguments, add_form_argument, fix_item
+
+DESCRIPTION = """\
+Predict every observable of every test of a specimen file with given parameters.
+
+Each test is solved in its mode (the file's 'mode' column; uniaxial_f without it) with the model's
+3-D energy and the collagen reading --collagen3d; the output holds the file's rows (engineering
+strain, Cauchy stress in MPa, as loaded) plus <observable>_model columns (stress_model,
+stress_2_model, strain_f_model ...; empty where a row's mode does not define the observable).
+The thesis form is defined along the fibres only: other modes need --form energy.
+Cells of the measured columns may be empty: a file without measurements is a protocol.
+"""
+
+
+def theta_list(text: str) -> dict[str, float]:
+    """``type=`` rule of ``--theta NAME=VALUE,...``: finite values, each name once."""
+    out: dict[str, float] = {}
+    for item in filter(None, (t.strip() for t in str(text).split(","))):
+        name, value = fix_item(item)
+        if name in out:
+            raise argparse.ArgumentTypeError(f"{name} given twice")
+        out[name] = value
+    return out
+
+
+def register(subparsers) -> None:
+    """Add ``simulate`` to the ``hbm`` parser."""
+    p = subparsers.add_parser("simulate", help="predict every observable of every test (virtual experiments)",
+                              description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("tests", metavar="TESTS.csv", help="specimen file with the tests (a 'mode' column per test)")
+    p.add_argument("--theta", type=theta_list, action="append", required=True, metavar="NAME=VALUE,...",
+                   help="every model parameter, e.g. VOLF=0.9,EOPT=0.18,...; repeatable")
+    add_form_argument(p)
+    p.add_argument("--collagen3d", choices=sorted(COLLAGEN_READINGS), default=None,
+                   help="3-D reading of the collagen (energy form): default cone")
+    p.add_argument("--out", required=True, metavar="OUT.csv", help="output CSV (written atomically)")
+    add_data_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load, check (before any computation), simulate, write."""
+    theta: dict[str, float] = {}
+    for part in args.theta:
+        theta.update(part)
+    model = spyrou_model(form=args.form)
+    spec = load_specimen(args.tests, sl0=args.sl0)
+    pred = simulate_tests(spec, theta, model=model, collagen3d=args.collagen3d)
+    reading = args.collagen3d or ("cone" if args.form == "energy" else "axial")
+    path = write_simulation(spec, pred, args.out, record={
+        "simulated_model": f"{model.name}, collagen3d={reading}",
+        "simulated_theta": json.dumps({n: theta[n] for n in model.parameter_names})})
+    modes = ", ".join(dict.fromkeys(t.load_case for t in spec.tests))
+    print(f"{path}: {spec.n_points} rows, {len(spec.tests)} test(s) ({modes}); columns "
+          f"{', '.join(pred)} (Cauchy stress in MPa, engineering strain; {model.name}, collagen3d={reading})")
+    return 0
