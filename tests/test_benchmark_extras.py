@@ -36,8 +36,8 @@ def test_peer_reads_the_same_problem_as_hbm():
     assert gold == gold2
     assert list(box) == list(lik.names)  # same parameters, same order
     np.testing.assert_array_equal(np.array([box[n] for n in lik.names]), lik.bounds)
-    np.testing.assert_array_equal(eps, lik.data["strain"].values)
-    np.testing.assert_array_equal(obs, lik.data["stress"].values)
+    np.testing.assert_array_equal(eps, lik.data.strain)
+    np.testing.assert_array_equal(obs, lik.data.stress)
 
 
 @pytest.mark.skipif(not _load("muscle_posterior").peer_python().exists(), reason="PyMC bench environment absent")

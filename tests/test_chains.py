@@ -13,6 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
+from hbm.data import Series, Specimen
 from hbm import io
 from hbm.samplers.chains import MAX_SPREAD, POOLED, Chains, importance_batches
 from hbm.samplers.tmcmc import step, tmcmc
@@ -148,7 +149,8 @@ def _specimen(chains: Chains, n=400, p=6, seed=0):
         specimen_id="rat", names=["T1", "sigma"], samples=samples, log_likelihood=rng.normal(size=n),
         log_evidence=3.0, log_evidence_se=0.1, bounds=np.array([[-5.0, 5.0], [-5.0, 5.0]]),
         stages=[{"beta": 0.3, "acceptance_rate": 0.4}, {"beta": 1.0, "acceptance_rate": 0.3}],
-        strain=np.linspace(0, 0.3, p), stress=np.linspace(0, 1, p), pointwise_log_likelihood=rng.normal(size=(n, p)),
+        data=Specimen("s", np.linspace(0, 0.3, p), observed={"stress": Series.known("stress", np.linspace(0, 1, p))}),
+        pointwise_log_likelihood=rng.normal(size=(n, p)),
         predictive=rng.normal(size=(n, p)), predictive_model=rng.normal(size=(n, p)), chains=chains)
 
 

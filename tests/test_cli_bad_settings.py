@@ -21,6 +21,7 @@ BAD = [
     ["frob"],
     ["fit"],
     ["fit", SPEC, "--samples", "abc"],
+    ["fit", SPEC, "--move", "nope"],
     ["fit", SPEC, "--kernel", "nope"],
     ["fit", SPEC, "--seed", "-1"],
     ["fit", SPEC, "--samples", "3"],

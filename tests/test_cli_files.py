@@ -360,7 +360,7 @@ def test_shipped_specimen_id_resolves_from_another_folder(tmp_path, monkeypatch)
     from hbm.errors import HbmError
     monkeypatch.chdir(tmp_path)
     ds = load_specimen_arg("calvo2010_rat1")
-    assert ds.attrs["id"] == "calvo2010_rat1" and ds["strain"].size > 10
+    assert ds.id == "calvo2010_rat1" and ds.n_points > 10
     local = tmp_path / "data" / "specimens"
     local.mkdir(parents=True)
     (local / "calvo2010_rat1.csv").write_text("# id: mine\nstrain,stress\n0,0\n0.1,0.01\n0.2,0.03\n0.3,0.06\n0.4,0.1\n0.5,0.15\n")

@@ -157,7 +157,7 @@ def test_fit_says_what_the_loader_converted(tmp_path, capsys):
     assert line and "kPa->MPa" in line[0] and "nominal->Cauchy" in line[0] and "SL0 2.0" in line[0], text
     r = read_specimen_result(out)
     assert "nominal->Cauchy" in r.config["input"]
-    np.testing.assert_allclose(r.stress, cauchy, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(r.data.stress, cauchy, rtol=1e-5, atol=1e-9)
     assert main(argv[:-2] + ["--out", str(tmp_path / "o2.nc"), "--json"]) == 0
     assert "kPa->MPa" in json.loads(capsys.readouterr().out)["input"]
     assert main(["extend", str(csv), "--add", "offset", "--samples", "100", "--no-progress"]) == 0

@@ -17,6 +17,7 @@ import pytest
 import hbm
 import hbm.cli as cli
 from hbm.cli import _common as rules
+from hbm.settings import rules as setting_rules
 from hbm.model import spyrou_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -99,7 +100,8 @@ def _bad_values(action: argparse.Action, tmp_path: Path) -> list[str]:
              rules.positive_float: ["0", "-1", "nan", "inf"], rules.name_list: ["a,,b", "a,a", ","],
              rules.fix_item: ["EOPT", "EOPT=nan", "=1", "EOPT=x"],
              rules.bounds_item: ["VOLF=0.7", "VOLF=0.8:0.7", "VOLF=a:b", "VOLF=0:inf"],
-             rules.sweep: ["VOLF", "VOLF:0", "VOLF:-0.1", "VOLF:nan"], rules.value_range: ["1:0", "1", "0:nan"],
+             rules.sweep: ["VOLF", "VOLF:0", "VOLF:-0.1", "VOLF:nan"], rules.run_sweep: ["VOLF", "VOLF:0", "VOLF:nan"],
+             rules.value_range: ["1:0", "1", "0:nan"], setting_rules.RANGE: ["1:0", "1", "0:nan"],
              rules.plot_path: [str(tmp_path / "nowhere" / "f.png"), str(tmp_path / "f.xyz"), str(tmp_path)],
              rules.prior_file: [str(tmp_path / "none.toml"), str(tmp_path), _bad_prior(tmp_path)]}
     if t in named:
@@ -145,7 +147,7 @@ def test_walk_covers_every_command_and_rule(tmp_path, specimen):
     for cmd in ("run", "fit", "optimize", "sobol", "diagnose", "extend", "predict"):
         assert (cmd, "--seed") in options, cmd
     for opt in ("--samples", "--sobol-n", "--hier-samples", "--restarts", "--maxfevals", "--workers", "--retries",
-                "--sweep", "--pool", "--fix", "--bounds", "--iso-factor", "--kernel", "--noise"):
+                "--sweep", "--pool", "--fix", "--bounds", "--iso-factor", "--move", "--tier", "--noise"):
         assert ("run", opt) in options, opt
     assert ("diagnose", "--plot") in options and ("extend", "--add") in options
     assert ("optimize", "--popsize") in options and ("predict", "--extrapolate") in options

@@ -416,9 +416,9 @@ def test_tier_choice_auto_full_and_refusals():
     assert cl is None and "black_box" in note and "does not declare" in note
     cl, note = choose_tier(make_likelihood(MODEL, ds, noise="proportional"), "auto")
     assert cl is None and "not Gaussian" in note
-    cl, note = choose_tier(make_likelihood(MODEL, ds), "auto", kernel="manifold")
+    cl, note = choose_tier(make_likelihood(MODEL, ds), "auto", move="manifold")
     assert cl is None and "gradient" in note
-    with pytest.raises(SettingError, match="likelihood must be one of"):
+    with pytest.raises(SettingError, match="tier must be one of"):
         choose_tier(make_likelihood(MODEL, ds), "fast")
 
 
@@ -477,7 +477,7 @@ def test_fit_specimen_collapsed_default_route(tmp_path):
 
 @pytest.mark.slow
 def test_fit_specimen_collapsed_evidence_agrees_with_the_full_tier():
-    res, full = _fit(samples=600), _fit(samples=1500, likelihood="full")
+    res, full = _fit(samples=600), _fit(samples=1500, tier="full")
     assert full.result.config["likelihood_tier"] == "full"
     se = np.hypot(res.log_evidence_se, full.log_evidence_se)
     assert abs(res.log_evidence - full.log_evidence) < 4 * se + 0.15
@@ -485,9 +485,10 @@ def test_fit_specimen_collapsed_evidence_agrees_with_the_full_tier():
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["--likelihood", "collapsed", "--noise", "proportional"], "not Gaussian"),
-    (["--likelihood", "collapsed", "--kernel", "manifold"], "gradient"),
-    (["--likelihood", "fast"], "--likelihood"),
+    (["--tier", "collapsed", "--noise", "proportional"], "not Gaussian"),
+    (["--tier", "collapsed", "--move", "manifold"], "gradient"),
+    (["--tier", "fast"], "--tier"),
+    (["--likelihood", "fast"], "--likelihood"),   # the older flag: the same rule
 ])
 def test_cli_refuses_the_collapsed_tier_where_it_does_not_apply(argv, needle, tmp_path, capsys):
     from hbm.cli import main

@@ -23,7 +23,7 @@ from hbm.effects import make_effect
 
 
 def _data(n=30):
-    return as_data(protocol(ramp(0.15, 1e-3, n)).assign(stress=lambda x: ("point", np.linspace(0, 0.1, n))))
+    return as_data(protocol(ramp(0.15, 1e-3, n)).with_series("stress", np.linspace(0, 0.1, n)))
 
 
 def _cand(name, dz, dl, physical=True, region=None):
@@ -179,10 +179,10 @@ def test_three_rate_curve_with_proportional_noise_is_not_a_false_alarm():
     th = dict(VOLF=0.8, EOPT=0.1, P1=0.15, T1=0.8, T2=14.0, THETA=58.5, GF=0.015, GM=0.01)
     prot = protocol(ramp(0.33, 2e-3, 40), ramp(0.33, 2e-2, 40), ramp(0.33, 2e-1, 40))
     clean = synthetic_specimen(spyrou_model(), th, prot, 0.0, seed=0)
-    mu = clean["stress"].values
+    mu = clean.stress
     rng = np.random.default_rng(11)
     sd = np.sqrt((0.03 * mu) ** 2 + 1e-4 ** 2)        # the proportional noise model of hbm.likelihood.noise
-    ds = clean.assign(stress=("point", mu + sd * rng.standard_normal(mu.size)))
+    ds = clean.with_series("stress", mu + sd * rng.standard_normal(mu.size))
     dg = diagnose(ds, seed=3, n_samples=300, candidates=["offset", "viscoelastic", "slack"], removal=False)
     assert dg.noise["model"] == "proportional"
     assert dg.noise["consistent"], dg.noise.get("comparison")

@@ -25,12 +25,12 @@ def _curve(kind: str, seed: int = 3):
     # (on one constant-rate ramp a step in time is a step in strain)
     prot = protocol([ramp(0.25, 2e-3, 60), hold(200.0, 60)]) if kind == "slip" else protocol(ramp(0.33, 1e-3, 120))
     ds = synthetic_specimen(spyrou_model(), TH, prot, 0.0008, seed=seed)
-    t, s = ds["time"].values, ds["stress"].values.copy()
+    t, s = ds.time, ds.stress.copy()
     if kind == "ripple":        # 5 % of the peak stress
         s += 0.05 * s.max() * np.sin(2 * np.pi * t / PERIOD + 0.4)
     elif kind == "slip":        # the grip slips: 8 % of the peak lost at t = 225 s (in the hold)
         s -= 0.08 * s.max() * (t > T_SLIP)
-    return ds.assign(stress=("point", s))
+    return ds.with_series("stress", s)
 
 
 def test_time_controls_are_their_formulas():
@@ -40,8 +40,8 @@ def test_time_controls_are_their_formulas():
     np.testing.assert_allclose(r.shape(ld, {"RIP_P": 20.0, "RIP_PH": 0.3}), np.sin(2 * np.pi * t / 20 + 0.3))
     st = TimeStep(0.01, (0.0, 100.0), 2.0)
     np.testing.assert_allclose(st.shape(ld, {"TSTEP_C": 40.0, "TSTEP_W": 1.0}), 1 / (1 + np.exp(-(t - 40.0))), atol=1e-12)
-    assert st.region({"TSTEP_C": 40.0, "TSTEP_W": 1.0}, as_data(protocol(ramp(0.3, 3e-3, 51)).assign(
-        stress=("point", np.linspace(0, 0.1, 51)))))[1:] == (36.0, 44.0)
+    assert st.region({"TSTEP_C": 40.0, "TSTEP_W": 1.0}, as_data(protocol(ramp(0.3, 3e-3, 51)).with_series(
+        "stress", np.linspace(0, 0.1, 51))))[1:] == (36.0, 44.0)
     # the period grid spans near-Nyquist to half the record, finely enough to start a refit
     grid = r.grid()
     periods = sorted({g["RIP_P"] for g in grid})

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from hbm.data import cycle, hold, protocol, ramp, synthetic_specimen
+from hbm.data import Specimen, cycle, hold, protocol, ramp, synthetic_specimen
 from hbm.detective.controls import KinkMisfit, LocalMisfit, StepMisfit, TimeTrend, controls_for
 from hbm.detective.decision import decide
 from hbm.detective.fitting import Fitter
@@ -51,7 +51,7 @@ def test_strain_controls_add_their_shape(cls, prefix, formula):
 
 def test_time_trend_control_and_which_controls_apply():
     ds = protocol(ramp(0.3, 1e-2, 20), ramp(0.3, 1e-3, 20))
-    d = as_data(ds.assign(stress=("point", np.linspace(0, 0.05, ds.sizes["point"]))))
+    d = as_data(ds.with_series("stress", np.linspace(0, 0.05, ds.n_points)))
     ctl = TimeTrend.for_data(d.time, d.stress)
     m = spyrou_model() + ctl
     th = m.null_theta(BASE)
@@ -60,7 +60,7 @@ def test_time_trend_control_and_which_controls_apply():
     np.testing.assert_allclose(diff, 0.01 * (d.time / d.time.max()) ** 2, atol=1e-12)
     assert [c.name for c in controls_for(d)] == ["local_misfit", "local_step", "local_kink", "time_trend",
                                                  "time_step", "periodic"]
-    no_time = as_data(ds.drop_vars(["time"]).assign(stress=("point", d.stress)))
+    no_time = as_data(Specimen(ds.id, ds.strain, test=ds.test, attrs=ds.attrs).with_series("stress", d.stress))
     assert "time_trend" not in [c.name for c in controls_for(no_time)]
 
 
@@ -70,28 +70,27 @@ def test_time_trend_control_and_which_controls_apply():
 def test_unit_anomaly_flags_kpa_but_not_mpa():
     ds = synthetic_specimen(spyrou_model(), TH, protocol(ramp(0.35, 1e-3, 40)), 0.001, seed=0)
     assert unit_anomaly(as_data(ds)) is None
-    kpa = ds.assign(stress=ds.stress * 1000.0)
+    kpa = ds.with_series("stress", ds.stress * 1000.0)
     msg = unit_anomaly(as_data(kpa))
     assert msg is not None and "kPa" in msg and "1e3" in msg
-    pa = ds.assign(stress=ds.stress * 1e6)
+    pa = ds.with_series("stress", ds.stress * 1e6)
     assert "Pa" in unit_anomaly(as_data(pa)) and "1e6" in unit_anomaly(as_data(pa))
 
 
 def test_protocol_features_and_experiments_look_at_the_file():
-    three = as_data(protocol(ramp(0.3, 1e-3, 20), ramp(0.3, 1e-2, 20), ramp(0.3, 1e-1, 20)).assign(
-        stress=lambda x: ("point", np.zeros(x.sizes["point"]))))
+    three = as_data(protocol(ramp(0.3, 1e-3, 20), ramp(0.3, 1e-2, 20), ramp(0.3, 1e-1, 20)).with_series(
+        "stress", np.zeros(60)))
     f = protocol_features(three)
     np.testing.assert_allclose(f["rates"], [1e-3, 1e-2, 1e-1], rtol=1e-6)
     assert not f["hold"] and not f["unloading"]
     text = experiments_for(["viscoelastic"], f)
     assert "already has 3 strain rates" in text and "relaxation hold" in text and "decade" not in text
-    lur = as_data(protocol(cycle(0.3, 1e-3, 15, eps_min=0.1, reload_to=0.35)).assign(
-        stress=lambda x: ("point", np.zeros(x.sizes["point"]))))
+    lur = as_data(protocol(cycle(0.3, 1e-3, 15, eps_min=0.1, reload_to=0.35)).with_series(
+        "stress", np.zeros(45)))
     g = protocol_features(lur)
     assert g["unloading"] and g["reload_beyond"]
     assert "already has a load-unload-reload" in experiments_for(["damage"], g)
-    held = as_data(protocol([ramp(0.3, 1e-2, 20), hold(300.0, 15)]).assign(
-        stress=lambda x: ("point", np.zeros(x.sizes["point"]))))
+    held = as_data(protocol([ramp(0.3, 1e-2, 20), hold(300.0, 15)]).with_series("stress", np.zeros(35)))
     assert protocol_features(held)["hold"]
     assert "ramps at strain rates" in experiments_for(["viscoelastic"], protocol_features(held))
 
@@ -101,8 +100,7 @@ def test_experiment_advice_is_the_effects_own():
     effect that describes its experiment is quoted."""
     import hbm
 
-    f = protocol_features(as_data(protocol(ramp(0.3, 1e-2, 20)).assign(
-        stress=lambda x: ("point", np.zeros(x.sizes["point"])))))
+    f = protocol_features(as_data(protocol(ramp(0.3, 1e-2, 20)).with_series("stress", np.zeros(20))))
     unknown = experiments_for(["my_effect"], f)
     assert "already" not in unknown and "hbm knows no protocol" in unknown and "my_effect" in unknown
 
@@ -135,7 +133,7 @@ def _cand(name, dz, dl, physical=True, windows_after=0, null_excluded=True, regi
 
 
 def _data():
-    return as_data(protocol(ramp(0.4, 1e-3, 30)).assign(stress=lambda x: ("point", np.linspace(0, 0.1, 30))))
+    return as_data(protocol(ramp(0.4, 1e-3, 30)).with_series("stress", np.linspace(0, 0.1, 30)))
 
 
 OK_NOISE = {"consistent": True}
@@ -422,7 +420,7 @@ def test_refined_evidence_credits_a_second_effect_the_25_step_runs_under_credit(
     under-mixed and its log Z low; the refined runs (the local walk) credit the offset above the
     naming threshold on every seed, and by more than the standard runs on average."""
     from hbm.detective.fitting import sample
-    from hbm.detective.rules import DELTA_LOGZ_MIN, TMCMC_REFINE_PROPOSAL, TMCMC_REFINE_STEPS
+    from hbm.detective.rules import DELTA_LOGZ_MIN, TMCMC_REFINE_MOVE, TMCMC_REFINE_STEPS
 
     th = dict(VOLF=0.75, EOPT=0.08, P1=0.20, T1=0.6, T2=18.0, THETA=58.0, GF=0.02, GM=0.008,
               G1=0.3, LOGTAU1=1.6, S0=0.0065)
@@ -439,7 +437,7 @@ def test_refined_evidence_credits_a_second_effect_the_25_step_runs_under_credit(
     std, ref = [], []
     for s in range(2):
         std.append(sample(b.likelihood, 800, 20 + s).log_evidence - sample(a.likelihood, 800, 10 + s).log_evidence)
-        kw = dict(max_steps=TMCMC_REFINE_STEPS, proposal=TMCMC_REFINE_PROPOSAL)
+        kw = dict(max_steps=TMCMC_REFINE_STEPS, move=TMCMC_REFINE_MOVE)
         ref.append(sample(b.likelihood, 800, 20 + s, **kw).log_evidence
                    - sample(a.likelihood, 800, 10 + s, **kw).log_evidence)
     assert min(ref) > DELTA_LOGZ_MIN, (std, ref)

@@ -6,6 +6,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
+from hbm.data import Series, Specimen
 from hbm import io
 from hbm.errors import HbmError
 from hbm.export import export, laws, stability, verify
@@ -32,7 +33,8 @@ def _result(tmp_path, form="energy", k_iso=1.0, spread=0.03, name="syn"):
                           log_evidence=0.0, log_evidence_se=0.1,
                           bounds=np.array([[0.5, 0.99], [0, 0.2], [1e-4, 0.5], [0, 20], [0, 200], [55, 60],
                                            [1e-4, 0.1], [1e-4, 0.1]]),
-                          strain=strain, stress=stress, model=model.name, effects=list(model.effect_names))
+                          data=Specimen(name, strain, observed={"stress": Series.known("stress", stress)}),
+                          model=model.name, effects=list(model.effect_names))
     r.predictive_model = model.stress(strain, draws)
     r.predictive = r.predictive_model + 1e-3 * rng.standard_normal(r.predictive_model.shape)
     r.pointwise_log_likelihood = -0.5 * ((r.predictive_model - stress) / 1e-3) ** 2

@@ -42,7 +42,7 @@ def test_pointwise_log_likelihood_sums_to_total(noise):
     rng = np.random.default_rng(0)
     theta = lik.bounds[:, 0] + rng.random((50, lik.d)) * np.ptp(lik.bounds, axis=1)
     pw = pointwise_log_likelihood(lik, theta)
-    assert pw.shape == (50, data.sizes["point"])
+    assert pw.shape == (50, data.n_points)
     np.testing.assert_allclose(pw.sum(axis=1), lik(theta), rtol=1e-10, atol=1e-8)
 
 
@@ -96,7 +96,7 @@ def test_fit_specimen_fixed_parameter_and_errors():
     assert "EOPT" not in res.names and res.result.fixed == {"EOPT": 0.15}
     assert summarize(res.result)["G"]["mean"] > 0
     with pytest.raises(HbmError):
-        fit_specimen(data, samples=100, kernel="bogus", progress=False)
+        fit_specimen(data, samples=100, move="bogus", progress=False)
     with pytest.raises(HbmError):
         fit_specimen(data, samples=100, restarts=0, fix={"NOPE": 1.0}, progress=False)
 

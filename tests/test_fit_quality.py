@@ -9,6 +9,7 @@ import pytest
 import xarray as xr
 
 from hbm import io
+from hbm.data import Series, Specimen
 from hbm.fit import FitResult, RIDGE_NOTE, at_bounds, fit_quality, map_estimate, summary_table
 from hbm.io import SpecimenResult
 
@@ -27,7 +28,8 @@ def _tiny(prior=None, optima=None):
     pred[:, 0] += 0.5   # point 0 band [1.5, 19.5]: stress 1 is outside
     return SpecimenResult(specimen_id="tiny", names=["A", "sigma"], samples=samples, log_likelihood=ll,
                           log_evidence=-2.5, log_evidence_se=0.25, bounds=np.array([[0.0, 4.0], [0.0, 1.0]]),
-                          stress=stress, strain=np.linspace(0, 0.3, 4), predictive=pred, predictive_model=pm,
+                          data=Specimen("tiny", np.linspace(0, 0.3, 4), observed={"stress": Series.known("stress", stress)}),
+                          predictive=pred, predictive_model=pm,
                           config={"noise": "iid"}, optima=optima, prior=prior)
 
 
@@ -122,9 +124,10 @@ def test_fit_figure_writes_a_file(tmp_path):
     from hbm.plots.fit import fit_plot
 
     r = _tiny()
-    r.time = np.array([0.0, 1.0, 2.0, 3.0])
+    untimed = r.data
+    r.data = Specimen("tiny", untimed.strain, np.array([0.0, 1.0, 2.0, 3.0]), observed=untimed.observed)
     p = fit_plot(FitResult(result=r, path=None, likelihood=None), path=tmp_path / "fit.png")
     assert p.stat().st_size > 1000
-    r.time = None
+    r.data = untimed
     p = fit_plot(r, path=tmp_path / "fit2.png")
     assert p.stat().st_size > 1000

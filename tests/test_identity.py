@@ -73,7 +73,7 @@ def folder(tmp_path):
     model = spyrou_model()
     for k, sid in enumerate(("s1", "s2")):
         ds = synthetic_specimen(model, THETA, np.linspace(0, 0.4, 16), 0.002, seed=k)
-        ds.attrs["id"] = sid
+        ds = ds.with_attrs(id=sid)
         save_specimen(ds, data / f"{sid}.csv")
     return tmp_path
 

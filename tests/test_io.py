@@ -10,6 +10,7 @@ import pytest
 import xarray as xr
 
 from hbm import io
+from hbm.data import Series, Specimen
 from hbm.samplers import StageInfo
 from hbm.samplers.tmcmc import tmcmc
 
@@ -31,8 +32,8 @@ def _result(n=200, p=15, seed=1, complete=True):
     return io.SpecimenResult(
         specimen_id="rat1", names=names, samples=samples, log_likelihood=rng.normal(size=n),
         log_evidence=12.5, log_evidence_se=0.3, bounds=np.array([[0.5, 0.99], [0, 20], [1e-4, 1.0]]),
-        stages=stages, strain=strain, stress=strain ** 2, time=np.arange(p, dtype=float),
-        test=np.zeros(p, int), pointwise_log_likelihood=rng.normal(size=(n, p)),
+        stages=stages, data=Specimen("rat1", strain, np.arange(p, dtype=float), np.zeros(p, int),
+                                     {"stress": Series.known("stress", strain ** 2)}), pointwise_log_likelihood=rng.normal(size=(n, p)),
         predictive=rng.normal(size=(n, p)), predictive_model=rng.normal(size=(n, p)), optima=optima,
         sobol=sobol, effects=["offset"], config={"samples": n, "fix": None, "flag": True},
         seed=7, timings={"tmcmc": 1.5}, fixed={"EOPT": 0.192}, complete=complete)
@@ -49,7 +50,9 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(back.pointwise_log_likelihood, r.pointwise_log_likelihood)
     np.testing.assert_array_equal(back.predictive, r.predictive)
     np.testing.assert_array_equal(back.bounds, r.bounds)
-    np.testing.assert_array_equal(back.strain, r.strain)
+    for v in ("strain", "stress", "time", "test"):
+        np.testing.assert_array_equal(getattr(back.data, v), getattr(r.data, v))
+    assert back.data.observed["stress"].unit == "MPa"
     assert back.log_evidence == 12.5 and back.log_evidence_se == 0.3
     assert [s.beta for s in back.stages] == [0.0, 0.1, 0.5, 1.0]
     assert [s.evaluations for s in back.stages] == [100, 200, 300, 400]
@@ -80,7 +83,7 @@ def test_sampler_stage_records_round_trip(tmp_path, kernel):
     """Every StageInfo field the sampler produced is stored under its own name and read back equal."""
     f = lambda x: -0.5 * x[:, 0] ** 2 - 0.5 * (x[:, 1] - 1.0) ** 2  # noqa: E731
     gf = lambda x: (-(x - [0.0, 1.0]), np.broadcast_to(np.eye(2), (len(x), 2, 2)).copy())  # noqa: E731
-    res = tmcmc(f, [[-5, 5], [-5, 5]], 200, seed=3, kernel=kernel, gradient_fim=gf, progress=False)
+    res = tmcmc(f, [[-5, 5], [-5, 5]], 200, seed=3, move=kernel, gradient_fim=gf, progress=False)
     assert len(res.stages) >= 2
     r = _result()
     r.stages = res.stages

@@ -73,9 +73,9 @@ def test_measured_curves_load_raw_and_match_hand_conversion(fname, n):
     lam = [sl / 2.0 for sl, _ in table]
     strain = [x - 1.0 for x in lam]
     stress = [x * p * 1e-3 for x, (_, p) in zip(lam, table)]
-    assert ds.sizes["point"] == n
-    np.testing.assert_allclose(ds.strain.values, strain, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(ds.stress.values, stress, rtol=0, atol=1e-9)
+    assert ds.n_points == n
+    np.testing.assert_allclose(ds.strain, strain, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ds.stress, stress, rtol=0, atol=1e-9)
     a = ds.attrs
     assert (a["units_stress"], a["units_stress_original"]) == ("MPa", "kPa")
     assert (a["stress_measure"], a["stress_measure_original"]) == ("cauchy", "nominal")
@@ -95,7 +95,7 @@ def test_measured_folder_and_reference_in_file_agree(tmp_path):
     f = write(tmp_path, "# reference_sarcomere_length_um: 2\n" + text)
     ds = load_specimen(f)
     for v in ("strain", "stress"):
-        np.testing.assert_array_equal(ds[v].values, curves["smith2011_gracilis_fibres"][v].values)
+        np.testing.assert_array_equal(getattr(ds, v), getattr(curves["smith2011_gracilis_fibres"], v))
     assert load_specimen(f, sl0=2.0).attrs["reference_sarcomere_length_um"] == "2.0"
     with pytest.raises(DataError, match=r"line 1: .*contradicts sl0=2\.1"):
         load_specimen(f, sl0=2.1)
@@ -107,7 +107,7 @@ def test_shipped_specimens_equal_plain_float_parse():
         header, table = raw_table(path)
         ds = load_specimen(path)
         for j, col in enumerate(header):
-            np.testing.assert_array_equal(ds[col].values, [r[j] for r in table])
+            np.testing.assert_array_equal(getattr(ds, col), [r[j] for r in table])
         assert input_summary(ds) == "" and "units_stress_original" not in ds.attrs
 
 
@@ -125,8 +125,8 @@ def test_stress_units(tmp_path, head, meta, factor):
     scale = {1e-3: 1.0, 1e-6: 1e3, 1.0: 1e-3}[factor]  # keep the MPa value plausible
     written = [s * scale for s in S]
     ds = load_specimen(write(tmp_path, meta + head + "\n" + rows(E, written)))
-    np.testing.assert_allclose(ds.stress.values, [w * factor for w in written], rtol=1e-15, atol=0)
-    np.testing.assert_array_equal(ds.strain.values, E)
+    np.testing.assert_allclose(ds.stress, [w * factor for w in written], rtol=1e-15, atol=0)
+    np.testing.assert_array_equal(ds.strain, E)
     unit = {1e-3: "kPa", 1e-6: "Pa", 1.0: "MPa"}[factor]
     assert ds.attrs["units_stress"] == "MPa"
     assert ds.attrs.get("units_stress_original") == (None if unit == "MPa" else unit)
@@ -137,36 +137,36 @@ def test_stress_units(tmp_path, head, meta, factor):
                                         ("strain,nominal_stress", "# units_stress: kPa\n")])
 def test_nominal_stress_becomes_cauchy(tmp_path, head, meta):
     ds = load_specimen(write(tmp_path, meta + head + "\n" + rows(E, S)))
-    np.testing.assert_allclose(ds.stress.values, [(1 + e) * s / 1000 for e, s in zip(E, S)], rtol=1e-15)
+    np.testing.assert_allclose(ds.stress, [(1 + e) * s / 1000 for e, s in zip(E, S)], rtol=1e-15)
     assert ds.attrs["stress_measure"] == "cauchy" and ds.attrs["stress_measure_original"] == "nominal"
 
 
 def test_cauchy_declared_is_unchanged(tmp_path):
     ds = load_specimen(write(tmp_path, "# stress_measure: Cauchy\nstrain,cauchy_stress_kpa\n" + rows(E, S)))
-    np.testing.assert_allclose(ds.stress.values, [s / 1000 for s in S], rtol=1e-15)
+    np.testing.assert_allclose(ds.stress, [s / 1000 for s in S], rtol=1e-15)
     assert ds.attrs["stress_measure"] == "cauchy" and "stress_measure_original" not in ds.attrs
 
 
 def test_stretch_and_sarcomere_length(tmp_path):
     lam = [1 + e for e in E]
     ds = load_specimen(write(tmp_path, "stretch,nominal_stress_kPa\n" + rows(lam, S)))
-    np.testing.assert_allclose(ds.strain.values, E, rtol=0, atol=1e-15)
-    np.testing.assert_allclose(ds.stress.values, [x * s / 1000 for x, s in zip(lam, S)], rtol=1e-15)
+    np.testing.assert_allclose(ds.strain, E, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(ds.stress, [x * s / 1000 for x, s in zip(lam, S)], rtol=1e-15)
     assert ds.attrs["deformation_input"] == "stretch" and "reference_sarcomere_length_um" not in ds.attrs
 
     sl = [2.2 * x for x in lam]
     with_ref = write(tmp_path, "# reference_sarcomere_length_um: 2.2\nsarcomere_length_um,stress\n"
                      + rows(sl, [s / 100 for s in S]), "sl.csv")
     ds = load_specimen(with_ref)
-    np.testing.assert_allclose(ds.strain.values, [x / 2.2 - 1 for x in sl], rtol=0, atol=1e-15)
-    np.testing.assert_array_equal(ds.stress.values, [s / 100 for s in S])  # Cauchy MPa: untouched
+    np.testing.assert_allclose(ds.strain, [x / 2.2 - 1 for x in sl], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(ds.stress, [s / 100 for s in S])  # Cauchy MPa: untouched
     assert ds.attrs["reference_sarcomere_length_um"] == "2.2"
     assert ds.attrs["deformation_input"] == "sarcomere_length_um"
 
     without = write(tmp_path, "sarcomere_length_um,stress\n" + rows(sl, [s / 100 for s in S]), "sl0.csv")
     refused(without, ["line 1", "reference_sarcomere_length_um", "sl0"])
     ds2 = load_specimen(without, sl0=2.2)
-    np.testing.assert_array_equal(ds2.strain.values, ds.strain.values)
+    np.testing.assert_array_equal(ds2.strain, ds.strain)
     # sl0 only matters for a sarcomere-length column
     plain = write(tmp_path, "strain,stress\n" + rows(E, [s / 100 for s in S]), "plain.csv")
     assert "reference_sarcomere_length_um" not in load_specimen(plain, sl0=2.2).attrs
@@ -186,7 +186,7 @@ def test_test_labels_in_order_of_appearance(tmp_path):
             "0.05,0.002,4,unload\n0.15,0.02,5,reload\n0.25,0.05,6,reload\n"
             "0,0,0,ramp_0.01\n0.1,0.02,10,ramp_0.01\n0.1,0.015,30,hold 600 s\n")
     ds = load_specimen(write(tmp_path, text))
-    np.testing.assert_array_equal(ds.test.values, [0, 0, 0, 1, 1, 2, 2, 3, 3, 4])
+    np.testing.assert_array_equal(ds.test, [0, 0, 0, 1, 1, 2, 2, 3, 3, 4])
     assert ds.test.dtype == np.int64
     assert json.loads(ds.attrs["test_labels"]) == ["load", "unload", "reload", "ramp_0.01", "hold 600 s"]
     # load/unload/reload continue in time: one history; ramp_0.01 restarts at 0 and the hold continues it
@@ -212,7 +212,7 @@ def test_bad_test_cells(tmp_path, cells, fragments):
 
 def test_largest_int64_test_id_loads(tmp_path):
     text = "strain,stress,test\n" + "".join(f"{0.1 * i},{0.01 * i},9223372036854775807\n" for i in range(5))
-    assert load_specimen(write(tmp_path, text)).test.values[0] == 2 ** 63 - 1
+    assert load_specimen(write(tmp_path, text)).test[0] == 2 ** 63 - 1
 
 
 # ------------------------------------------------------------------ plausibility
@@ -241,7 +241,7 @@ def test_implausible_declared_stress_loads_with_a_warning(tmp_path, head, meta, 
     text = " ".join(str(w.message) for w in seen)
     assert all(f in text for f in ["passive muscle", *fragments]), text
     factor = {"kPa": 1e-3, "Pa": 1e-6}[ds.attrs["units_stress_original"]]
-    assert ds.stress.values[-1] == pytest.approx(values[-1] * factor)
+    assert ds.stress[-1] == pytest.approx(values[-1] * factor)
 
 
 def test_stiffness_just_below_the_limit_loads(tmp_path):
@@ -249,7 +249,7 @@ def test_stiffness_just_below_the_limit_loads(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ds = load_specimen(write(tmp_path, "strain,stress\n" + rows(E, [0, 0.1, 0.2, 0.3, 0.5, 0.897])))
-    assert ds.stress.values.max() == 0.897
+    assert ds.stress.max() == 0.897
     refused(write(tmp_path, "strain,stress\n" + rows(E, [0, 0.1, 0.2, 0.3, 0.5, 0.903])), ["3.01 MPa"])
 
 
@@ -303,7 +303,7 @@ def test_converted_dataset_saves_and_loads_back(tmp_path):
     assert "# units_stress_original: kPa" in text and "\nstrain,stress,test\n" in text
     back = load_specimen(saved)
     for v in ("strain", "stress", "test"):
-        np.testing.assert_array_equal(back[v].values, ds[v].values)
+        np.testing.assert_array_equal(getattr(back, v), getattr(ds, v))
     assert {k: v for k, v in back.attrs.items() if k != "source_file"} == \
         {k: v for k, v in ds.attrs.items() if k != "source_file"}
     assert save_specimen(back, tmp_path / "rt2.csv").read_bytes() == saved.read_bytes()
@@ -326,8 +326,8 @@ def test_semicolon_and_tab_files_with_decimal_commas_mean_what_they_say(tmp_path
         body = "".join(sep.join((repr(e) if not comma else repr(e).replace(".", ","),
                                  repr(x) if not comma else repr(x).replace(".", ","))) + "\n" for e, x in zip(E, S))
         ds = load_specimen(write(tmp_path, f"strain{sep}stress_kPa\n" + body))
-        assert ds.strain.values.tolist() == expected_strain
-        assert ds.stress.values.tolist() == [x / 1000 for x in S]
+        assert ds.strain.tolist() == expected_strain
+        assert ds.stress.tolist() == [x / 1000 for x in S]
     # one row of a ';' file: read, then refused for its size (no longer as an unknown column)
     refused(write(tmp_path, "strain;stress\n0.1;0.2\n"), ["1 data rows", "at least 5"])
     # a comma header keeps ',' as the separator: decimal commas there stay an error
@@ -353,13 +353,13 @@ def test_lab_headers_with_units_in_brackets(tmp_path, head, strain_factor, stres
     ds = load_specimen(write(tmp_path, meta + head + "\n" + body))
     strain = {0.01: [v / 100 for v in raw_def], 1.0: raw_def, "stretch": [v - 1 for v in raw_def],
               "sl": [v / 2.5 - 1 for v in raw_def]}[strain_factor]
-    np.testing.assert_allclose(ds.strain.values, strain, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(ds.strain, strain, rtol=1e-14, atol=1e-15)
     if stress_factor == "nominal_kpa":  # Cauchy = (1 + strain) * nominal, kPa -> MPa
         stress = [(1 + e) * x / 1000 for e, x in zip(strain, raw_stress)]
     else:
         stress = [x * stress_factor for x in raw_stress]
-    np.testing.assert_allclose(ds.stress.values, stress, rtol=1e-14, atol=1e-18)
-    assert ds.time.values.tolist() == [10.0 * k for k in range(len(E))]
+    np.testing.assert_allclose(ds.stress, stress, rtol=1e-14, atol=1e-18)
+    assert ds.time.tolist() == [10.0 * k for k in range(len(E))]
 
 
 @pytest.mark.parametrize("head, fragments", [
@@ -428,14 +428,14 @@ def test_symlink_to_a_regular_file_loads(tmp_path):
     target = write(tmp_path, "strain,stress\n" + rows(E, [s / 100 for s in S]), "real.csv")
     link = tmp_path / "link.csv"
     link.symlink_to(target)
-    np.testing.assert_array_equal(load_specimen(link).strain.values, E)
+    np.testing.assert_array_equal(load_specimen(link).strain, E)
 
 
 def test_metadata_keys_with_spaces(tmp_path):
     ds = load_specimen(write(tmp_path, "# reference sarcomere length: about 2 um\n# units stress: kPa\n"
                                        "strain,stress\n" + rows(E, S)))
     assert ds.attrs["reference_sarcomere_length"] == "about 2 um"
-    np.testing.assert_allclose(ds.stress.values, [s / 1000 for s in S], rtol=1e-15)
+    np.testing.assert_allclose(ds.stress, [s / 1000 for s in S], rtol=1e-15)
 
 
 # ------------------------------------------------------------------ hbm data check

@@ -52,14 +52,14 @@ def test_kpa_file_read_without_units_is_refused_with_the_fix(tmp_path, capsys):
         assert "stress 4 (no unit declared, read as MPa)" in err[0] and "add '# units_stress: kPa'" in err[0]
     assert not (tmp_path / "k.nc").exists()
     ds = load_specimen(rescaled(tmp_path, "kpa4d", 4.0, "# units_stress: kPa\n"))  # declared: fine, silent
-    assert ds.stress.values.max() == pytest.approx(0.004)
+    assert ds.stress.max() == pytest.approx(0.004)
 
 
 def test_declared_mpa_above_the_range_loads_with_a_warning(tmp_path, capsys):
     path = rescaled(tmp_path, "stiff", 5.009, "# units_stress: MPa\n")
     with pytest.warns(HbmWarning, match=r"above the .* range of passive muscle.*loaded as declared: MPa"):
         ds = load_specimen(path)
-    assert ds.stress.values.max() == pytest.approx(5.009)
+    assert ds.stress.max() == pytest.approx(5.009)
     capsys.readouterr()
     assert cli.main(["data", "check", str(path)]) == 0
     out, err = capsys.readouterr()
@@ -83,7 +83,7 @@ def test_shipped_and_measured_curves_load_without_warnings():
             ds = load_specimen(f, sl0=2.0 if "smith2011" in f else None)
             assert unit_anomaly(as_data(ds)) is None, f
             lo, hi = PLAUSIBLE_MODULUS
-            moduli = secant_moduli(ds.strain.values, ds.stress.values)
+            moduli = secant_moduli(ds.strain, ds.stress)
             # the peak within the range; the toe never too stiff, but it may be slack (physics, not a
             # unit: porcine compression along the fibres has a toe secant of 1.4 kPa at 9 % strain)
             assert lo <= moduli["peak"][0] <= hi, f

@@ -54,7 +54,7 @@ def test_run_population_bad_input():
 def test_run_config_maps_to_population_config():
     cfg = RunConfig(seed=5, samples=600, hier_samples=222, hier_max_steps=9, hier_pooled="informed", noise="ar1",
                     retries=3, progress=False)
-    pc = cfg.population_config()
+    pc = cfg.population_settings()
     assert (pc.seed, pc.samples, pc.stage1_samples, pc.max_steps, pc.pooled, pc.noise, pc.retries, pc.progress) == \
         (5, 222, 600, 9, "informed", "ar1", 3, False)
 
@@ -114,8 +114,8 @@ def test_reuse_key_keeps_retired_settings_and_sees_sampler_options():
     second pass at their old defaults); the sampler settings change the key only when set."""
     from hbm.io.identity import settings_key
 
-    key = PopulationConfig().key_settings()
+    key = PopulationConfig().record()
     assert key["reference"] == 0.0 and key["second_pass"] is False
     assert "sampler_options" not in key and "progress" not in key and "groups" not in key
-    assert settings_key(PopulationConfig(sampler_options={"n_steps": 3}).key_settings()) != settings_key(key)
-    assert settings_key(PopulationConfig(progress=False, retries=5).key_settings()) == settings_key(key)
+    assert settings_key(PopulationConfig(sampler_options={"n_steps": 3}).record()) != settings_key(key)
+    assert settings_key(PopulationConfig(progress=False, retries=5).record()) == settings_key(key)

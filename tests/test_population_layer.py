@@ -15,14 +15,13 @@ def test_layer_settings_and_combination_coordinates():
     from hbm.identifiability.combinations import log_density, support_hull, to_features
     from hbm.model import spyrou_model
     from hbm.population import PopulationConfig
-    from hbm.population.config import check_config
     from hbm.population.driver import joint_applies
     from hbm.population.pooling import PhiCoordinates
 
     with pytest.raises(HbmError, match="gibbs"):
-        check_config(PopulationConfig(exact="nuts"))
+        PopulationConfig(exact="nuts")
     with pytest.raises(HbmError, match="layer_chains"):
-        check_config(PopulationConfig(layer_chains=1))
+        PopulationConfig(layer_chains=1)
     assert PopulationConfig().exact == "gibbs"  # on by default (README, results/benchmarks/hierarchical_gold.md)
     data = {"a": None, "b": None}
     assert joint_applies(PopulationConfig(progress=False), data, "ab")
@@ -104,7 +103,7 @@ def test_run_option_hier_exact_reaches_the_population_layer(monkeypatch, tmp_pat
         pass
 
     def capture(cfg, **kw):
-        raise Captured(cfg.population_config())
+        raise Captured(cfg.population_settings())
 
     monkeypatch.setenv("HBM_DEBUG", "1")
     monkeypatch.setattr(cli_run, "run_workflow", capture)

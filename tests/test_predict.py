@@ -16,6 +16,7 @@ import pytest
 from conftest import cli_error
 from scipy.optimize import brentq
 
+from hbm.data import Series, Specimen
 from hbm import io
 from hbm.errors import HbmError
 from hbm.model import spyrou_model
@@ -73,8 +74,9 @@ def specimen_result(sid: str, rng: np.random.Generator) -> io.SpecimenResult:
     optima.append({"params": {**dict(zip(NAMES, off)), "sigma": 0.002}, "objective": -50.0, "kind": "restart"})
     bounds = np.vstack([model.bounds, [[1e-4, 0.1]]])
     return io.SpecimenResult(specimen_id=sid, names=names, samples=samples, log_likelihood=np.zeros(N_DRAWS),
-                             log_evidence=-10.0, log_evidence_se=0.1, bounds=bounds, strain=strain,
-                             stress=stress, optima=optima, effects=list(model.effect_names))
+                             log_evidence=-10.0, log_evidence_se=0.1, bounds=bounds,
+                             data=Specimen(sid, strain, observed={"stress": Series.known("stress", stress)}),
+                             optima=optima, effects=list(model.effect_names))
 
 
 @pytest.fixture(scope="module")

@@ -224,7 +224,7 @@ def test_spyrou_fit_with_loguniform_prior_reports_natural_units():
     np.testing.assert_allclose(r.samples, lik.to_natural(res.tmcmc.samples))
     np.testing.assert_allclose(r.predictive_model, lik.predict(lik.from_natural(r.samples)), rtol=1e-10)
     with pytest.raises(PriorError, match="sweep.*loguniform"):
-        fit_specimen(data, samples=10, restarts=1, sweep="P1:0.1", prior=prior, progress=False)
+        fit_specimen(data, samples=20, restarts=1, sweep="P1:0.1", prior=prior, progress=False)
 
 
 def test_population_refuses_non_uniform_stage1_priors():

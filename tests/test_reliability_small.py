@@ -90,7 +90,7 @@ def test_the_api_refuses_what_the_cli_refuses(call, fragment):
 
 def test_workers_capped_with_a_clear_message(capsys):
     from hbm.runtime.parallel import dask_client
-    from hbm.runtime.validation import MAX_WORKERS_PER_CORE
+    from hbm.settings.rules import MAX_WORKERS_PER_CORE
 
     with pytest.raises(SettingError, match="worker processes on .* expected at most"):
         with dask_client(100000):

@@ -249,7 +249,7 @@ def test_fit_quality_section_rmse_and_edges():
     res = fit_specimen(ds, model=model, samples=200, restarts=0, progress=False, seed=1)
     r = res.result
     mu = map_prediction(res)
-    rmse = float(np.sqrt(np.mean((np.asarray(ds["stress"]) - mu) ** 2)))
+    rmse = float(np.sqrt(np.mean((ds.stress - mu) ** 2)))
     text = _fit_quality(types.SimpleNamespace(results={"s": r}), None)
     row = [line for line in text.splitlines() if line.startswith("| s |")][0]
     assert float(row.split("|")[2]) == pytest.approx(rmse, rel=1e-3)

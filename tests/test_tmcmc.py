@@ -135,7 +135,7 @@ def test_transform_none_also_correct():
 
 def test_manifold_kernel_gaussian_and_banana():
     for (f, b, truth), gf in ((GAUSS9, gauss9_gf), (BANANA, banana_gf)):
-        res = tmcmc(f, b, 1000, seed=6, kernel="manifold", gradient_fim=gf, progress=False)
+        res = tmcmc(f, b, 1000, seed=6, move="manifold", gradient_fim=gf, progress=False)
         check_evidence(res, truth)
         assert all(s.metric_ok == 1.0 for s in res.stages)
         assert 0.2 < np.mean([s.acceptance_rate for s in res.stages]) < 0.95
@@ -445,7 +445,7 @@ def test_slow_accuracy_rw_and_manifold(problem, gf):
         exact_mean, exact_sd = np.zeros(pooled.shape[1]), np.ones(pooled.shape[1])
     assert np.all(np.abs(means.mean(axis=0) - exact_mean) <= 0.05 * exact_sd)
     assert np.all(np.abs(sd - exact_sd) <= 0.05 * exact_sd)
-    mruns, _ = _runs(problem, kernel="manifold", gradient_fim=gf)
+    mruns, _ = _runs(problem, move="manifold", gradient_fim=gf)
     err_m = _check_accuracy_and_se(mruns, truth)
     assert err_m <= max(err_rw * 1.25, 0.05)
 
@@ -475,7 +475,7 @@ def _gauss_problem(d=3, s=0.3, mu=1.0, half=5.0):
     return ll, b, log_z
 
 
-@pytest.mark.parametrize("kw", [{}, {"proposal": "local"}, {"transform": "none"}, {"preset": "lean"}])
+@pytest.mark.parametrize("kw", [{}, {"move": "local"}, {"transform": "none"}, {"preset": "lean"}])
 def test_max_evaluations_is_respected_exactly(kw):
     ll, b, _ = _gauss_problem()
     rows = [0]

@@ -93,8 +93,8 @@ def test_support_rejects_without_evaluating():
 
 
 def test_bad_bijection_is_an_error():
-    with pytest.raises(HbmError, match="kernel='rw'"):
-        tmcmc(_ll, BOUNDS, 100, seed=0, progress=False, kernel="manifold",
+    with pytest.raises(HbmError, match="move='rw'"):
+        tmcmc(_ll, BOUNDS, 100, seed=0, progress=False, move="manifold",
               gradient_fim=lambda x: (x, np.ones((len(x), D, D))), bijection=LogCoordinates())
     bad = LogCoordinates()
     bad.support = np.zeros((D, 2))
@@ -103,7 +103,7 @@ def test_bad_bijection_is_an_error():
     with pytest.raises(HbmError, match="bijection needs"):
         tmcmc(_ll, BOUNDS, 100, seed=0, progress=False, bijection=object())
     with pytest.raises(HbmError, match="local"):
-        tmcmc(_ll, BOUNDS, 100, seed=0, progress=False, proposal="local", bijection=LogCoordinates())
+        tmcmc(_ll, BOUNDS, 100, seed=0, progress=False, move="local", bijection=LogCoordinates())
 
 
 def test_checkpoint_of_other_coordinates_does_not_resume(tmp_path):

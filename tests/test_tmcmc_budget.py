@@ -30,10 +30,10 @@ def test_fit_passes_the_budget(monkeypatch, tmp_path):
     with pytest.raises(Captured) as exc:
         cli.main(["fit", SPECIMEN, "--samples", "500", "--max-evaluations", "40000", "--no-plot",
                   "--out", str(tmp_path / "never-written.nc")])
-    assert exc.value.args[0]["max_evaluations"] == 40000
+    assert exc.value.args[0]["settings"].max_evaluations == 40000
     with pytest.raises(Captured) as exc:
         cli.main(["fit", SPECIMEN, "--no-plot", "--out", str(tmp_path / "never-written.nc")])
-    assert exc.value.args[0]["max_evaluations"] is None
+    assert exc.value.args[0]["settings"].max_evaluations is None
 
 
 def test_run_passes_the_budget(monkeypatch, tmp_path):

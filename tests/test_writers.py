@@ -155,18 +155,20 @@ def test_checkpoint_of_changed_data_is_never_resumed(tmp_path, capsys):
 
 
 def test_one_settings_record_keys_every_fit_argument():
-    """Every keyword argument of fit_specimen except the declared NOT_KEYED ones changes the key."""
+    """Every keyed setting of the fit's record changes the key (the declarations are the list; see
+    tests/test_settings.py), and fit_specimen takes exactly the record's settings besides its own."""
     import inspect
 
     from hbm.fit import fit_specimen
-    from hbm.io.identity import NOT_KEYED, fit_record, settings_key
+    from hbm.io.identity import settings_key
+    from hbm.settings import FitSettings
 
-    base = {"samples": 100, "seed": 0}
-    for name in inspect.signature(fit_specimen).parameters:
-        if name in NOT_KEYED:
-            continue
-        assert settings_key(fit_record({**base, name: 12345})) != settings_key(fit_record(base)), name
-    assert settings_key(fit_record({**base, "progress": False})) == settings_key(fit_record(base))
+    base = FitSettings(samples=100)
+    for name, (_, s) in FitSettings.declared().items():
+        changed = FitSettings.stored(**{**{n: getattr(base, n) for n in FitSettings.declared()}, name: {"k": 1} if name.endswith(("options", "fix", "bounds")) else 12345})
+        assert (settings_key(changed.record()) != settings_key(base.record())) == s.keyed, name
+    own = set(inspect.signature(fit_specimen).parameters) - {"options"}
+    assert own == {"data", "model", "settings", "checkpoint_dir", "out", "progress", "config_extra", "on_phase"}
 
 
 # ------------------------------------------------------------------ overwrites

@@ -180,9 +180,8 @@ def add_noise(rng: np.random.Generator, p: dict, s: np.ndarray, kind: str, rel: 
 
 
 def dataset(p: dict, stress: np.ndarray, name: str):
-    import xarray as xr
-    return xr.Dataset({"strain": ("point", p["strain"]), "stress": ("point", stress),
-                       "time": ("point", p["time"]), "test": ("point", p["test"])}, attrs={"id": name})
+    from hbm.data import Series, Specimen
+    return Specimen(name, p["strain"], p["time"], p["test"], {"stress": Series.known("stress", stress)})
 
 
 # =========================================================================================
@@ -357,7 +356,7 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", default=None, help="JSON rows of a 'before' run to put next to these")
     ap.add_argument("--compare-label", default="the code before issue 17", help="what the 'before' run was")
     ap.add_argument("--power-seeds", type=int, default=10)
-    ap.add_argument("--likelihood", default=None,
+    ap.add_argument("--tier", "--likelihood", dest="tier", default=None,
                     help="likelihood tier(s) of diagnose, comma-separated (e.g. 'full,auto': each case is "
                          "diagnosed with each tier in turn, interleaved, and the first tier's rows are the "
                          "'before' column); default: diagnose's own default")
@@ -370,11 +369,11 @@ def main(argv=None) -> int:
     seeded = [(args.seed + k, c) for k, c in enumerate(cases(args.groups))]
     run = args.run_groups if args.run_groups is not None else args.groups
     todo = [sc for g in run for sc in seeded if sc[1]["group"] == g]
-    tiers = args.likelihood.split(",") if args.likelihood else [None]
+    tiers = args.tier.split(",") if args.tier else [None]
     by_tier: dict = {t: [] for t in tiers}
     for seed, c in todo:
         for tier in tiers:     # interleaved: both tiers see the same machine load
-            r = run_case(c, seed, diagnose, **({} if tier is None else {"likelihood": tier}))
+            r = run_case(c, seed, diagnose, **({} if tier is None else {"tier": tier}))
             r["likelihood"] = tier or "default"
             by_tier[tier].append(r)
             rows.append(r)
@@ -390,7 +389,7 @@ def main(argv=None) -> int:
         before = json.loads(Path(args.compare).read_text())["rows"] if args.compare else None
         if len(tiers) > 1:   # the first tier is the baseline of the last
             before, rows = by_tier[tiers[0]], by_tier[tiers[-1]]
-            args.compare_label = f"--likelihood {tiers[0]} (same code, interleaved)"
+            args.compare_label = f"--tier {tiers[0]} (same code, interleaved)"
         Path(args.out).write_text(report(rows, power, before, args.compare_label))
         print(f"wrote {args.out}")
     return 0

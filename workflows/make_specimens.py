@@ -90,9 +90,9 @@ def make(out: Path) -> list[Path]:
         }
         ds = synthetic_specimen(model, params, Loading(strain, time), rel_sd, seed, noise="iid",
                                 relative=True, attrs=attrs)
-        ds.attrs["noise_description"] = (f"iid Gaussian, sd {rel_sd:g} x max stress = "
-                                         f"{float(ds.attrs['noise_sd']):.4g} MPa; stress rounded to 1e-7 MPa")
-        ds["stress"].values[:] = np.round(ds["stress"].values, 7)
+        ds = ds.with_series("stress", np.round(ds.stress, 7)).with_attrs(
+            noise_description=(f"iid Gaussian, sd {rel_sd:g} x max stress = "
+                               f"{float(ds.attrs['noise_sd']):.4g} MPa; stress rounded to 1e-7 MPa"))
         paths.append(save_specimen(ds, out / f"{sid}.csv"))
     return paths
 

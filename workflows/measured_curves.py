@@ -56,11 +56,11 @@ def main() -> None:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", HbmWarning)
                 res = fit_specimen(ds, model=model, samples=args.samples, restarts=4, seed=0, prior=prior,
-                                   progress=False, out=OUT / f"{ds.attrs['id']}-{label.split()[0]}.nc")
+                                   progress=False, out=OUT / f"{ds.id}-{label.split()[0]}.nc")
             q = res.to_json()
-            records.append({"specimen": ds.attrs["id"], "prior": label, **{k: q[k] for k in (
+            records.append({"specimen": ds.id, "prior": label, **{k: q[k] for k in (
                 "rmse", "rmse_rel", "coverage90", "log_evidence", "log_evidence_se", "map", "at_bounds")}})
-            rows.append(f"| {ds.attrs['id']} | {label} | {1e3 * q['rmse']:.3f} | {100 * q['rmse_rel']:.2f} | "
+            rows.append(f"| {ds.id} | {label} | {1e3 * q['rmse']:.3f} | {100 * q['rmse_rel']:.2f} | "
                         f"{100 * q['coverage90']:.0f}% | {q['log_evidence']:.2f} ± {q['log_evidence_se']:.2f} | "
                         f"{_edges(q['at_bounds'])} |")
     table = ("| curve | prior | RMSE (kPa) | RMSE (% of peak) | 90% coverage | log Z ± SE | on a box edge |\n"

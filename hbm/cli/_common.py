@@ -16,11 +16,11 @@ import math
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, NamedTuple, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from ..data import load_specimen
+from ..data import Specimen, load_specimen
 from ..effects import resolve_effect
 from ..errors import DataError, HbmError, HbmWarning, OutputError, SettingError
 from ..io.identity import changed
@@ -28,33 +28,16 @@ from ..io import read_attrs
 from ..likelihood.prior import Prior, resolve_prior
 from ..model import FORMS, compression_check, model_form, spyrou_model
 from ..likelihood.noise import get_noise, noise_model_names
-from ..model.spyrou import PHYSICAL_RANGE
+from ..model.spec import spec_of
 from ..runtime.memory import format_bytes, require_memory
-from ..runtime.validation import SEED_LIMIT, check_physical_bounds, check_seed, check_workers
-
-
-class RegistryChoices:
-    """argparse ``choices`` read from a registry whenever argparse looks (help, checks, errors).
-
-    A model registered after the parser was built (a plug-in, a test) is a valid choice and
-    appears in ``--help`` without editing any command.
-    """
-
-    def __init__(self, names: Callable[[], Iterable[str]]):
-        self._names = names
-
-    def __iter__(self):
-        return iter(tuple(self._names()))
-
-    def __contains__(self, value) -> bool:
-        return value in tuple(self._names())
-
-    def __len__(self) -> int:
-        return len(tuple(self._names()))
+from ..settings.fit import NOISE_RULE, RUN_SWEEP, SWEEP, FitRecord, Sweep
+from ..settings.rules import (
+    FINITE, MIN_SAMPLES, NON_NEGATIVE_INT, POSITIVE, POSITIVE_INT, POWER_OF_TWO, POWER_OF_TWO_OR_ZERO, SAMPLE_SIZE,
+    SEED, SEED_LIMIT, WORKERS, IntRule, RangeRule, RealRule, _type_error, check_physical_bounds)
 
 
 #: ``--noise`` choices of every command: the registered noise models (:mod:`hbm.likelihood.noise`)
-NOISE_CHOICES = RegistryChoices(noise_model_names)
+NOISE_CHOICES = NOISE_RULE.choices
 
 
 def n_noise_parameters(noise: str | None) -> int:
@@ -64,22 +47,10 @@ def n_noise_parameters(noise: str | None) -> int:
         return max(len(get_noise(name).names) for name in noise_model_names())
     return len(get_noise(noise).names)
 
-def add_likelihood(p: argparse.ArgumentParser, choices: Sequence[str]) -> None:
-    """``--likelihood``: the tier of every fit of the command (:func:`hbm.likelihood.collapsed.choose_tier`)."""
-    p.add_argument("--likelihood", default="auto", choices=list(choices),
-                   help="auto (default): integrate the linear amplitudes exactly and sample only the nonlinear and "
-                        "noise parameters where the model and noise allow it, else the full likelihood"
-                        + ("; collapsed: require that" if "collapsed" in choices else "")
-                        + "; full: sample every parameter (today's path, for comparison)")
-
 
 SPECIMEN_FOLDER = Path("data") / "specimens"
 #: the shipped specimens of this checkout (an editable install), for ids given outside it
 SHIPPED_FOLDER = Path(__file__).resolve().parents[2] / "data" / "specimens"
-#: the smallest population / draw count any command accepts (TMCMC populations of --samples and
-#: --hier-samples, posterior draws of predict): a population covariance over the 9-16
-#: parameters of the base model plus effects needs more particles than parameters
-MIN_SAMPLES = 20
 _FLOAT = 8  # bytes per float64
 
 
@@ -96,103 +67,34 @@ class HbmArgumentParser(argparse.ArgumentParser):
 
 
 # ----------------------------------------------------------------------- value rules (type=)
-def _type_error(text: str, expected: str) -> argparse.ArgumentTypeError:
-    return argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+# ONE rule per kind (hbm.settings.rules): a rule is argparse's type= and the API's check alike
 
 
-def _parse_int(text: str, expected: str) -> int:
-    try:
-        return int(str(text).strip())
-    except ValueError:
-        raise _type_error(text, expected) from None
-
-
-def integer(minimum: int, expected: str | None = None) -> Callable[[str], int]:
+def integer(minimum: int, expected: str | None = None) -> IntRule:
     """``type=`` rule: an integer >= ``minimum``."""
-    expected = expected or f"an integer >= {minimum}"
-
-    def parse(text: str) -> int:
-        value = _parse_int(text, expected)
-        if value < minimum:
-            raise _type_error(text, expected)
-        return value
-
-    parse.__name__ = f"integer>={minimum}"
-    return parse
+    return IntRule(minimum, expected)
 
 
 #: counts: positive (budgets, sizes) and non-negative (restarts, retries, workers)
-positive_int = integer(1)
-non_negative_int = integer(0)
+positive_int = POSITIVE_INT
+non_negative_int = NON_NEGATIVE_INT
 #: TMCMC population sizes and posterior draw counts, the same minimum everywhere
-sample_size = integer(MIN_SAMPLES, f"a sample size >= {MIN_SAMPLES}")
+sample_size = SAMPLE_SIZE
+#: ``--seed`` and ``--workers``: the API's rules (:func:`hbm.settings.rules.check_seed`, ``check_workers``)
+seed = SEED
+workers = WORKERS
+#: Sobol base sample sizes: a power of 2 >= 2 (Sobol' sequence), or also 0 for "skip"
+power_of_two = POWER_OF_TWO
+power_of_two_or_zero = POWER_OF_TWO_OR_ZERO
 
 
-def seed(text: str) -> int:
-    """``type=`` rule of every ``--seed``: :func:`hbm.runtime.validation.check_seed` (also the API's)."""
-    expected = f"a seed: an integer from 0 to {SEED_LIMIT - 1}"
-    try:
-        return check_seed(_parse_int(text, expected))
-    except SettingError:
-        raise _type_error(text, expected) from None
-
-
-def workers(text: str) -> int:
-    """``type=`` rule of ``--workers``: :func:`hbm.runtime.validation.check_workers` (also the API's)."""
-    try:
-        return check_workers(_parse_int(text, "an integer >= 0"), "--workers")
-    except SettingError as exc:
-        raise argparse.ArgumentTypeError(str(exc).removeprefix("--workers: ")) from None
-
-
-def power_of_two(text: str) -> int:
-    """``type=`` rule of Sobol base sample sizes: a power of 2 >= 2 (Sobol' sequence)."""
-    expected = "a power of 2 >= 2 (e.g. 512, 1024)"
-    value = _parse_int(text, expected)
-    if value < 2 or value & (value - 1):
-        raise _type_error(text, expected)
-    return value
-
-
-def power_of_two_or_zero(text: str) -> int:
-    """Like :func:`power_of_two`, or 0 for "skip"."""
-    if str(text).strip() == "0":
-        return 0
-    try:
-        return power_of_two(text)
-    except argparse.ArgumentTypeError:
-        raise _type_error(text, "0 (skip) or a power of 2 >= 2 (e.g. 512, 1024)") from None
-
-
-def _parse_float(text: str, expected: str) -> float:
-    try:
-        value = float(str(text).strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {expected}; {str(text).strip()!r} is not a number") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected {expected}; {str(text).strip()!r} is not finite")
-    return value
-
-
-def real(minimum: float | None = None, *, strict: bool = False) -> Callable[[str], float]:
+def real(minimum: float | None = None, *, strict: bool = False) -> RealRule:
     """``type=`` rule: a finite number, optionally >= (``strict``: >) ``minimum``."""
-    if minimum is None:
-        expected = "a finite number"
-    else:
-        expected = f"a finite number {'>' if strict else '>='} {minimum:g}"
-
-    def parse(text: str) -> float:
-        value = _parse_float(text, expected)
-        if minimum is not None and (value <= minimum if strict else value < minimum):
-            raise _type_error(text, expected)
-        return value
-
-    parse.__name__ = "number"
-    return parse
+    return RealRule(minimum, strict=strict)
 
 
-finite_float = real()
-positive_float = real(0.0, strict=True)
+finite_float = FINITE
+positive_float = POSITIVE
 
 
 def _name(text: str, expected: str) -> str:
@@ -220,7 +122,7 @@ def fix_item(text: str) -> tuple[str, float]:
     name, sep, value = str(text).partition("=")
     if not sep:
         raise _type_error(text, expected)
-    return _name(name, expected), _parse_float(value, expected)
+    return _name(name, expected), RealRule(expected=expected).parse(value)
 
 
 def bounds_item(text: str) -> tuple[str, tuple[float, float]]:
@@ -233,36 +135,13 @@ def bounds_item(text: str) -> tuple[str, tuple[float, float]]:
 
 
 def value_range(text: str, expected: str = "LO:HI with finite LO < HI") -> tuple[float, float]:
-    """``type=`` rule of ``LO:HI`` ranges (``--sigma-bounds``)."""
-    lo, sep, hi = str(text).partition(":")
-    if not sep:
-        raise _type_error(text, expected)
-    a, b = _parse_float(lo, expected), _parse_float(hi, expected)
-    if not a < b:
-        raise _type_error(text, expected)
-    return a, b
+    """``type=`` rule of ``LO:HI`` ranges (``--sigma-bounds``, the box of ``--bounds``)."""
+    return RangeRule(expected).parse(text)
 
 
-class Sweep(NamedTuple):
-    """A parsed ``--sweep NAME:WIDTH`` (``text``: as given, e.g. for the run's settings record)."""
-
-    name: str
-    width: float
-    text: str
-
-
-def sweep(text: str) -> Sweep | None:
-    """``type=`` rule of ``--sweep NAME:WIDTH`` (WIDTH > 0); ``none``/``off`` -> None."""
-    if str(text).strip().lower() in ("none", "off", ""):
-        return None
-    expected = "NAME:WIDTH with WIDTH > 0, e.g. VOLF:0.05 (or none)"
-    name, sep, width = str(text).partition(":")
-    if not sep:
-        raise _type_error(text, expected)
-    w = _parse_float(width, expected)
-    if not w > 0:
-        raise _type_error(text, expected)
-    return Sweep(_name(name, expected), w, str(text).strip())
+#: ``type=`` rule of ``--sweep NAME:WIDTH`` (WIDTH > 0); ``none``/``off`` -> None; the run's also ``auto``
+sweep = SWEEP
+run_sweep = RUN_SWEEP
 
 
 def plot_path(text: str) -> Path:
@@ -297,23 +176,8 @@ class UniqueNames(argparse.Action):
 
 # ----------------------------------------------------------------------- shared options
 def add_seed(parser: argparse.ArgumentParser, help_text: str = "root seed (default 0)") -> None:
-    """``--seed S`` with the shared rule."""
-    parser.add_argument("--seed", type=seed, default=0, metavar="S", help=help_text)
-
-
-def add_max_evaluations(parser: argparse.ArgumentParser) -> None:
-    """``--max-evaluations M``: cap on TMCMC log-likelihood evaluations (rows), opt-in."""
-    parser.add_argument("--max-evaluations", type=positive_int, default=None, metavar="M",
-                        help="cap on TMCMC likelihood evaluations including the initial N (default: no cap); "
-                             "a binding cap gives a cruder posterior and evidence, flagged in the result")
-
-
-def check_max_evaluations(budget: int | None, samples: int) -> int | None:
-    """The budget of ``--max-evaluations``, checked against the population it must at least pay for."""
-    if budget is not None and budget < samples:
-        raise SettingError(f"--max-evaluations {budget}: expected at least the TMCMC population size "
-                           f"{samples} (the initial population alone costs N evaluations)")
-    return budget
+    """``--seed S`` with the shared rule (commands without a settings record)."""
+    parser.add_argument("--seed", type=SEED, default=0, metavar="S", help=help_text)
 
 
 def add_fix(parser: argparse.ArgumentParser, example: str = "EOPT=0.192") -> None:
@@ -376,7 +240,7 @@ def check_fix_bounds(model, fix: dict, bounds: dict, prior: Prior | None = None)
     (the prior's, after --bounds), and at least one parameter left free."""
     check_names(model, fix, "--fix")
     check_names(model, bounds, "--bounds")
-    check_physical_bounds(bounds, PHYSICAL_RANGE, "--bounds")
+    check_physical_bounds(bounds, spec_of(model).physical_range, "--bounds")
     box = {n: tuple(model.bounds[i]) for i, n in enumerate(model.parameter_names)}
     if prior is not None:
         box.update({n: (prior[n].lo, prior[n].hi) for n in model.parameter_names if n in prior})
@@ -395,9 +259,9 @@ def free_parameters(model, fix: dict) -> list[str]:
     return [n for n in model.parameter_names if n not in fix]
 
 
-def check_sweep(model, fix: dict, spec: Sweep | None, option: str = "--sweep") -> None:
-    """A sweep must run over a free parameter of the model."""
-    if spec is not None and spec.name not in free_parameters(model, fix):
+def check_sweep(model, fix: dict, spec: Sweep | str | None, option: str = "--sweep") -> None:
+    """A sweep must run over a free parameter of the model ("auto": the model's own, resolved later)."""
+    if spec is not None and spec != "auto" and spec.name not in free_parameters(model, fix):
         what = "is fixed by --fix" if spec.name in fix else "is not a model parameter"
         raise SettingError(f"{option} {spec.text}: {spec.name} {what}; expected NAME:WIDTH with NAME a free model "
                            f"parameter ({', '.join(free_parameters(model, fix))}) or {option} none")
@@ -436,20 +300,16 @@ def build_prior(model, args: argparse.Namespace) -> Prior | None:
     return prior
 
 
-def check_domain(model, ds) -> None:
+def check_domain(model, specimen: Specimen) -> None:
     """Refuse substantially compressive data for the thesis form (it turns tensile there)."""
     if model_form(model) == "thesis":
-        names = getattr(ds, "data_vars", ds)
-        msg = compression_check(np.asarray(ds["strain"], float), "thesis",
-                                time=np.asarray(ds["time"], float) if "time" in names else None,
-                                test=np.asarray(ds["test"]) if "test" in names else None,
-                                name=str(ds.attrs.get("id", "specimen")))
+        msg = compression_check(specimen.loading, "thesis", name=specimen.id)
         if msg is not None:
             raise DataError(msg)
 
 
-def load_specimen_arg(spec: str, sl0: float | None = None, model=None):
-    """A SPECIMEN argument -> Dataset: a CSV path, or an id of ``data/specimens/<id>.csv``.
+def load_specimen_arg(spec: str, sl0: float | None = None, model=None) -> Specimen:
+    """A SPECIMEN argument -> :class:`~hbm.data.Specimen`: a CSV path, or an id of ``data/specimens/<id>.csv``.
 
     ``sl0``: reference sarcomere length (``--sl0``); ``model``: checked against the data's
     domain (:func:`check_domain`) before any computation.
@@ -472,11 +332,6 @@ def load_specimen_arg(spec: str, sl0: float | None = None, model=None):
         return ds
     raise HbmError(f"specimen {spec!r}: no such file, and no {candidate} (expected a CSV path or a "
                    "specimen id)")
-
-
-def n_points(ds) -> int:
-    """Strain points of a specimen Dataset."""
-    return int(ds["strain"].size)
 
 
 # ----------------------------------------------------------------------- memory estimates
@@ -510,7 +365,8 @@ def check_replaceable(path: Path, parts: Mapping[str, str], option: str) -> None
         return
     attrs = read_attrs(path)
     config = attrs.get("config") if isinstance(attrs.get("config"), dict) else {}
-    stored = config.get("identity") if isinstance(config.get("identity"), dict) else None
+    stored = FitRecord.from_attrs(config).identity
+    stored = stored if isinstance(stored, dict) else None
     if "specimen_id" not in attrs:
         what = "a file that is not an hbm result"
     elif stored is None:
@@ -558,6 +414,6 @@ __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positiv
            "sample_size", "seed", "workers", "power_of_two", "power_of_two_or_zero", "real", "finite_float",
            "positive_float",
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
-           "add_seed", "add_fix", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
-           "check_sweep", "build_model", "load_specimen_arg", "n_points", "check_population_memory",
+           "add_seed", "add_fix", "NOISE_CHOICES", "n_noise_parameters", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
+           "check_sweep", "build_model", "load_specimen_arg", "check_population_memory",
            "check_sobol_memory", "check_replaceable", "print_json", "format_table", "format_bytes"]

@@ -74,15 +74,14 @@ def _input(ds) -> str:
     return ",".join(p for p in parts if p) or "-"
 
 
-def _row(ds) -> list[str]:
-    strain, stress = ds["strain"].values, ds["stress"].values
-    tests = str(len(set(ds["test"].values.tolist()))) if "test" in ds else "1"
-    source = str(ds.attrs.get("citation") or ds.attrs.get("source") or "")
+def _row(spec) -> list[str]:
+    strain, stress = spec.strain, spec.stress
+    source = str(spec.attrs.get("citation") or spec.attrs.get("source") or "")
     if len(source) > 48:
         source = source[:45] + "..."
-    return [str(ds.attrs["id"]), str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
-            f"{stress[np.argmax(np.abs(stress))]:.4g}", tests, "yes" if "time" in ds else "-", _input(ds),
-            provenance(ds), source]
+    return [spec.id, str(strain.size), f"{strain.min():.3g}..{strain.max():.3g}",
+            f"{stress[np.argmax(np.abs(stress))]:.4g}", str(len(spec.tests)), "yes" if spec.time is not None else "-",
+            _input(spec), provenance(spec), source]
 
 
 def run_check(args: argparse.Namespace) -> int:
@@ -97,7 +96,7 @@ def run_check(args: argparse.Namespace) -> int:
         except HbmError as exc:
             errors.append(str(exc))
             continue
-        sid = ds.attrs["id"]
+        sid = ds.id
         if sid in ids:
             errors.append(str(DataError(f"{f}: duplicate specimen id {sid!r} (also in {ids[sid]}), "
                                         "expected unique ids")))

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 
-from ..likelihood.collapsed import TIERS
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
 from ..detective.caveats import CORRELATED_CHOICES
@@ -13,15 +12,27 @@ from ..effects import resolve_effect
 from ..errors import SettingError
 from ..model import spyrou_model
 from ..runtime.files import prepare_output_file
+from ..settings import FitSettings, add_arguments
 from ._common import (
-    n_noise_parameters, add_data_arguments, add_fix, add_form_argument, add_max_evaluations, add_seed,
-    check_max_evaluations, check_fix_bounds, check_population_memory, load_specimen_arg, n_points, name_list,
-    non_negative_int, plot_path, positive_float, print_json, sample_size, workers)
+    n_noise_parameters, add_data_arguments, add_fix, add_form_argument, check_fix_bounds, check_population_memory,
+    load_specimen_arg, name_list, non_negative_int, plot_path, positive_float, print_json, workers)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
 #: --max-time default (s): a 150-point three-rate record takes 4-9 minutes in full on a busy 2-core machine
 DEFAULT_MAX_TIME = 300.0
+#: what the shared settings mean for the diagnosis (where it differs from a fit)
+HELPS = {
+    "seed": "seed of every random step (default 0)",
+    "samples": f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; use fewer for slow models)",
+    "noise": "force one noise model for every fit (default: chosen by evidence)",
+    "tier": ("tier of every evidence run: full (default) samples every parameter; auto integrates the linear "
+             "amplitudes exactly and samples only the nonlinear and noise parameters where the model and noise "
+             "allow it and it is cheap (at most 3 amplitude columns); collapsed: wherever it applies, however dear "
+             "(auto is not the default here: it tilts comparisons between a collapsible and a full-space candidate, "
+             "see results/detective_validation.md). Models without linear amplitudes (damage, series compliance) "
+             "and proportional noise always use the full likelihood; the tier of each fit is in the output"),
+}
 
 
 DIAGNOSE_DESCRIPTION = """\
@@ -65,10 +76,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     add_fix(p, "EOPT=0.12")
     add_form_argument(p)
     add_data_arguments(p)
-    add_seed(p, "seed of every random step (default 0)")
-    p.add_argument("--samples", type=sample_size, default=None, metavar="N",
-                   help=f"TMCMC population size per evidence run (default {DEFAULT_SAMPLES}; use fewer for slow models)")
-    add_max_evaluations(p)   # per evidence run: the population shrinks to what it affords, then a hard cap
+    # the settings diagnose shares with a fit, declared once in hbm.settings.FitSettings; --max-evaluations
+    # is per evidence run (the population shrinks to what it affords, then a hard cap)
+    add_arguments(p, FitSettings, ("seed", "samples", "max_evaluations", "noise", "tier"),
+                  defaults={"samples": None, "noise": None, "tier": "full"}, helps=HELPS)
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plot", type=plot_path, metavar="FILE", default=None,
                    help="write the figure (PNG/PDF/SVG/...; into an existing folder)")
@@ -82,22 +93,11 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=workers, default=None, metavar="K",
                    help="processes the candidate refits of a round run in (default: the usable cores; 0 or 1: "
                         "all in this process); the results do not depend on it")
-    p.add_argument("--noise", default=None, metavar="iid|ar1|proportional|...",
-                   help="force one noise model for every fit (default: chosen by evidence)")
     p.add_argument("--correlated", choices=CORRELATED_CHOICES, default="auto",
                    help="correlated residuals are noise (AR(1) offered) or model error (not offered); auto "
                         "(default): model error on curves marked digitised or group mean ('# digitised: yes', "
                         "'# kind: group mean', or those words in the provenance) or without noise at the "
                         "model-free scale, noise otherwise")
-    p.add_argument("--likelihood", choices=list(TIERS), default="full",
-                   help="tier of every evidence run: full (default) samples every parameter; auto integrates the "
-                        "linear amplitudes exactly and "
-                        "samples only the nonlinear and noise parameters where the model and noise allow it "
-                        "and it is cheap (at most 3 amplitude columns); collapsed: wherever it applies, however "
-                        "dear (auto is not the default yet: it tilts comparisons between a collapsible and a full-space "
-                        "candidate, see results/detective_validation.md). Models without linear amplitudes (damage, series compliance) and "
-                        "proportional noise always use the full likelihood; the tier of each fit is in the "
-                        "output")
 
 
 def register(subparsers) -> None:
@@ -151,17 +151,19 @@ def _prepare(args, extra: list[str]):
     check_fix_bounds(model, dict(args.fix), {})
     ds = load_specimen_arg(args.specimen, args.sl0, model)
     samples = args.samples or DEFAULT_SAMPLES
-    check_population_memory(f"--samples {samples}", samples, n_points(ds),
+    check_population_memory(f"--samples {samples}", samples, ds.n_points,
                             model.n_params + len(extra) + n_noise_parameters(args.noise))  # None: the largest model
     if args.plot is not None:
         prepare_output_file(args.plot, "--plot")
-    kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed, "progress": args.progress,
-          "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
-          "likelihood": args.likelihood, "workers": args.workers}
+    if args.max_evaluations is not None:  # the record's rule: the budget pays for the population at least
+        FitSettings.from_args(args, samples=samples, noise=None, tier=args.tier)
+    kw = {"model": model if args.form != "thesis" else ",".join(args.model), "fix": dict(args.fix), "seed": args.seed,
+          "progress": args.progress, "noise": args.noise, "correlated": args.correlated, "max_time": args.max_time,
+          "tier": args.tier, "workers": args.workers}
     if args.samples is not None:
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:
-        kw["max_evaluations"] = check_max_evaluations(args.max_evaluations, samples)
+        kw["max_evaluations"] = args.max_evaluations
     return ds, kw
 
 

@@ -15,12 +15,15 @@ from ..io import specimen_path
 from ..workflow.run import DEFAULT_OUT
 from ..data.plausibility import edges_suggest_units
 from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, remove_stale_temps
-from ._common import NOISE_CHOICES, add_likelihood, n_noise_parameters
+from ..settings import FitSettings, add_arguments
+from ._common import n_noise_parameters
 from ._common import (
-    check_replaceable, add_max_evaluations, check_max_evaluations, add_model_arguments, add_seed, build_model,
-    build_prior, plot_path, print_json, check_population_memory, check_sobol_memory, free_parameters,
-    load_specimen_arg, n_points, non_negative_int, positive_int, power_of_two_or_zero, sample_size, sweep,
-    value_range)
+    check_replaceable, add_model_arguments, build_model, build_prior, plot_path, print_json,
+    check_population_memory, check_sobol_memory, free_parameters, load_specimen_arg)
+
+#: the FitSettings that are options of ``hbm fit`` (fix, bounds and prior come with the model's options)
+FIT_OPTIONS = ("samples", "move", "noise", "sigma_bounds", "tier", "restarts", "sweep", "maxfevals", "max_evaluations",
+               "sobol_n", "seed")
 
 DESCRIPTION = """\
 Fit one specimen: CMA-ES optima (restarts and an optional bound sweep), the TMCMC posterior of
@@ -34,7 +37,7 @@ log-evidence with its standard error.
 examples:
   hbm fit calvo2010_rat1
   hbm fit data/specimens/hawkins1994_rat.csv --fix EOPT=0.192 --samples 4000 --out hawkins.nc --force
-  hbm fit calvo2010_rat2 --kernel manifold --bounds VOLF=0.5:0.75 --sweep VOLF:0.05
+  hbm fit calvo2010_rat2 --move manifold --bounds VOLF=0.5:0.75 --sweep VOLF:0.05
 """
 
 
@@ -42,25 +45,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("fit", help="posterior (TMCMC) + optima (CMA-ES) of one specimen -> netCDF",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("specimen", metavar="SPECIMEN", help="specimen CSV file or id in data/specimens")
-    p.add_argument("--samples", type=sample_size, default=2000, metavar="N",
-                   help="TMCMC population size (default 2000)")
-    p.add_argument("--kernel", default="rw", choices=["rw", "manifold"],
-                   help="TMCMC move: random walk (default) or gradient/Fisher-metric manifold MALA")
-    p.add_argument("--noise", default="iid", choices=NOISE_CHOICES,
-                   help="noise model (default iid Gaussian with unknown sigma)")
-    p.add_argument("--sigma-bounds", type=value_range, metavar="LO:HI", help="box of the noise sd (or scale)")
+    # the fit's settings, declared once in hbm.settings.FitSettings (flags, rules, choices from the registries)
+    add_arguments(p, FitSettings, FIT_OPTIONS, defaults={"maxfevals": 5000, "sobol_n": 0})
     add_model_arguments(p)
-    add_likelihood(p, ("auto", "collapsed", "full"))
-    p.add_argument("--restarts", type=non_negative_int, default=4, metavar="K",
-                   help="CMA-ES restarts (0 = skip; default 4)")
-    p.add_argument("--sweep", type=sweep, metavar="NAME:WIDTH",
-                   help="CMA-ES bound sweep tracing a manifold, e.g. VOLF:0.05")
-    p.add_argument("--maxfevals", type=positive_int, default=5000, metavar="M",
-                   help="evaluation budget per CMA-ES run (default 5000)")
-    add_max_evaluations(p)
-    p.add_argument("--sobol", type=power_of_two_or_zero, default=0, metavar="N",
-                   help="Sobol base sample size (power of 2; default 0 = skip)")
-    add_seed(p)
     p.add_argument("--out", metavar="FILE.nc", help="output file (default hbm-results/specimens/<id>.nc); a "
                    "result of other content there (another specimen, data, model or settings) is refused "
                    "unless --force")
@@ -81,28 +68,24 @@ def run(args: argparse.Namespace) -> int:
     """Check settings, sizes and paths, then fit and print the summary."""
     model, fix, bounds = build_model(args)
     prior = build_prior(model, args)
+    # the one settings record: it runs the fit and keys its result and checkpoint
+    settings = FitSettings.from_args(args, fix=fix or None, bounds=None if prior is not None else (bounds or None),
+                                     prior=prior)
     data = load_specimen_arg(args.specimen, args.sl0, model)
-    points = n_points(data)
-    check_population_memory(f"--samples {args.samples}", args.samples, points,
-                            model.n_params + n_noise_parameters(args.noise))
-    if args.sobol:
-        check_sobol_memory(f"--sobol {args.sobol}", args.sobol, len(free_parameters(model, fix)), model.n_params,
-                           points)
-    sid = str(data.attrs.get("id", Path(args.specimen).stem))
+    points = data.n_points
+    check_population_memory(f"--samples {settings.samples}", settings.samples, points,
+                            model.n_params + n_noise_parameters(settings.noise))
+    if settings.sobol_n:
+        check_sobol_memory(f"--sobol-n {settings.sobol_n}", settings.sobol_n, len(free_parameters(model, fix)),
+                           model.n_params, points)
+    sid = data.id
     out = Path(args.out) if args.out else specimen_path(DEFAULT_OUT, sid)
     checked = prepare_output_file(out, "--out")
     figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
     if figure is not None:
         prepare_output_file(figure, "--plot")
-    options = {"samples": args.samples, "kernel": args.kernel, "noise": args.noise, "fix": fix or None,
-               "bounds": None if prior is not None else (bounds or None), "prior": prior, "seed": args.seed,
-               "restarts": args.restarts, "sweep": (args.sweep.name, args.sweep.width) if args.sweep else None,
-               "sobol_n": args.sobol or None, "optimize_options": {"maxfevals": args.maxfevals},
-               "sigma_bounds": args.sigma_bounds,
-               "max_evaluations": check_max_evaluations(args.max_evaluations, args.samples),
-               "likelihood": args.likelihood}
     # the content key of this fit (data, model, settings): keys its checkpoint and is stored with the result
-    key, parts = fit_key(data, model, options)
+    key, parts = fit_key(data, model, settings)
     with contextlib.ExitStack() as held:
         # the one writer rule: this fit's files are written (and their temp files swept) only
         # under their locks; a second writer of the same file is refused at once
@@ -124,8 +107,8 @@ def run(args: argparse.Namespace) -> int:
                 warnings.warn(f"--checkpoint-dir: {len(other)} checkpoint(s) of {sid} made with other data, model or "
                               f"settings set aside (not resumed): {', '.join(str(p) for p in other)}", HbmWarning,
                               stacklevel=1)
-        res = fit_specimen(data, model=model, checkpoint_dir=ckdir, out=out, progress=not args.no_progress,
-                           config_extra={"settings_hash": key, "identity": parts}, **options)
+        res = fit_specimen(data, model=model, settings=settings, checkpoint_dir=ckdir, out=out,
+                           progress=not args.no_progress, config_extra={"settings_hash": key, "identity": parts})
         _figure(res, data, figure)
     return _print(args, res, figure)
 

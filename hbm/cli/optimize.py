@@ -9,7 +9,7 @@ from ..fit.optimization import optimize
 from ._common import NOISE_CHOICES, n_noise_parameters
 from ._common import (
     add_model_arguments, add_seed, build_model, build_prior, check_population_memory, format_table, integer,
-    load_specimen_arg, n_points, positive_int, print_json, sweep, value_range)
+    load_specimen_arg, positive_int, print_json, sweep, value_range)
 
 DESCRIPTION = """\
 Fit the model to one specimen with CMA-ES (the `cma` package) in the unit box of the free
@@ -63,14 +63,14 @@ def run(args: argparse.Namespace) -> int:
     if args.popsize is not None:  # IPOP doubles the population at every restart
         largest = args.popsize * 2 ** (args.restarts - 1)
         check_population_memory(f"--popsize {args.popsize} with --restarts {args.restarts} (IPOP: up to {largest})",
-                                largest, n_points(ds), model.n_params + n_noise_parameters(args.noise))
+                                largest, ds.n_points, model.n_params + n_noise_parameters(args.noise))
     sweep_spec = (args.sweep.name, args.sweep.width) if args.sweep else None
     lik = make_likelihood(model, ds, noise=args.noise, fix=fix, bounds=None if prior is not None else bounds,
                           sigma_bounds=args.sigma_bounds, prior=prior)
     res = optimize(lik, restarts=args.restarts, seed=args.seed, objective=args.objective, sweep=sweep_spec,
                    popsize=args.popsize, maxfevals=args.maxfevals, progress=args.progress)
     out = res.to_dict()
-    out["specimen"] = str(ds.attrs.get("id", args.specimen))
+    out["specimen"] = ds.id
     out["noise"] = args.noise
     out["fixed"] = fix
     if args.json:

@@ -12,14 +12,21 @@ from ..data import load_specimens, specimen_groups
 from ..errors import SettingError
 from ..workflow.organ import organ_report_hook
 from ..runtime.files import output_lock, prepare_output_dir, remove_stale_temps
-from ..workflow.run import DEFAULT_OUT, RunConfig, run_workflow
+from ..workflow.run import run_workflow
 from ..model import BASE_EFFECTS
 from ..population import POOL_MODES
-from ._common import NOISE_CHOICES, add_likelihood, n_noise_parameters
+from ..settings import RunSettings, add_arguments
+from ._common import n_noise_parameters
 from ._common import (
-    add_max_evaluations, check_max_evaluations, add_model_arguments, build_prior, check_domain, add_seed,
-    build_model, check_population_memory, check_sobol_memory, free_parameters, n_points, name_list,
-    non_negative_int, positive_int, power_of_two, sample_size, sweep, workers)
+    add_model_arguments, build_prior, check_domain, build_model, check_population_memory, check_sobol_memory,
+    free_parameters, name_list, non_negative_int, sample_size, workers)
+
+#: the RunSettings that are options of ``hbm run`` with their declared flags
+RUN_OPTIONS = ("data", "out", "samples", "move", "noise", "tier", "seed", "restarts", "sweep", "maxfevals",
+               "max_evaluations", "sobol_n")
+#: why ``hbm run`` does not offer ``--tier collapsed``
+COLLAPSED_REFUSED = ("a specimen where the amplitudes cannot be integrated would fail after the others ran; "
+                     "use auto, which integrates them wherever the model and noise allow")
 
 #: what hbm run writes inside --out (checked before the first fit)
 OUT_FILES = ("report.md", "run.json", "hierarchical.nc", "manifolds.nc")
@@ -51,7 +58,7 @@ without dask.
 examples:
   hbm run
   hbm run --quick --workers 2 --out /tmp/smoke
-  hbm run --samples 5000 --kernel manifold --scheduler tcp://10.0.0.5:8786
+  hbm run --samples 5000 --move manifold --scheduler tcp://10.0.0.5:8786
   hbm run --geometry data/geometry/fusiform.toml
   hbm run --data my_bundles --group-by species
 """
@@ -60,35 +67,15 @@ examples:
 def register(subparsers) -> None:
     p = subparsers.add_parser("run", help="all specimens in parallel + hierarchical layer + report",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", default="data/specimens", metavar="DIR",
-                   help="folder of specimen CSV files (default data/specimens)")
-    p.add_argument("--out", default=DEFAULT_OUT, metavar="DIR",
-                   help=f"output folder (default {DEFAULT_OUT}, untracked; the shipped reference report stays in "
-                        "results/); one hbm run at a time (locked)")
-    p.add_argument("--samples", type=sample_size, default=2000, metavar="N",
-                   help="TMCMC population size (default 2000)")
-    p.add_argument("--kernel", default="rw", choices=["rw", "manifold"], help="TMCMC move kernel (default rw)")
-    p.add_argument("--noise", default="iid", choices=NOISE_CHOICES,
-                   help="noise model (default iid)")
+    # the run's and every specimen's fit settings, declared once in hbm.settings (RunSettings inherits FitSettings)
+    add_arguments(p, RunSettings, RUN_OPTIONS, refuse={"tier": {"collapsed": COLLAPSED_REFUSED}})
     add_model_arguments(p)
-    add_likelihood(p, ("auto", "full"))
     p.add_argument("--workers", type=workers, default=None, metavar="K",
                    help="dask worker processes of the embedded cluster (default: all cores; 0 = no dask)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing dask scheduler, e.g. tcp://host:8786")
     p.add_argument("--scheduler-file", metavar="FILE",
                    help="dask scheduler file (JSON with 'address', as written by dask-mpi or "
                         "'dask scheduler --scheduler-file') of a cluster started by an MPI/HPC script")
-    add_seed(p)
-    p.add_argument("--restarts", type=non_negative_int, default=3, metavar="K",
-                   help="CMA-ES restarts per specimen (0 = skip; default 3)")
-    p.add_argument("--sweep", type=sweep, default=sweep("VOLF:0.07"), metavar="NAME:WIDTH",
-                   help="CMA-ES bound sweep tracing the VOLF-T1 manifold (default VOLF:0.07, 7 windows; "
-                        "'none' to skip)")
-    p.add_argument("--maxfevals", type=positive_int, default=3000, metavar="M",
-                   help="evaluation budget per CMA-ES run (default 3000)")
-    add_max_evaluations(p)
-    p.add_argument("--sobol-n", type=power_of_two, default=1024, metavar="N",
-                   help="Sobol base sample size, a power of 2 (default 1024)")
     p.add_argument("--no-sobol", action="store_true", help="skip Sobol indices")
     p.add_argument("--hier-samples", type=sample_size, default=1000, metavar="N",
                    help="hyper-posterior draws (default 1000): the joint sampler keeps all its chains x kept "
@@ -118,7 +105,7 @@ def register(subparsers) -> None:
     p.add_argument("--retries", type=non_negative_int, default=1, metavar="R",
                    help="dask retries per specimen task (default 1)")
     p.add_argument("--quick", action="store_true",
-                   help="smoke run: N<=500, 2 restarts, sweep VOLF:0.1, Sobol N 128, 500 hyper samples")
+                   help="smoke run: N<=500, 2 restarts, the manifold sweep at width 0.1, Sobol N 128, 500 hyper samples")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--geometry", metavar="FILE.toml",
                    help="also predict a fusiform muscle's force-elongation curves (hbm predict organ) into "
@@ -137,9 +124,9 @@ def _pool(names: list[str], free: list[str]) -> str | list[str]:
     return names
 
 
-def _check_sizes(cfg: RunConfig, datasets, model, fix: dict) -> None:
+def _check_sizes(cfg: RunSettings, datasets, model, fix: dict) -> None:
     """Refuse population/Sobol sizes whose memory cannot exist (one specimen task at least)."""
-    points = max(n_points(ds) for ds in datasets.values())
+    points = max(ds.n_points for ds in datasets.values())
     check_population_memory(f"--samples {cfg.samples}", cfg.samples, points,
                             model.n_params + n_noise_parameters(cfg.noise))
     if cfg.sobol:
@@ -172,12 +159,6 @@ def scheduler_address(address: str | None, scheduler_file: str | None, wait: flo
     return addr
 
 
-def _budget(args: argparse.Namespace) -> dict | None:
-    """TMCMC options of --max-evaluations (None without it: the stored config is unchanged)."""
-    m = check_max_evaluations(args.max_evaluations, min(args.samples, 500) if args.quick else args.samples)
-    return None if m is None else {"max_evaluations": m}
-
-
 def run(args: argparse.Namespace) -> int:
     """Check every setting, path and size, lock --out, then run the workflow."""
     model, fix, bounds = build_model(args)
@@ -188,17 +169,13 @@ def run(args: argparse.Namespace) -> int:
         check_domain(model, ds)
     if not args.no_hierarchical:  # groups matter to the hierarchical layer only
         specimen_groups(datasets, args.group_by)  # every specimen has its group, two groups at least
-    cfg = RunConfig(data=args.data, out=args.out, samples=args.samples, kernel=args.kernel, noise=args.noise,
-                    workers=args.workers, scheduler=scheduler_address(args.scheduler, args.scheduler_file),
-                    seed=args.seed, sobol=not args.no_sobol,
-                    sobol_n=args.sobol_n, restarts=args.restarts,
-                    sweep=args.sweep.text if args.sweep else None, maxfevals=args.maxfevals,
-                    fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
-                    hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
-                    retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
-                    hier_exact=None if args.hier_exact == "none" else args.hier_exact,
-                    prior=prior.to_dict() if prior is not None else None, sl0=args.sl0, group_by=args.group_by,
-                    tmcmc_options=_budget(args), likelihood=args.likelihood)
+    cfg = RunSettings.from_args(
+        args, workers=args.workers, scheduler=scheduler_address(args.scheduler, args.scheduler_file),
+        sobol=not args.no_sobol, fix=fix or None, bounds=bounds or None, hierarchical=not args.no_hierarchical,
+        hier_samples=args.hier_samples, figures=not args.no_figures, progress=not args.no_progress,
+        retries=args.retries, quick=args.quick, hier_estimator=args.hier_estimator, hier_pooled=pool,
+        hier_exact=None if args.hier_exact == "none" else args.hier_exact,
+        prior=prior.to_dict() if prior is not None else None, sl0=args.sl0, group_by=args.group_by)
     _check_sizes(cfg, datasets, model, fix)
     hooks = []
     if getattr(args, "geometry", None):

@@ -7,7 +7,7 @@ import argparse
 from ..fit.sensitivity import sobol
 from ._common import (
     add_model_arguments, add_seed, build_model, build_prior, check_sobol_memory, format_table, free_parameters,
-    load_specimen_arg, n_points, power_of_two, print_json)
+    load_specimen_arg, power_of_two, print_json)
 
 DESCRIPTION = """\
 Sobol first-order (S1) and total (ST) indices, with bootstrap confidence half-widths, of a
@@ -59,11 +59,11 @@ def run(args: argparse.Namespace) -> int:
     if prior is not None:  # Sobol varies each parameter uniformly over its (natural) prior box
         bounds = {n: (prior[n].lo, prior[n].hi) for n in model.parameter_names if n in prior}
     ds = load_specimen_arg(args.specimen, args.sl0, model)
-    check_sobol_memory(f"--n {n}", n, len(free_parameters(model, fix)), model.n_params, n_points(ds))
+    check_sobol_memory(f"--n {n}", n, len(free_parameters(model, fix)), model.n_params, ds.n_points)
     res = sobol(model, data=ds, bounds=bounds, fix=fix, n=n, qoi=args.qoi, seed=args.seed,
                 per_point=not args.no_per_point)
     out = res.to_dict()
-    out["specimen"] = str(ds.attrs.get("id", args.specimen))
+    out["specimen"] = ds.id
     out["fixed"] = fix
     if args.json:
         print_json(out)

@@ -6,12 +6,12 @@ import argparse
 import csv
 import sys
 
-import numpy as np
 
-from ..io.conventions import parameter_attrs
+from ..io.conventions import parameter_attrs, udunits
+from ..fit.quality import combination_samples
 from ..fit.specimen import chain_rhat, chains_line, summarize
 from ..io import read_specimen_result
-from ..model import identifiable_combinations
+from ..model.spec import spec_of
 from ._common import format_table
 
 DESCRIPTION = """\
@@ -25,10 +25,6 @@ examples:
   hbm summary results/specimens/calvo2010_rat1.nc
   hbm summary fit.nc --csv > fit.csv
 """
-
-#: units of the identifiable combinations
-COMBINATION_UNITS = {"G": "MPa", "VOLF*P1": "MPa", "(1-VOLF)*T1": "MPa"}
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("summary", help="parameter table (with units) of a fit, text or CSV",
@@ -47,9 +43,10 @@ def _rows(r) -> list[list[str]]:
     out = [["parameter", "units", "mean", "sd", "q05", "median", "q95", "r_hat"]]
     cols = r.as_dict()
     stats = summarize(r, prob=0.9)
-    combos = {} if set(stats) <= set(cols) else identifiable_combinations(list(cols), np.column_stack(list(cols.values())))
+    combos = combination_samples(r)
+    combination_units = {c.name: udunits(c.unit) for c in spec_of(r).combinations}
     for name, s in stats.items():
-        unit = COMBINATION_UNITS.get(name) or parameter_attrs(name).get("units", "")
+        unit = combination_units.get(name) or parameter_attrs(name).get("units", "")
         rh = chain_rhat(r, cols[name] if name in cols else combos[name])
         out.append([name, unit] + [f"{s[k]:.6g}" for k in ("mean", "sd", "lower", "median", "upper")] + [f"{rh:.4f}"])
     return out

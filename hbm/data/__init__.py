@@ -1,4 +1,8 @@
-"""Specimen stress–strain curves: CSV (+ metadata) <-> xarray.Dataset, validation, synthetic data.
+"""Specimen stress–strain curves: CSV (+ metadata) <-> :class:`Specimen`, validation, synthetic data.
+
+A :class:`Specimen` (:mod:`hbm.data.specimen`) is the one type every layer reads: the control path
+(strain, time, test), its tests and its measured series with their units; ``Specimen.to_dataset()``
+is the xarray view and :func:`as_specimen` converts a Dataset once.
 
 CSV format
 ----------
@@ -25,7 +29,7 @@ then decimal commas are read):
   suffix on the column (``stress_kPa``, ``stress_Pa``, ``stress_MPa``); Cauchy (true) stress
   unless ``# stress_measure: nominal`` or the column is ``nominal_stress*`` (``cauchy_stress*``
   declares Cauchy).  Nominal stress P (force / undeformed area) becomes Cauchy stress
-  σ = λ·P = (1 + ε)·P (incompressible uniaxial tension).  The loaded dataset always holds
+  σ = λ·P = (1 + ε)·P (incompressible uniaxial tension).  The loaded specimen always holds
   Cauchy stress in MPa.  The unit is judged from the physics (:mod:`hbm.data.plausibility`): a curve
   whose stress per unit strain (toe or peak) is stiffer than passive muscle with NO declared unit
   is refused with the declaration that fixes it; with a declared unit (or outside the range on
@@ -63,6 +67,7 @@ Every problem raises :class:`hbm.errors.DataError` with a one-line message namin
 the line (and column) and what was expected.
 """
 
+from .specimen import DEFAULT_LOAD_CASE, OBSERVABLES, Series, Specimen, Test, as_specimen
 from .columns import DEFORMATIONS, GROUP_KEY, MIN_POINTS, STRAIN_RANGE, STRESS_UNITS
 from .loader import load_specimen, load_specimens
 from .writer import save_specimen
@@ -70,7 +75,7 @@ from .summary import input_line, input_summary, provenance, specimen_groups, spe
 from .synthetic import Segment, cycle, hold, protocol, ramp, synthetic_specimen
 
 __all__ = [
-    "STRAIN_RANGE", "MIN_POINTS", "STRESS_UNITS", "DEFORMATIONS",
+    "Specimen", "Series", "Test", "as_specimen", "OBSERVABLES", "DEFAULT_LOAD_CASE", "STRAIN_RANGE", "MIN_POINTS", "STRESS_UNITS", "DEFORMATIONS",
     "load_specimen", "load_specimens", "save_specimen", "specimen_loading", "provenance",
     "input_summary", "input_line", "synthetic_specimen", "GROUP_KEY", "specimen_groups", "Segment", "ramp", "hold",
     "cycle", "protocol",

@@ -33,10 +33,6 @@ GROUP_KEY = "group"
 #: deformation columns; a file has exactly one
 DEFORMATIONS = ("strain", "strain_percent", "stretch", "sarcomere_length_um")
 
-_COLUMNS = ("strain", "stress", "time", "test")
-_UNITS = {"strain": "-", "stress": "MPa", "time": "s", "test": "-"}
-_LONG = {"strain": "engineering strain", "stress": "Cauchy stress along the fibers",
-         "time": "time", "test": "protocol segment (test) id"}
 _META_RE = re.compile(r"^#\s*([A-Za-z_][A-Za-z0-9_.\- ]*?)\s*:\s?(.*)$")
 _KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 _UNIT_NAMES = {u.lower(): u for u in STRESS_UNITS}

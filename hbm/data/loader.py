@@ -1,4 +1,4 @@
-"""Load specimen CSV files (one or a folder) into checked xarray Datasets."""
+"""Load specimen CSV files (one or a folder) into checked :class:`~hbm.data.specimen.Specimen` objects."""
 
 from __future__ import annotations
 
@@ -11,22 +11,22 @@ import re
 
 
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
-import xarray as xr
 
 
 from ..errors import DataError
 
 
 from .columns import (
-    GROUP_KEY, MIN_POINTS, STRESS_UNITS, _COLUMNS, _Columns, _DECIMAL_COMMA_RE, _LONG, _MEASURES, _META_RE,
-    _SEPARATOR_HINT, _UNITS, _UNIT_NAMES, _check_plausible, _check_sign, _check_sl0, _columns, _declared,
+    GROUP_KEY, MIN_POINTS, STRESS_UNITS, _Columns, _DECIMAL_COMMA_RE, _MEASURES, _META_RE,
+    _SEPARATOR_HINT, _UNIT_NAMES, _check_plausible, _check_sign, _check_sl0, _columns, _declared,
     _is_float, _number, _read_text, _record, _reference_sl, _same_labels, _show, _strain, _test_column)
+from .specimen import Series, Specimen
 
 
-def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
+def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
     """Read and validate one specimen CSV, converting units, stress measure and deformation.
 
     Parameters
@@ -40,12 +40,12 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
 
     Returns
     -------
-    xarray.Dataset
-        Dimension ``point``; variables ``strain``, ``stress`` (Cauchy, MPa) and, when present,
-        ``time`` (s) and ``test`` (int).  Attributes: the metadata (strings), ``id``
-        (metadata ``id`` or the file stem), ``source_file`` and the record of every conversion
-        (``units_stress_original``, ``stress_measure_original``, ``deformation_input``,
-        ``reference_sarcomere_length_um``, ``test_labels``).
+    Specimen
+        ``strain``, the series ``stress`` (Cauchy, MPa) and, when present, ``time`` (s) and
+        ``test`` (int); ``attrs``: the metadata (strings), ``id`` (metadata ``id`` or the file
+        stem), ``source_file`` and the record of every conversion (``units_stress_original``,
+        ``stress_measure_original``, ``deformation_input``, ``reference_sarcomere_length_um``,
+        ``test_labels``).  ``.to_dataset()`` is the xarray view.
 
     Raises
     ------
@@ -168,7 +168,8 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> xr.Dataset:
         _record(name, attrs, meta_line, "test_labels", json.dumps(labels), same=_same_labels)
     attrs.setdefault("id", path.stem)
     attrs["source_file"] = str(path)
-    return _dataset(data, attrs)
+    return Specimen(str(attrs["id"]), data["strain"], data.get("time"), data.get("test"),
+                    {"stress": Series.known("stress", data["stress"])}, attrs)
 
 
 def _check_tests_and_time(name: str, time: np.ndarray | None, test: np.ndarray | None,
@@ -200,16 +201,7 @@ def _check_tests_and_time(name: str, time: np.ndarray | None, test: np.ndarray |
                         "time within a test (time may restart at 0 only where a new test starts)")
 
 
-def _dataset(data: Mapping[str, np.ndarray], attrs: Mapping[str, str]) -> xr.Dataset:
-    variables = {}
-    for col in _COLUMNS:
-        if col in data:
-            variables[col] = xr.Variable("point", np.asarray(data[col]),
-                                         {"units": _UNITS[col], "long_name": _LONG[col]})
-    return xr.Dataset(variables, attrs=dict(attrs))
-
-
-def load_specimens(folder: str | Path, *, sl0: float | None = None) -> dict[str, xr.Dataset]:
+def load_specimens(folder: str | Path, *, sl0: float | None = None) -> dict[str, Specimen]:
     """Load every ``*.csv`` in ``folder`` (not recursive).
 
     Parameters
@@ -223,7 +215,7 @@ def load_specimens(folder: str | Path, *, sl0: float | None = None) -> dict[str,
     Returns
     -------
     dict
-        ``id -> Dataset`` sorted by id.
+        ``id -> Specimen`` sorted by id.
 
     Raises
     ------
@@ -236,14 +228,14 @@ def load_specimens(folder: str | Path, *, sl0: float | None = None) -> dict[str,
     files = sorted(folder.glob("*.csv"))
     if not files:
         raise DataError(f"{folder}: no *.csv files, expected at least one specimen file")
-    out: dict[str, xr.Dataset] = {}
+    out: dict[str, Specimen] = {}
     for f in files:
-        ds = load_specimen(f, sl0=sl0)
-        sid = ds.attrs["id"]
+        spec = load_specimen(f, sl0=sl0)
+        sid = spec.id
         if sid in out:
-            raise DataError(f"{f}: duplicate specimen id {sid!r} (also in {out[sid].attrs['source_file']}), "
+            raise DataError(f"{f}: duplicate specimen id {sid!r} (also in {out[sid].source_file}), "
                             "expected unique ids (metadata 'id' or file stem)")
-        out[sid] = ds
+        out[sid] = spec
     return dict(sorted(out.items()))
 
 

@@ -11,30 +11,26 @@ import re
 
 from typing import Mapping
 
-import numpy as np
-import xarray as xr
-
-
 from ..errors import DataError
 from ..model.core import Loading
 
 
 from .columns import GROUP_KEY, _KEY_RE
+from .specimen import Specimen, as_specimen
 
 
 # ---------------------------------------------------------------------------------------
 # helpers for consumers
 # ---------------------------------------------------------------------------------------
-def specimen_loading(ds: xr.Dataset | Loading) -> Loading:
-    """The :class:`hbm.Loading` (strain, time, test) of a specimen or protocol Dataset."""
-    if isinstance(ds, Loading):
-        return ds
-    time = np.asarray(ds["time"].values, dtype=float) if "time" in ds else None
-    test = np.asarray(ds["test"].values) if "test" in ds else None
-    return Loading(np.asarray(ds["strain"].values, dtype=float), time, test)
+def specimen_loading(data) -> Loading:
+    """The :class:`hbm.Loading` of a specimen or protocol (:attr:`Specimen.loading`; a Dataset is
+    converted, a Loading returned as it is)."""
+    if isinstance(data, Loading):
+        return data
+    return as_specimen(data).loading
 
 
-def provenance(ds: xr.Dataset) -> str:
+def provenance(ds: Specimen) -> str:
     """``"synthetic"``, ``"measured"`` or ``"unknown"`` from the ``provenance``/``source`` metadata."""
     prov = str(ds.attrs.get("provenance", "")).strip().lower()
     word = prov.split(maxsplit=1)[0] if prov else ""
@@ -48,12 +44,12 @@ def provenance(ds: xr.Dataset) -> str:
     return "measured" if source else "unknown"
 
 
-def specimen_groups(datasets: Mapping[str, xr.Dataset], key: str | None = None) -> dict[str, str] | None:
+def specimen_groups(datasets: Mapping[str, Specimen], key: str | None = None) -> dict[str, str] | None:
     """Each specimen's group from its metadata: ``{id: group name}``, or None for ungrouped data.
 
     Parameters
     ----------
-    datasets : mapping id -> Dataset
+    datasets : mapping id -> Specimen
         Loaded specimens (:func:`load_specimens`).
     key : str, optional
         Metadata key to group by (``--group-by``: e.g. ``species``, ``muscle``, ``protocol``).
@@ -93,7 +89,7 @@ def input_line(summary: str, where: str = "below") -> str:
     return f"input converted: {summary} (stresses {where} are Cauchy, MPa)" if summary else ""
 
 
-def input_summary(ds: xr.Dataset) -> str:
+def input_summary(ds: Specimen) -> str:
     """What the loader converted, from the attributes; ``""`` when the file held strain and MPa.
 
     Examples: ``"stress kPa->MPa, nominal->Cauchy; strain from sarcomere_length_um (SL0 2.0 um)"``,

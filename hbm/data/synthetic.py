@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import xarray as xr
 
 from .._version import __version__
 from ..errors import HbmError
@@ -21,8 +20,7 @@ from ..model.core import Loading, Model
 from ..likelihood.noise import make_noise
 
 from ..runtime.seeds import as_generator
-from .loader import _dataset
-from .summary import specimen_loading
+from .specimen import Series, Specimen, as_specimen
 from .writer import _attr_text
 
 
@@ -126,8 +124,9 @@ def cycle(eps_max: float, rate: float, n: int, *, eps_min: float = 0.0,
             ramp(eps_max if reload_to is None else reload_to, rate, n)]
 
 
-def protocol(*histories: Segment | Sequence[Segment], first_test: int = 1) -> xr.Dataset:
-    """Concatenate loading histories into a protocol Dataset (strain, time, test).
+def protocol(*histories: Segment | Sequence[Segment], first_test: int = 1) -> Specimen:
+    """Concatenate loading histories into a protocol: a :class:`Specimen` with strain, time and test
+    and no measured series (``.with_series("stress", values)`` adds one).
 
     Each positional argument is one loading history that starts from rest at time 0: a
     single :class:`Segment` or a sequence of segments whose time continues (load, unload,
@@ -171,8 +170,8 @@ def protocol(*histories: Segment | Sequence[Segment], first_test: int = 1) -> xr
             test.append(np.full(e.size, tid, dtype=np.int64))
             eps, t = float(e[-1]), float(tt[-1])
             tid += 1
-    return _dataset({"strain": np.concatenate(strain), "time": np.concatenate(time),
-                     "test": np.concatenate(test)}, {"id": "protocol", "provenance": "synthetic"})
+    return Specimen("protocol", np.concatenate(strain), np.concatenate(time), np.concatenate(test),
+                    attrs={"id": "protocol", "provenance": "synthetic"})
 
 
 # ---------------------------------------------------------------------------------------
@@ -207,7 +206,7 @@ def _theta_array(model: Model, theta) -> np.ndarray:
 
 def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float, seed, *,
                        noise: str = "iid", rho: float = 0.0, relative: bool = False,
-                       attrs: Mapping[str, Any] | None = None) -> xr.Dataset:
+                       attrs: Mapping[str, Any] | None = None) -> Specimen:
     """A labelled synthetic specimen: model stress plus Gaussian noise.
 
     Parameters
@@ -217,7 +216,7 @@ def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float,
     theta : array (n_params,) or mapping name -> value
         Generating parameters; with a mapping, parameters of added effects that are not given
         take their null values.
-    strain_or_protocol : array (n_points,), Loading or Dataset
+    strain_or_protocol : array (n_points,), Loading, Specimen or Dataset
         A strain array, or a protocol (see :func:`protocol`) with ``time``/``test``.
     noise_sd : float
         Marginal noise standard deviation in MPa, or a fraction of the maximum |stress| of the
@@ -236,7 +235,7 @@ def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float,
 
     Returns
     -------
-    xarray.Dataset
+    Specimen
         Like :func:`load_specimen`, with attributes ``provenance="synthetic"``, ``generator``,
         ``model``, ``parameters`` (JSON), ``noise``, ``noise_sd`` (MPa), ``rho``, ``seed``.
     """
@@ -247,10 +246,12 @@ def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float,
     if not (noise_sd >= 0 and math.isfinite(noise_sd)):
         raise HbmError(f"synthetic_specimen: noise_sd must be >= 0, got {noise_sd!r}")
     seed_text = _seed_text(seed)
-    if isinstance(strain_or_protocol, (xr.Dataset, Loading)):
-        loading = specimen_loading(strain_or_protocol)
-    else:
-        loading = Loading(np.asarray(strain_or_protocol, dtype=float))
+    if isinstance(strain_or_protocol, Loading):
+        loading = strain_or_protocol
+    elif isinstance(strain_or_protocol, (Specimen, Mapping)) or hasattr(strain_or_protocol, "data_vars"):
+        loading = as_specimen(strain_or_protocol).loading
+    else:  # a bare strain array: the control path of a specimen without time or tests
+        loading = Specimen("synthetic", np.asarray(strain_or_protocol, dtype=float)).loading
     th = _theta_array(model, theta)
     clean = np.asarray(model.stress(loading, th), dtype=float)
     if not np.all(np.isfinite(clean)):
@@ -261,11 +262,6 @@ def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float,
     q = np.array([[sd, float(rho)]] if noise == "ar1" else [[sd]])
     stress = clean + noise_model.simulate(rng, q)[0]
 
-    data = {"strain": loading.strain.copy(), "stress": stress}
-    if loading.time is not None:
-        data["time"] = loading.time.copy()
-    if loading.test is not None:
-        data["test"] = np.asarray(loading.test, dtype=np.int64)
     meta = {
         "id": "synthetic",
         "provenance": "synthetic",
@@ -284,4 +280,5 @@ def synthetic_specimen(model: Model, theta, strain_or_protocol, noise_sd: float,
         del meta["noise_relative"]
     for k, v in (attrs or {}).items():
         meta[k] = _attr_text(k, v)
-    return _dataset(data, meta)
+    return Specimen(meta["id"], loading.strain, loading.time, loading.test,
+                    {"stress": Series.known("stress", stress)}, meta)

@@ -1,4 +1,4 @@
-"""Write a specimen Dataset back to the CSV format it was read from."""
+"""Write a specimen back to the CSV format it was read from."""
 
 from __future__ import annotations
 
@@ -11,14 +11,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import xarray as xr
 
 
 from ..errors import HbmError
 
 
 from ..runtime.files import atomic_path
-from .columns import _COLUMNS, _KEY_RE
+from .columns import _KEY_RE
+from .specimen import as_specimen
 
 
 # ---------------------------------------------------------------------------------------
@@ -36,16 +36,16 @@ def _attr_text(key: str, value: Any) -> str:
     return text
 
 
-def save_specimen(ds: xr.Dataset, path: str | Path) -> Path:
-    """Write a specimen Dataset to CSV atomically; :func:`load_specimen` reads it back exactly.
+def save_specimen(specimen, path: str | Path) -> Path:
+    """Write a specimen to CSV atomically; :func:`load_specimen` reads it back exactly.
 
     Attributes become ``# key: value`` metadata lines (except ``source_file``); floats are
     written with ``repr`` (shortest string that round-trips).
 
     Parameters
     ----------
-    ds : xarray.Dataset
-        With ``strain`` and ``stress`` over dim ``point``, optional ``time`` and ``test``.
+    specimen : Specimen or xarray.Dataset
+        With ``strain`` and ``stress`` (columns: strain, the measured series, time, test).
     path : str or Path
         Destination (parent folders are created).
 
@@ -54,17 +54,15 @@ def save_specimen(ds: xr.Dataset, path: str | Path) -> Path:
     Path
     """
     path = Path(path)
-    for need in ("strain", "stress"):
-        if need not in ds:
-            raise HbmError(f"save_specimen: dataset has no {need!r} variable")
-    cols = [c for c in _COLUMNS if c in ds]
-    arrays = {c: np.asarray(ds[c].values).ravel() for c in cols}
-    n = arrays["strain"].size
-    for c, a in arrays.items():
-        if a.size != n:
-            raise HbmError(f"save_specimen: variable {c!r} has {a.size} values, strain has {n}")
+    spec = as_specimen(specimen)
+    if not spec.has_stress:
+        raise HbmError("save_specimen: the specimen has no 'stress' series")
+    arrays = {"strain": spec.strain, **{k: s.values for k, s in spec.observed.items()}}
+    arrays.update({k: a for k, a in (("time", spec.time), ("test", spec.test)) if a is not None})
+    cols = list(arrays)
+    n = spec.n_points
     buf = io.StringIO()
-    for key, value in ds.attrs.items():
+    for key, value in spec.attrs.items():
         if key == "source_file":
             continue
         if not _KEY_RE.match(str(key)):

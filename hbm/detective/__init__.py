@@ -44,7 +44,7 @@ except ImportError:                  # pragma: no cover - Windows
 
 from ..runtime import seeds as _seeds
 from ..errors import HbmError, HbmWarning
-from ..runtime.validation import check_workers, usable_cores
+from ..settings.rules import check_workers, usable_cores
 from ..fit.specimen import edges, format_at_bounds
 from ..model.core import Effect
 from ..likelihood.noise import noise_model_names
@@ -170,20 +170,27 @@ def _noise_preference(base: FitSummary, ctrls: list[CandidateResult]) -> str:
     return "; ".join(parts)
 
 
+def _tier(tier: str, likelihood: str | None, who: str) -> str:
+    """The tier of ``tier=``, or of the older keyword ``likelihood=`` (deprecated: it warns)."""
+    if likelihood is None:
+        return tier
+    warnings.warn(f"{who}(likelihood=...) is deprecated; use tier=", DeprecationWarning, stacklevel=3)
+    return likelihood
+
+
 def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | None = None,
              seed: int = 0, n_samples: int = 800, top: int = 3, progress: bool = False,
              noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
              sigma_bounds: tuple[float, float] | None = None, max_effects: int = MAX_EFFECTS,
              power: bool = False, removal: bool = True, max_evaluations: int | None = None,
-             correlated: str = "auto", max_time: float | None = None, likelihood: str = "full",
-             workers: int | None = None) -> Diagnosis:
+             correlated: str = "auto", max_time: float | None = None, tier: str = "full",
+             workers: int | None = None, likelihood: str | None = None) -> Diagnosis:
     """Compare a model with a specimen, locate its misfit and name the missing effect(s).
 
     Parameters
     ----------
-    data : xarray.Dataset or path
-        Specimen with ``strain``, ``stress`` and optional ``time``/``test`` (see
-        :func:`hbm.data.load_specimen`).
+    data : Specimen, xarray.Dataset or path
+        The specimen (:func:`hbm.data.load_specimen`; a Dataset is converted once, a path loaded).
     model : None, str, list or Model
         Current model: ``None``/``"base"`` for the Spyrou model, ``"offset,damage"`` for the
         base model plus effects, or any :class:`hbm.Model`.
@@ -191,7 +198,7 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Effects to screen: ids, ``"path.py:ClassName"`` strings, or :class:`hbm.Effect`
         instances (user-written effects need no edit of hbm).
     fix : dict, optional
-        Parameters held fixed, e.g. ``{"EOPT": 0.1}``.
+        Parameters held fixed, ``{name: value}`` (e.g. EOPT at 0.1 for the Spyrou base).
     seed : int
         Seed of every random step (CMA-ES, TMCMC, window calibration).
     n_samples : int
@@ -227,8 +234,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
         Wall seconds after which no new fit is started (a fit under way finishes): the verdict
         so far is returned with ``stopped`` saying what was left undecided and why.  ``None``:
         no limit (the command line's default is 300 s).
-    likelihood : {"full", "auto", "collapsed"}
-        Tier of every evidence run (:meth:`.fitting.Fitter.collapsed`); default "full" (every
+    tier : {"full", "auto", "collapsed"}
+        Likelihood tier of every evidence run (:meth:`.fitting.Fitter.collapsed`; ``likelihood=`` is
+        its older, deprecated name); default "full" (every
         fit in full space).  Not yet "auto": a collapsible candidate's converged evidence against
         a non-collapsible competitor's under-mixed full-space one tilts their comparison (library
         case mullins_3: damage 13.0 vs viscoelastic 12.2 gave "group" where "full" names damage;
@@ -261,8 +269,9 @@ def diagnose(data, *, model=None, candidates="all", fix: Mapping[str, float] | N
     if sigma_bounds is None:
         sigma_bounds = noise_prior_box(mf, d.stress)
     workers = usable_cores() if workers is None else check_workers(workers, "workers") or 1
+    tier = _tier(tier, likelihood, "diagnose")
     # no more processes than a round has refits (+ the base's rerun): the rest would sit idle
-    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, likelihood,
+    fitter = Fitter(d, fix, seed, n_samples, sigma_bounds, progress, max_evaluations, tier,
                     min(workers, max(0, int(top)) + N_CONTROL_REFITS + 1))
     if max_time is not None:
         fitter.deadline = _time.time() + float(max_time) - stop_reserve(float(max_time))
@@ -543,7 +552,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
            top: int = 3, progress: bool = False, max_steps: int = 4,
            noise_models: Sequence[str] = NOISE_MODELS, noise: str | None = None,
            max_evaluations: int | None = None, correlated: str = "auto",
-           max_time: float | None = None, likelihood: str = "full", workers: int | None = None) -> Extension:
+           max_time: float | None = None, tier: str = "full", workers: int | None = None,
+           likelihood: str | None = None) -> Extension:
     """Refit with effects added one at a time and record the error fall.
 
     One noise-model choice for the whole table, so that its Δlog Z are those of
@@ -558,7 +568,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
 
     Parameters
     ----------
-    data : xarray.Dataset or path
+    data : Specimen, xarray.Dataset or path
         The specimen.
     add : sequence
         Effects to add in this order (ids, ``"path.py:ClassName"`` or Effect instances).
@@ -566,8 +576,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
         Greedy: after the given effects, :func:`diagnose` the current model (which adds what it
         names and re-screens, with the same rule at each step) and add its ``selected`` effects
         in order, at most ``max_steps`` effects in all.
-    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, likelihood, workers
-        As in :func:`diagnose`.
+    model, candidates, fix, seed, n_samples, top, progress, noise_models, noise, max_evaluations, correlated, max_time, tier, workers
+        As in :func:`diagnose` (``likelihood=``: the tier's older, deprecated name).
 
     Returns
     -------
@@ -586,7 +596,8 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
     mf = model_free_noise(d.stress, d.segment)
     noise_models = correlated_noises(noise_models, noise, correlated,
                                      digitised_reason(getattr(d.ds, "attrs", {}), mf, d.stress))
-    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, likelihood)
+    tier = _tier(tier, likelihood, "extend")
+    fitter = Fitter(d, fix, seed, n_samples, noise_prior_box(mf, d.stress), progress, max_evaluations, tier)
     steps: list[FitSummary] = []
     decisions: list = []
     notes: list[str] = []
@@ -623,7 +634,7 @@ def extend(data, add: Sequence = (), *, auto: bool = False, model=None, candidat
                       n_samples=n_samples, top=top, progress=progress, noise_models=noise_models,
                       noise=noise, max_effects=max_steps - len(adds), removal=False,
                       max_evaluations=max_evaluations, correlated=correlated, max_time=max_time,
-                      likelihood=likelihood, workers=workers)
+                      tier=tier, workers=workers)
         decisions.extend({"model": st["model"], "verdict": st["verdict"], "selected": st["selected"],
                           "group": st["group"], "message": st["message"]} for st in dg.steps)
         # the diagnosis's own fits: the same model as the last given step, fitted (and its noise

@@ -25,7 +25,7 @@ from ..samplers.tmcmc import tmcmc
 from .inputs import SpecimenData, added_effects
 from .results import FitSummary
 from .rules import (
-    BAND, COLLAPSED_MAX_COLUMNS, COLLAPSED_ROUTE, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_PROPOSAL,
+    BAND, COLLAPSED_MAX_COLUMNS, COLLAPSED_ROUTE, TMCMC_MAX_STEPS, TMCMC_MIN_SAMPLES, TMCMC_REFINE_MOVE,
     TMCMC_REFINE_STEPS)
 
 __all__ = ["Fitter", "FitInterrupted", "coverage", "laplace_occam", "noise_evidence", "sample_tier"]
@@ -106,10 +106,10 @@ def global_fit(lik, seed: int, restarts: int) -> tuple[np.ndarray, float]:
 
 
 def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None,
-           max_steps: int = TMCMC_MAX_STEPS, proposal: str = "rw"):
+           max_steps: int = TMCMC_MAX_STEPS, move: str = "rw"):
     """TMCMC evidence run of ``n_samples`` particles, at most ``max_steps`` MH steps per stage
     (the sampler's decorrelation criterion ends a stage's moves earlier when it can) with the
-    move kernel ``proposal`` (``"rw"``: the global random walk; ``"local"``: the walk with the
+    TMCMC ``move`` (``"rw"``: the global random walk; ``"local"``: the walk with the
     covariance of each point's neighbours, the refined runs of :meth:`Fitter.refine`).
 
     With an evaluation budget ``max_evaluations`` (opt-in) the population shrinks to what the
@@ -122,9 +122,9 @@ def sample(lik, n_samples: int, seed: int, max_evaluations: int | None = None,
         n = int(np.clip(int(max_evaluations) // (15 * int(max_steps)), TMCMC_MIN_SAMPLES, n))
         # and a hard cap: the sampler stops at the budget and says so in its result
         return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
-                     max_steps=int(max_steps), proposal=proposal, max_evaluations=max(int(max_evaluations), n))
+                     max_steps=int(max_steps), move=move, max_evaluations=max(int(max_evaluations), n))
     return tmcmc(lik, np.asarray(lik.bounds, float), n, seed=int(seed), progress=False,
-                 max_steps=int(max_steps), proposal=proposal)
+                 max_steps=int(max_steps), move=move)
 
 
 def sample_tier(cl: CollapsedLikelihood, n_samples: int, seed: int, max_evaluations: int | None = None):
@@ -295,7 +295,7 @@ class Fitter:
         if likelihood not in TIERS:
             raise SettingError(f"likelihood must be one of {', '.join(TIERS)}, got {likelihood!r}")
         self.data, self.fix, self.seed = data, fix, seed
-        #: the likelihood tier asked for (``--likelihood``): "auto", "collapsed" or "full"
+        #: the likelihood tier asked for (``--tier``): "auto", "collapsed" or "full"
         self.tier = likelihood
         self._tiers: dict[int, tuple] = {}        # id(lik) -> (lik, collapsed or None, note)
         self.n_samples, self.sigma_bounds, self.progress = n_samples, sigma_bounds, progress
@@ -413,7 +413,7 @@ class Fitter:
         cl, note = choose_tier(lik, "auto" if self.tier == "collapsed" else self.tier)
         if cl is not None and self.tier == "auto" and len(cl.free_columns) > COLLAPSED_MAX_COLUMNS:
             note = (f"full likelihood (a collapsed tier exists, but its {len(cl.free_columns)} amplitude columns "
-                    f"({', '.join(cl.free_columns)}) make the quadrature dear; --likelihood collapsed forces it)")
+                    f"({', '.join(cl.free_columns)}) make the quadrature dear; --tier collapsed forces it)")
             cl = None
         self._tiers[id(lik)] = (lik, cl, note)
         return cl, note
@@ -601,7 +601,7 @@ class Fitter:
         return stages
 
     def refine(self, fs: FitSummary, seed: int) -> None:
-        """Rerun ``fs``'s evidence with the refined settings (``TMCMC_REFINE_PROPOSAL`` walk, up to
+        """Rerun ``fs``'s evidence with the refined settings (``TMCMC_REFINE_MOVE`` walk, up to
         ``TMCMC_REFINE_STEPS`` MH steps per stage; same population and budget as the standard
         run); fills ``fs.refined_log_evidence`` ± SE, once per sampling.
 
@@ -617,12 +617,12 @@ class Fitter:
             return
         t0 = _time.perf_counter()
         res = sample(self.guard(fs.likelihood), self.n_samples, seed, self.max_evaluations, max_steps=TMCMC_REFINE_STEPS,
-                     proposal=TMCMC_REFINE_PROPOSAL)
+                     move=TMCMC_REFINE_MOVE)
         fs.refined_log_evidence = float(res.log_evidence)
         fs.refined_log_evidence_se = float(res.log_evidence_se)
         self.refine_seconds += _time.perf_counter() - t0
         steps = [int(st.n_steps) for st in res.stages]
         self.log(f"  refined evidence {'+'.join(fs.effects) or 'base'} [{fs.noise}]: log Z "
                  f"{fs.log_evidence:.2f} -> {fs.refined_log_evidence:.2f} ± {fs.refined_log_evidence_se:.2f} "
-                 f"({TMCMC_REFINE_PROPOSAL} walk, ≤ {TMCMC_REFINE_STEPS} steps/stage, max {max(steps, default=0)}, "
+                 f"({TMCMC_REFINE_MOVE} walk, ≤ {TMCMC_REFINE_STEPS} steps/stage, max {max(steps, default=0)}, "
                  f"{_time.perf_counter() - t0:.1f} s)")

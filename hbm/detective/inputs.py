@@ -6,15 +6,15 @@ import math
 import os
 import warnings
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from ..data import STRESS_UNITS, load_specimen
+from ..data import STRESS_UNITS, Specimen, as_specimen, load_specimen
 from ..effects import REGISTRY, family, load_effect, make_effect
 from ..errors import HbmError, HbmWarning
 from ..model.core import Effect, Loading, Model
-from ..model.spyrou import BASE_EFFECTS, spyrou_model
+from ..model.spec import spec_of
+from ..model.spyrou import spyrou_model
 from ..data.plausibility import describe, implausible, suggest_unit
 from .rules import FEW_POINTS, MIN_POINTS
 
@@ -25,7 +25,7 @@ __all__ = ["SpecimenData", "as_data", "unit_anomaly", "resolve_effect", "resolve
 class SpecimenData:
     """A specimen as the detective uses it: flat arrays plus the sampling structure."""
 
-    ds: Any                      # the dataset itself (likelihoods are built from it)
+    ds: Specimen                 # the specimen itself (likelihoods are built from it)
     strain: np.ndarray
     stress: np.ndarray
     time: np.ndarray | None
@@ -37,17 +37,17 @@ class SpecimenData:
 
 
 def as_data(data) -> SpecimenData:
-    """Check a dataset (or load a specimen file) and return its :class:`SpecimenData`."""
+    """Check a specimen (a Dataset is converted, a path loaded) and return its :class:`SpecimenData`."""
     if isinstance(data, (str, os.PathLike)):
         data = load_specimen(data)
     try:
-        strain = np.asarray(data["strain"], float).ravel()
-        stress = np.asarray(data["stress"], float).ravel()
-    except (KeyError, TypeError) as exc:
-        raise HbmError(f"diagnose: data must have variables 'strain' and 'stress' ({exc})") from None
-    names = getattr(data, "variables", data)
-    time = np.asarray(data["time"], float).ravel() if "time" in names else None
-    test = np.asarray(data["test"]).ravel() if "test" in names else None
+        spec = as_specimen(data)
+    except HbmError as exc:
+        raise HbmError(f"diagnose: {exc}") from None
+    if not spec.has_stress:
+        raise HbmError(f"diagnose: {spec.id}: data must have variables 'strain' and 'stress'")
+    stress = spec.stress
+    strain, time, test = spec.strain, spec.time, spec.test
     if strain.size != stress.size or strain.size < MIN_POINTS:
         raise HbmError(f"diagnose: need >= {MIN_POINTS} points with matching strain/stress, "
                        f"got {strain.size}/{stress.size}")
@@ -57,16 +57,14 @@ def as_data(data) -> SpecimenData:
                       stacklevel=2)
     if not (np.all(np.isfinite(strain)) and np.all(np.isfinite(stress))):
         raise HbmError("diagnose: strain/stress contain non-finite values")
-    loading = Loading(strain, time, test)
+    loading = spec.loading
     starts = np.zeros(strain.size, bool)
     starts[0] = True
     if test is not None:
         starts[1:] |= test[1:] != test[:-1]
     starts |= loading.history_starts
     segment = np.cumsum(starts) - 1
-    attrs = getattr(data, "attrs", {}) or {}
-    return SpecimenData(data, strain, stress, time, test, segment, loading.history_starts.copy(), loading,
-                        str(attrs.get("id", "specimen")))
+    return SpecimenData(spec, strain, stress, time, test, segment, loading.history_starts.copy(), loading, spec.id)
 
 
 def unit_anomaly(d: SpecimenData) -> str | None:
@@ -148,4 +146,4 @@ def resolve_candidates(candidates, model: Model) -> list[Effect]:
 
 def added_effects(model: Model) -> list[str]:
     """Effects of ``model`` beyond the Spyrou base (what reports call the model)."""
-    return [n for n in model.effect_names if n not in BASE_EFFECTS]
+    return [n for n in model.effect_names if n not in spec_of(model).effects]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.core import Model
-from ..model.spyrou import BASE_EFFECTS
+from ..model.spec import spec_of
 from .fitting import FitInterrupted, Fitter, cma_maximise, laplace_occam
 from .results import FitSummary
 
@@ -33,7 +33,7 @@ def removal_test(base: FitSummary, fitter: Fitter, seed: int) -> list[dict]:
     model = base.model
     out = []
     full = dict(zip(base.names, base.theta_max))
-    parts = [p for p in BASE_EFFECTS if p in model.effect_names]
+    parts = [p for p in spec_of(model).effects if p in model.effect_names]
     for k, part in enumerate(parts):
         effects = [e for e in model.effects if e.name != part]
         try:

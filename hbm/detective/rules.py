@@ -47,7 +47,7 @@ TMCMC_MIN_SAMPLES = 250
 # 50 local steps reach the converged mean at half the cost of 100 (the reported SE × TMCMC_SE_FACTOR,
 # 1.7, covers their scatter); the stages still run to the cap (the decorrelation criterion is not met)
 TMCMC_REFINE_STEPS = 50
-TMCMC_REFINE_PROPOSAL = "local"
+TMCMC_REFINE_MOVE = "local"
 # the collapsed tier (issue 27; Fitter.collapsed): where a model's amplitudes integrate exactly, its
 # evidence run samples only the nonlinear and noise parameters: a small TMCMC run and an importance
 # finish (hbm.likelihood.collapsed's pilot settings).  On validation case qlv_0 (three rates, 105 points), base +

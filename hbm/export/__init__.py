@@ -104,7 +104,8 @@ def export(result: str | Path, fmt: str, summary: str = "median", out: str | Pat
         c = failed[0]
         raise HbmError(f"{fmt}: the card does not reproduce hbm's curve (max relative difference {c.error_tested:.3g} "
                        f"> {c.bound:.3g} on the tested range); nothing written")
-    stab = stability_check(src.draws, src.theta, src.k_iso, src.strain_range) if src.form == "energy" else None
+    stab = (stability_check(src.draws, src.theta, src.k_iso, src.strain_range, src.spec) if src.form == "energy"
+            else None)
     notes = [] if src.form == "energy" else [
         "stability: not checked (the thesis form is not derived from a strain energy)"]
     path = None

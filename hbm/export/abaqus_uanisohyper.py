@@ -36,6 +36,9 @@ SUFFIX = ".f"
 VALID = ("3-D hyperelastic (an energy), exact in uniaxial tension along direction 1; the helix average is "
          "six families; calibrated in uniaxial tension only")
 N_FAM = 6
+#: the PROPS of the subroutine, in its order (E0: the fibre onset strain, Rc: the collagen rate; the Fortran
+#: comments call them EOPT and T2)
+PROPS = ("C10", "D1", "Af", "E0", "Ac", "Rc")
 
 FORTRAN = """\
       subroutine uanisohyper_inv(ainv, ua, zeta, nfibers, ninv,
@@ -124,16 +127,15 @@ C     position of the pseudo-invariant I4(alpha, alpha) in ainv (Abaqus conventi
 
 def props(src) -> dict[str, float]:
     """The subroutine's PROPS of the summary's parameter set."""
-    p = src.params()
-    c = p["VOLF"]
-    c10 = src.k_iso * (c * p["GF"] + (1 - c) * p["GM"]) / 2.0
-    return {"C10": c10, "D1": 2.0 / (BULK_FACTOR * 2.0 * c10), "Af": c * p["P1"], "EOPT": p["EOPT"],
-            "Ac": (1 - c) * p["T1"] / N_FAM, "T2": p["T2"]}
+    k = src.constituents()
+    c10 = src.k_iso * k.shear_modulus / 2.0
+    return {"C10": c10, "D1": 2.0 / (BULK_FACTOR * 2.0 * c10), "Af": k.fibre_amplitude, "E0": k.fibre_onset,
+            "Ac": k.collagen_amplitude / N_FAM, "Rc": k.collagen_rate}
 
 
 def directions(src) -> np.ndarray:
     """(7, 3): the muscle axis and the six helical family directions."""
-    return np.vstack([[1.0, 0.0, 0.0], family_directions(src.params()["THETA"], N_FAM)])
+    return np.vstack([[1.0, 0.0, 0.0], family_directions(src.constituents().collagen_angle, N_FAM)])
 
 
 def compile_subroutine(workdir: Path) -> ctypes.CDLL:
@@ -156,7 +158,7 @@ def call_subroutine(lib: ctypes.CDLL, pr: dict, dirs: np.ndarray, ainv) -> tuple
     nfib = dirs.shape[0]
     ninv = len(ainv)
     dbl, i = ctypes.c_double, ctypes.c_int
-    p = (dbl * 6)(*[pr[k] for k in ("C10", "D1", "Af", "EOPT", "Ac", "T2")])
+    p = (dbl * 6)(*[pr[k] for k in PROPS])
     # cosines between the directions (Abaqus passes them; this energy does not use them)
     zeta = (dbl * max(1, nfib * (nfib - 1) // 2))(*[float(dirs[a] @ dirs[b]) for b in range(nfib) for a in range(b)])
     a = (dbl * ninv)(*ainv)
@@ -222,7 +224,7 @@ def write(src) -> Written:
     head += ["C   " + ", ".join(f"{x + 0.0:.10g}" for x in a) for a in directions(src)]
     head += ["C   *MATERIAL, NAME=MUSCLE",
              "C   *ANISOTROPIC HYPERELASTIC, USER, FORMULATION=INVARIANT, LOCAL DIRECTIONS=7, PROPERTIES=6",
-             "C   " + ", ".join(f"{pr[k]:.10g}" for k in ("C10", "D1", "Af", "EOPT", "Ac", "T2")),
+             "C   " + ", ".join(f"{pr[k]:.10g}" for k in PROPS),
              "C   (C10, D1, Af, EOPT, Ac, T2; D1 = 2/K with K = 1000 x initial shear modulus)",
              "C the keyword lines above follow the Abaqus manual's layout but were not run here (no Abaqus);",
              "C the subroutine below was compiled and checked"]

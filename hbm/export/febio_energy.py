@@ -32,7 +32,7 @@ def require_energy(src) -> None:
 
 def make_card(src):
     require_energy(src)
-    return energy_card(src.params(), src.k_iso, src.strain_range, src.stress, src.curve_strain)
+    return energy_card(src.constituents(), src.k_iso, src.strain_range, src.stress, src.curve_strain)
 
 
 def build(card) -> ET.Element:

@@ -29,14 +29,13 @@ N_DATA = 21
 def parameters(src) -> list[tuple[str, float, float, float, str]]:
     """(FEBio parameter path, start, lower, upper, meaning) of the card of ``src``."""
     d = src.draws
-    c, gf, gm, p1, eopt = (d[:, i] for i in (0, 6, 7, 2, 1))
-    c1 = src.k_iso * (c * gf + (1 - c) * gm) / 2.0
-    p = src.params()
-    c1_0 = src.k_iso * (p["VOLF"] * p["GF"] + (1 - p["VOLF"]) * p["GM"]) / 2.0
+    every, cons = src.constituents(d), src.constituents()  # every draw's and the summary's
+    c1 = src.k_iso * every.shear_modulus / 2.0
+    c1_0 = src.k_iso * cons.shear_modulus / 2.0
     out = [("fem.material[0].solid[0].c1", c1_0, *np.quantile(c1, QUANTILES), "Mooney-Rivlin c1 (MPa)")]
     if src.form == "energy":
-        e = c * p1 * (1 + eopt)
-        e0 = p["VOLF"] * p["P1"] * (1 + p["EOPT"])
+        e = every.fibre_amplitude * (1 + every.fibre_onset)
+        e0 = cons.fibre_amplitude * (1 + cons.fibre_onset)
         out.append(("fem.material[0].solid[1].E", e0, *np.quantile(e, QUANTILES), "fibre modulus E (MPa)"))
     else:
         # smax scales the tabulated fibre + collagen stress: its spread is that of that stress at the
@@ -46,7 +45,7 @@ def parameters(src) -> list[tuple[str, float, float, float, str]]:
 
         def fibre_collagen(t):
             t = np.atleast_2d(t)
-            g = t[:, 0] * t[:, 6] + (1 - t[:, 0]) * t[:, 7]
+            g = src.constituents(t).shear_modulus
             return src.model().stress(hi, t)[:, 0] - src.k_iso * g * (lam ** 2 - 1 / lam)
 
         s0 = float(fibre_collagen(src.theta)[0])

@@ -27,9 +27,7 @@ VALID = ("homogeneous uniaxial tension/compression along the fibres within the t
 
 def card(src) -> tuple[float, np.ndarray, np.ndarray]:
     """(c1, stretch, fibre stress) of the card: the tabulated stress is hbm's minus the matrix's."""
-    p = src.params()
-    c = p["VOLF"]
-    c1 = src.k_iso * (c * p["GF"] + (1 - c) * p["GM"]) / 2.0
+    c1 = src.k_iso * src.constituents().shear_modulus / 2.0
     strain, stress = src.table()
     lam = 1.0 + strain
     return c1, lam, stress - 2.0 * c1 * (lam ** 2 - 1.0 / lam)

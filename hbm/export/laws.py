@@ -29,6 +29,7 @@ from dataclasses import dataclass, asdict
 import numpy as np
 from scipy.optimize import brentq, least_squares
 
+from ..model.spec import Constituents, base_spec
 from ..model.spyrou import helical_stretch
 
 #: helical collagen families of the energy card (equally spaced azimuths over 360°)
@@ -130,13 +131,14 @@ def _fibre_lam0(on: float, beta: float) -> float:
     return float(brentq(h, lo, 10.0, xtol=1e-14))
 
 
-def energy_card(p: dict, k_iso: float, strain_range, hbm_stress, check_strain=None) -> EnergyCard:
+def energy_card(p, k_iso: float, strain_range, hbm_stress, check_strain=None) -> EnergyCard:
     """Map hbm's energy-form parameters ``p`` onto the FEBio energy card.
 
     Parameters
     ----------
-    p : dict
-        The eight base parameters.
+    p : Constituents or dict
+        What the card reads (:class:`hbm.model.spec.Constituents`), or the base parameters by name
+        (read through the default base's export map).
     k_iso : float
     strain_range : (lo, hi)
         Tested engineering-strain range; the collagen is fitted there.
@@ -145,28 +147,27 @@ def energy_card(p: dict, k_iso: float, strain_range, hbm_stress, check_strain=No
     check_strain : array, optional
         Strain grid (1.5x the tested range) on which the stated errors are measured (default 301 points).
     """
-    c = p["VOLF"]
-    G = c * p["GF"] + (1.0 - c) * p["GM"]
-    c1 = k_iso * G / 2.0
-    cp1, on = c * p["P1"], 1.0 + p["EOPT"]
+    k = p if isinstance(p, Constituents) else base_spec().export.constituents(p)
+    c1 = k_iso * k.shear_modulus / 2.0
+    cp1, on = k.fibre_amplitude, 1.0 + k.fibre_onset
     E = cp1 * on
     lo, hi = strain_range
     eps = np.linspace(lo, hi, 201)
     eps15 = np.linspace(1.5 * lo, 1.5 * hi, 301)
     target, target15 = hbm_stress(eps), hbm_stress(eps15)
     card = EnergyCard(c1=c1, k=BULK_FACTOR * 2.0 * c1, fibre_E=E, fibre_lam0=1.0 + 1e-3, fibre_beta=2.0,
-                      ksi=0.0, alpha=0.0, beta=2.0, theta=float(p["THETA"]), n_families=N_FAMILIES,
+                      ksi=0.0, alpha=0.0, beta=2.0, theta=float(k.collagen_angle), n_families=N_FAMILIES,
                       fit_error=0.0, fit_error_15=0.0)
     if E > 0:
-        best, fibre_hbm = np.inf, (1.0 + eps) * cp1 * np.maximum(eps - p["EOPT"], 0.0)
+        best, fibre_hbm = np.inf, (1.0 + eps) * cp1 * np.maximum(eps - k.fibre_onset, 0.0)
         for fb in FIBRE_BETAS:  # the toe shape: a 1-D choice among a few exponents
             l0 = _fibre_lam0(on, fb)
             # total stress with only the fibre law changed: its error relative to the total
             err = relative_error(target - fibre_hbm + pow_linear_cauchy((1.0 + eps) ** 2, E, l0, fb), target)
             if err < best:
                 best, card.fibre_beta, card.fibre_lam0 = err, fb, l0
-    am, t2 = (1.0 - c) * p["T1"], p["T2"]
-    lh_max = float(np.max(helical_stretch(1.0 + eps15, p["THETA"])))
+    am, t2 = k.collagen_amplitude, k.collagen_rate
+    lh_max = float(np.max(helical_stretch(1.0 + eps15, k.collagen_angle)))
     if am > 0 and t2 > 0 and lh_max > 1.0:
         # fitted on 1.5x the tested range, the extension weighted EXTENSION_WEIGHT: the tested range
         # decides, the extension keeps the exponential from running away just past it

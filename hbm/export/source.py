@@ -12,7 +12,9 @@ A *summary* turns a posterior into one thing an FE model can hold:
                 pointwise median curve (a typical new specimen, not the mean specimen);
 ``draws:N``     N posterior draws (every n/N-th of the equal-weight population; csv/json only).
 
-Only this module knows how a result file is read for export; the formats get an :class:`ExportSource`.
+Only this module knows how a result file is read for export; the formats get an :class:`ExportSource`,
+and read the parameters through the base model's export map (:attr:`hbm.model.spec.ModelSpec.export`:
+:meth:`ExportSource.constituents`), never by name.
 """
 
 from __future__ import annotations
@@ -26,13 +28,23 @@ import numpy as np
 from .._version import __version__
 from ..errors import HbmError
 from ..io import read_attrs, read_hierarchical, read_specimen_result
-from ..model.spyrou import BASE_EFFECTS, BASE_PARAMETERS, collagen_onset_stretch, spyrou_model
+from ..io.conventions import udunits
+from ..model.spec import BASES, Constituents, ModelSpec, base_spec, spec_of
 
-#: hbm's eight base parameters in model order.
-NAMES: tuple[str, ...] = tuple(p.name for p in BASE_PARAMETERS)
-#: UDUNITS unit of each base parameter.
-UNITS: dict[str, str] = {"VOLF": "1", "EOPT": "1", "P1": "MPa", "T1": "MPa", "T2": "1", "THETA": "degree",
-                         "GF": "MPa", "GM": "MPa"}
+
+def base_names(spec: ModelSpec) -> tuple[str, ...]:
+    """The base's parameters in model order (the columns of the exported draws)."""
+    return spec.parameter_names
+
+
+def base_units(spec: ModelSpec) -> dict[str, str]:
+    """UDUNITS unit of each base parameter."""
+    return {p.name: udunits(p.unit) for p in spec.parameters}
+
+
+#: the default base's parameters in model order, and their UDUNITS units
+NAMES: tuple[str, ...] = base_names(base_spec())
+UNITS: dict[str, str] = base_units(base_spec())
 #: Strain-grid size of the curves on 1.5x the tested range; tables hold every other point
 #: (:attr:`ExportSource.table`), the checks use all of them (so half fall between table points).
 GRID = 1201
@@ -80,15 +92,33 @@ class ExportSource:
     notes: list[str] = field(default_factory=list)
     n_draws: int = 0
     quantile: float | None = None
+    spec: ModelSpec = field(default_factory=base_spec)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The base's parameters: the columns of ``draws`` and ``theta``."""
+        return base_names(self.spec)
+
+    @property
+    def units(self) -> dict[str, str]:
+        return base_units(self.spec)
 
     def params(self, theta=None) -> dict[str, float]:
         """name -> value of ``theta`` (default the summary's)."""
         t = self.theta if theta is None else theta
-        return {n: float(v) for n, v in zip(NAMES, t)}
+        return {n: float(v) for n, v in zip(self.names, t)}
+
+    def constituents(self, theta=None) -> Constituents:
+        """What a card reads from ``theta`` (default the summary's; rows (n, d) give arrays (n,)): the
+        base's export map."""
+        t = self.theta if theta is None else np.asarray(theta, float)
+        if t.ndim == 2:
+            return self.spec.export.constituents({n: t[:, i] for i, n in enumerate(self.names)})
+        return self.spec.export.constituents(self.params(t))
 
     def model(self):
         """hbm's model of this result."""
-        return spyrou_model(iso_factor=self.k_iso, form=self.form)
+        return _base_model(self.spec, self.k_iso, self.form)
 
     def stress(self, strain, theta=None) -> np.ndarray:
         """hbm's Cauchy stress (MPa) of ``theta`` (default the summary's) at ``strain``."""
@@ -106,10 +136,7 @@ class ExportSource:
         """(strain, stress) the curve cards tabulate: every other point of the curve grid plus the
         kinks of the summary's draw (zero strain, fibre onset EOPT, collagen onset λ* − 1), so that
         a linear table does not cut the corners there."""
-        p = self.params()
-        # λ = 1 too: above the magic angle the helix is also taut under compression, so the collagen
-        # stress has a kink at zero strain
-        kinks = [0.0, p["EOPT"], float(collagen_onset_stretch(p["THETA"])) - 1.0]
+        kinks = self.spec.export.kinks(self.params())
         lo, hi = self.curve_strain[0], self.curve_strain[-1]
         strain = np.unique(np.concatenate([self.curve_strain[::2], [k for k in kinks if lo < k < hi]]))
         if self.quantile is None:
@@ -169,19 +196,35 @@ def parse_summary(text: str) -> tuple[str, int]:
     raise HbmError(f"--summary {text!r}: expected one of {', '.join(SUMMARIES)} or draws:N (N >= 1)")
 
 
-def _base_draws(result) -> np.ndarray:
+def _base_model(spec: ModelSpec, k_iso: float, form: str):
+    """The base model of a result (its registered factory) with the card's k_iso and form."""
+    return BASES[spec.name][1](iso_factor=k_iso, form=form)
+
+
+def _base_draws(result, spec: ModelSpec) -> np.ndarray:
     cols = result.as_dict()
-    missing = [n for n in NAMES if n not in cols]
+    names = base_names(spec)
+    missing = [n for n in names if n not in cols]
     if missing:
         raise HbmError(f"{result.specimen_id}: parameters {missing} missing from the result")
-    return np.column_stack([cols[n] for n in NAMES])
+    return np.column_stack([cols[n] for n in names])
 
 
-def _check_effects(effects, path) -> None:
-    extra = [e for e in effects if e not in BASE_EFFECTS]
+def _check_effects(effects, path, spec: ModelSpec) -> None:
+    if spec.export is None:
+        raise HbmError(f"{path}: the base model {spec.name!r} declares no export map (how an FE card reads its "
+                       "parameters); nothing to export")
+    extra = [e for e in effects if e not in spec.effects]
     if extra:
-        raise HbmError(f"{path}: the model has effects {extra} beyond {list(BASE_EFFECTS)}; an FE card "
-                       "holds only the base Spyrou model")
+        raise HbmError(f"{path}: the model has effects {extra} beyond {list(spec.effects)}; an FE card "
+                       f"holds only the base {spec.name} model")
+
+
+def _strain(result, path) -> np.ndarray:
+    """The tested strains of a specimen result (its observed specimen)."""
+    if result.data is None:
+        raise HbmError(f"{path}: the result holds no observed data (needed for the tested strain range)")
+    return result.data.strain
 
 
 def _grid(strain_range) -> np.ndarray:
@@ -195,10 +238,10 @@ def _nearest(curves: np.ndarray, target: np.ndarray, mask: np.ndarray) -> tuple[
     return i, float(gap[i] / max(np.max(np.abs(target[mask])), 1e-300))
 
 
-def median_draw(draws: np.ndarray, form: str, k_iso: float, strain_range) -> int:
+def median_draw(draws: np.ndarray, form: str, k_iso: float, strain_range, spec: ModelSpec | None = None) -> int:
     """Index of the draw whose curve is nearest (max abs.) the pointwise median curve on the tested range."""
     strain = np.linspace(strain_range[0], strain_range[1], GRID)
-    curves = spyrou_model(iso_factor=k_iso, form=form).stress(strain, draws)
+    curves = _base_model(spec or base_spec(), k_iso, form).stress(strain, draws)
     return _nearest(curves, np.median(curves, axis=0), np.ones(strain.size, bool))[0]
 
 
@@ -225,20 +268,21 @@ def load_source(path: str | Path, summary: str) -> ExportSource:
         h = read_hierarchical(path)
         if h.new_specimen is None:
             raise HbmError(f"{path}: no new-specimen predictive stored")
-        cols = h.pooled_names or h.param_names
-        missing = [n for n in NAMES if n not in cols]
-        if missing:
-            raise HbmError(f"{path}: new-specimen predictive lacks {missing}")
-        draws = np.column_stack([h.new_specimen[:, cols.index(n)] for n in NAMES])
         sibs = sorted((path.parent / "specimens").glob("*.nc"))
         if not sibs:
             raise HbmError(f"{path}: no specimens/*.nc beside it to read the model form and strain range from")
-        lo, hi, model_name = 0.0, 0.0, None
+        lo, hi, model_name, spec = 0.0, 0.0, None, None
         for s in sibs:
             r = read_specimen_result(s)
-            _check_effects(r.effects, s)
-            lo, hi = min(lo, float(np.min(r.strain))), max(hi, float(np.max(r.strain)))
+            spec = spec or spec_of(r)
+            _check_effects(r.effects, s, spec)
+            lo, hi = min(lo, float(np.min(_strain(r, s)))), max(hi, float(np.max(_strain(r, s))))
             model_name = model_name or r.model
+        cols = h.pooled_names or h.param_names
+        missing = [n for n in base_names(spec) if n not in cols]
+        if missing:
+            raise HbmError(f"{path}: new-specimen predictive lacks {missing}")
+        draws = np.column_stack([h.new_specimen[:, cols.index(n)] for n in base_names(spec)])
         form, k_iso = parse_model_name(model_name)
         specimen = "population"
         notes.append(f"tested range: union of the {len(sibs)} specimens' strain ranges")
@@ -246,20 +290,21 @@ def load_source(path: str | Path, summary: str) -> ExportSource:
         if kind == "population":
             raise HbmError(f"{path} is a specimen result: --summary population needs hierarchical.nc")
         r = read_specimen_result(path)
-        _check_effects(r.effects, path)
+        spec = spec_of(r)
+        _check_effects(r.effects, path, spec)
         form, k_iso = parse_model_name(r.model)
-        draws = _base_draws(r)
-        lo, hi = min(0.0, float(np.min(r.strain))), float(np.max(r.strain))
+        draws = _base_draws(r, spec)
+        lo, hi = min(0.0, float(np.min(_strain(r, path)))), float(np.max(_strain(r, path)))
         specimen = r.specimen_id
     if hi <= 0:
         raise HbmError(f"{path}: no tensile strain in the data; nothing to export along the fibres")
     strain = _grid((lo, hi))
-    model = spyrou_model(iso_factor=k_iso, form=form)
+    model = _base_model(spec, k_iso, form)
     curves = model.stress(strain, draws)  # (n, m): vectorised over the population
     mask = (strain >= lo - 1e-12) & (strain <= hi + 1e-12)
     src = ExportSource(path=path, specimen=specimen, form=form, k_iso=k_iso, strain_range=(lo, hi), draws=draws,
                        summary=summary, theta=draws[0], curve_strain=strain, curve_stress=curves[0], notes=notes,
-                       n_draws=draws.shape[0])
+                       n_draws=draws.shape[0], spec=spec)
     if kind in ("median", "population", "draws"):
         i, _ = _nearest(curves, np.median(curves, axis=0), mask)
         src.theta, src.curve_stress = draws[i], curves[i]

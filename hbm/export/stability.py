@@ -1,7 +1,8 @@
 """Drucker stability of the energy form in uniaxial, equibiaxial and planar modes.
 
-The 3-D energy of hbm's energy form (incompressible, fibres along x), evaluated by
-:class:`hbm.model.energy3d.Energy3D` with the collagen's cone reading (DESIGN.md §8)::
+The 3-D energy of the base's energy form (incompressible, fibres along x), read from its export map
+(:meth:`hbm.model.spec.ExportMap.energy`; the Spyrou base evaluates it by
+:class:`hbm.model.energy3d.Energy3D` with the collagen's cone reading, DESIGN.md §8)::
 
     W = k_iso·G/2·(I1 − 3) + c·P1/2·⟨λf − 1 − EOPT⟩₊² + (1 − c)·⟨W_c(λH(φ))⟩_φ
 
@@ -26,8 +27,8 @@ from dataclasses import dataclass, asdict
 import numpy as np
 
 from ..errors import HbmError
-from ..model.energy3d import Energy3D, Sym
-from .source import NAMES, median_draw, parse_model_name
+from ..model.spec import ModelSpec, base_spec, spec_of
+from .source import base_names, median_draw, parse_model_name
 
 MODES = ("uniaxial", "equibiaxial", "planar")
 #: strain grid points per mode
@@ -47,12 +48,12 @@ def _stretches(mode: str, lam: np.ndarray):
     raise ValueError(mode)
 
 
-def energy(theta: np.ndarray, k_iso: float, l1, l2, l3) -> np.ndarray:
-    """W (MPa) of parameter sets ``theta`` (n, 8) at principal stretches (m,) -> (n, m)."""
+def energy(theta: np.ndarray, k_iso: float, l1, l2, l3, spec: ModelSpec | None = None) -> np.ndarray:
+    """W (MPa) of parameter sets ``theta`` (n, base parameters) at principal stretches (m,) -> (n, m): the
+    base's energy through its export map (:meth:`hbm.model.spec.ExportMap.energy`)."""
+    spec = spec or base_spec()
     t = np.atleast_2d(np.asarray(theta, float))
-    p = {name: t[:, i:i + 1] for i, name in enumerate(NAMES)}
-    D = Sym(*(np.asarray(v, float) ** 2 - 1.0 for v in (l1, l2, l3)))
-    return Energy3D(k_iso, "energy", "cone").energy(p, D)
+    return spec.export.energy({n: t[:, i:i + 1] for i, n in enumerate(base_names(spec))}, k_iso, l1, l2, l3)
 
 
 @dataclass
@@ -78,7 +79,7 @@ class Stability:
                 + (f" ({'; '.join(where)})" if where else "") + f" of {self.n_draws}")
 
 
-def unstable(theta, k_iso: float, strain_range) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def unstable(theta, k_iso: float, strain_range, spec: ModelSpec | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """mode -> (bool (n,) unstable somewhere, strain grid interior points (m,), bool (n, m) where)."""
     lo, hi = strain_range
     eps = np.linspace(1.5 * lo, 1.5 * hi, N_GRID)
@@ -86,7 +87,7 @@ def unstable(theta, k_iso: float, strain_range) -> dict[str, tuple[np.ndarray, n
     h = 1e-4
     out = {}
     for mode in MODES:
-        ws = [energy(theta, k_iso, *_stretches(mode, lam + d)) for d in (-h, 0.0, h)]
+        ws = [energy(theta, k_iso, *_stretches(mode, lam + d), spec=spec) for d in (-h, 0.0, h)]
         d2 = (ws[0] - 2 * ws[1] + ws[2]) / h ** 2
         scale = np.max(np.abs(d2), axis=1, keepdims=True) + 1e-300
         bad = d2 <= -TOL * scale - 1e-12
@@ -95,10 +96,10 @@ def unstable(theta, k_iso: float, strain_range) -> dict[str, tuple[np.ndarray, n
     return out
 
 
-def check(draws, theta, k_iso: float, strain_range) -> Stability:
-    """Drucker check of ``theta`` (the summary) and of every row of ``draws``."""
-    res = unstable(draws, k_iso, strain_range)
-    med = unstable(theta, k_iso, strain_range)
+def check(draws, theta, k_iso: float, strain_range, spec: ModelSpec | None = None) -> Stability:
+    """Drucker check of ``theta`` (the summary) and of every row of ``draws`` (columns: the base's parameters)."""
+    res = unstable(draws, k_iso, strain_range, spec)
+    med = unstable(theta, k_iso, strain_range, spec)
     frac, first = {}, {}
     for mode, (any_bad, eps, bad) in res.items():
         frac[mode] = float(any_bad.mean())
@@ -117,9 +118,12 @@ def fit_line(result, max_draws: int = 500) -> str:
         return "stability: not checked (not the base Spyrou model)"
     if form != "energy":
         return "stability: not checked (the thesis form is not derived from a strain energy; fit --form energy)"
+    spec = spec_of(result)
+    if spec.export is None:
+        return f"stability: not checked (the base model {spec.name!r} declares no export map)"
     cols = result.as_dict()
-    draws = np.column_stack([cols[n] for n in NAMES])
+    draws = np.column_stack([cols[n] for n in base_names(spec)])
     take = np.linspace(0, draws.shape[0] - 1, min(max_draws, draws.shape[0])).round().astype(int)
-    lo, hi = min(0.0, float(np.min(result.strain))), float(np.max(result.strain))
-    theta = draws[median_draw(draws, form, k_iso, (lo, hi))]
-    return check(draws[take], theta, k_iso, (lo, hi)).line()
+    lo, hi = min(0.0, float(np.min(result.data.strain))), float(np.max(result.data.strain))
+    theta = draws[median_draw(draws, form, k_iso, (lo, hi), spec)]
+    return check(draws[take], theta, k_iso, (lo, hi), spec).line()

@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 
 from .registry import Written
-from .source import NAMES, UNITS
 
 DESCRIPTION = "CSV of parameter draws or the summary's parameter set, with units"
 SUFFIX = ".csv"
@@ -23,6 +22,6 @@ def rows(src) -> np.ndarray:
 def write(src) -> Written:
     lines = [f"# {k}: {v}" for k, v in src.provenance().items()]
     lines += [f"# {n}" for n in src.notes]
-    lines.append(",".join(f"{n} [{UNITS[n]}]" for n in NAMES))
+    lines.append(",".join(f"{n} [{src.units[n]}]" for n in src.names))
     lines += [",".join(f"{x:.10g}" for x in r) for r in rows(src)]
     return Written(text="\n".join(lines) + "\n", card={"rows": int(rows(src).shape[0])})

@@ -6,9 +6,9 @@ generation is one vectorised likelihood call over the whole population.  Restart
 (population size doubled at each restart, fresh random start) and every restart's optimum is
 kept: on the non-identifiable muscle model the spread of these optima is informative.
 
-``sweep=("VOLF", 0.01)`` reproduces the thesis §3.1 bound sweep: the parameter's box is cut into
+``sweep=(name, 0.01)`` reproduces the thesis §3.1 bound sweep: the parameter's box is cut into
 consecutive windows of width ``d`` and one optimisation is run per window (warm-started from the
-previous window's optimum), which traces the VOLF–T1 manifold.
+previous window's optimum), which traces the model's manifold (the Spyrou base: VOLF–T1, name VOLF).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import HbmError
 from ..likelihood.core import Likelihood
-from ..runtime.validation import check_int
+from ..settings.rules import check_int
 
 OBJECTIVES = ("map", "wls")
 # cma needs finite values; anything out of the feasible set is ranked behind every real value
@@ -65,7 +65,7 @@ class OptimizeResult:
         self.best = min(self.optima, key=lambda o: o["objective"])
 
     def manifold(self, *names: str) -> dict[str, np.ndarray]:
-        """Arrays of parameter values over the optima (e.g. ``manifold("VOLF", "T1")``)."""
+        """Arrays of parameter values over the optima (e.g. of a manifold's two parameters)."""
         keys = names or tuple(self.optima[0]["params"])
         return {k: np.array([o["params"][k] for o in self.optima]) for k in keys}
 

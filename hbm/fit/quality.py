@@ -10,9 +10,11 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..data.specimen import as_specimen
 from ..errors import HbmError
 from ..io import SpecimenResult
-from ..model import COMBINATIONS, identifiable_combinations
+from ..settings.fit import FitRecord
+from ..model.spec import spec_of
 from ..likelihood.noise import get_noise
 from ..samplers.hierarchical import rhat_ess
 
@@ -33,7 +35,7 @@ def summarize(result: SpecimenResult, *, prob: float = 0.9) -> dict[str, dict[st
     -------
     dict
         ``{name: {"mean", "sd", "lower", "upper", "median"}}``; parameters first, then the
-        identifiable combinations (when the model has VOLF, P1, T1, GF, GM).
+        identifiable combinations of the model's spec (when none of their parameters is fixed).
     """
     cols = result.as_dict()
     q = [(1 - prob) / 2, 0.5, (1 + prob) / 2]
@@ -46,14 +48,15 @@ def summarize(result: SpecimenResult, *, prob: float = 0.9) -> dict[str, dict[st
 
     for nm in result.names:
         out[nm] = stats(cols[nm])
-    needed = ("VOLF", "P1", "T1", "GF", "GM")
-    if all(k in cols for k in needed):
-        names = list(cols)
-        combos = identifiable_combinations(names, np.column_stack([cols[k] for k in names]))
-        for k in COMBINATIONS:
-            if k in combos:
-                out[k] = stats(np.asarray(combos[k], float))
+    for k, v in combination_samples(result).items():
+        out[k] = stats(v)
     return out
+
+
+def combination_samples(result: SpecimenResult) -> dict[str, np.ndarray]:
+    """The identifiable combinations of every posterior sample, by the result's spec (:mod:`hbm.model.spec`);
+    empty when one of their parameters was fixed or is absent."""
+    return spec_of(result).combination_values(result.as_dict())
 
 
 def summary_table(result: SpecimenResult, *, prob: float = 0.9) -> str:
@@ -64,8 +67,9 @@ def summary_table(result: SpecimenResult, *, prob: float = 0.9) -> str:
     lines = [f"specimen {result.specimen_id}: {result.n_samples} posterior samples, "
              f"log-evidence {result.log_evidence:.3f} ± {result.log_evidence_se:.3f}",
              f"{'quantity':<14}{'mean':>12}{'sd':>12}{f'{pc}% lower':>12}{f'{pc}% upper':>12}"]
+    first = next(iter(spec_of(result).combination_names), None)
     for k, v in s.items():
-        if k == COMBINATIONS[0]:
+        if k == first:
             lines.append("-- identifiable combinations")
         lines.append(f"{k:<14}{v['mean']:>12.5g}{v['sd']:>12.4g}{v['lower']:>12.5g}{v['upper']:>12.5g}")
     if result.fixed:
@@ -211,7 +215,7 @@ def _noise_names(r: SpecimenResult, likelihood=None) -> list[str]:
     if likelihood is not None:
         return list(likelihood.noise_names)
     try:
-        cand = get_noise(str(r.config.get("noise", "iid"))).names
+        cand = get_noise(FitRecord.from_attrs(r.config).settings.noise).names
     except HbmError:
         cand = ()
     return [n for n in r.names if n in cand]
@@ -251,8 +255,8 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
         A :class:`FitResult` brings its likelihood (the MAP curve is then evaluated exactly);
         from a stored :class:`SpecimenResult` the best posterior sample's stored prediction is
         used when the best optimum cannot be evaluated.
-    data : xarray.Dataset, optional
-        Observed curve (variable ``stress``); default the data stored in the result.
+    data : Specimen or xarray.Dataset, optional
+        The observed specimen; default the one stored in the result.
     likelihood : Likelihood, optional
         Overrides the FitResult's.
     prob : float
@@ -273,10 +277,10 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
     r = _spec(result)
     if likelihood is None and not isinstance(result, SpecimenResult):  # a FitResult brings its likelihood
         likelihood = result.likelihood
-    raw = data["stress"].values if data is not None else r.stress
-    obs = np.asarray(raw if raw is not None else [], float).ravel()
-    if obs.size == 0:
+    spec = as_specimen(data) if data is not None else r.data
+    if spec is None or not spec.has_stress:
         raise HbmError(f"fit_quality: specimen {r.specimen_id}: no observed stress (pass data=)")
+    obs = spec.stress
     _, ll_map, source, _ = _map_row(r)
     pred = map_prediction(r, likelihood)
     if pred is not None and pred.shape != obs.shape:
@@ -295,7 +299,7 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
     noise = {n: {"map": mp[n], "median": s[n]["median"], "lower": s[n]["lower"], "upper": s[n]["upper"]}
              for n in _noise_names(r, likelihood)}
     combos = {k: {"median": v["median"], "lower": v["lower"], "upper": v["upper"]}
-              for k, v in s.items() if k in COMBINATIONS}
+              for k, v in s.items() if k in spec_of(r).combination_names}
     return {"specimen_id": r.specimen_id, "n_points": int(obs.size), "rmse": rmse,
             "rmse_rel": rmse / peak if peak > 0 else float("nan"), "coverage90": cov90,
             "coverage": cov, "coverage_prob": float(prob),
@@ -303,23 +307,23 @@ def fit_quality(result, data=None, *, likelihood=None, prob: float = 0.9) -> dic
             "combinations": combos, "log_evidence": float(r.log_evidence),
             "log_evidence_se": float(r.log_evidence_se),
             "at_bounds": r.at_bounds if r.at_bounds is not None else at_bounds(r), "prior": _prior_of(r),
-            "prior_dominated": _uninformed_combinations(data["strain"].values if data is not None else r.strain)}
+            "prior_dominated": _uninformed_combinations(spec.strain, spec_of(r))}
 
 
-def _uninformed_combinations(strain) -> dict[str, str]:
-    """Combinations the data cannot inform, with why: the fibre term c·P1·⟨ε − EOPT⟩₊ is
-    identically zero for ε ≤ 0, so on compression data VOLF·P1 is the prior."""
-    eps = np.asarray(strain if strain is not None else [], float)
+def _uninformed_combinations(strain, model_spec=None) -> dict[str, str]:
+    """Combinations the data cannot inform, with why: a term that vanishes for ε ≤ 0 (the Spyrou fibres,
+    c·P1·⟨ε − EOPT⟩₊) leaves its combination at the prior on compression data."""
+    eps = np.asarray(strain, float)
     if eps.size and float(np.max(eps)) <= 0.0:
-        return {"VOLF*P1": "the fibre term is identically zero for ε ≤ 0 (compression data)"}
+        return {c.name: c.compression_note for c in spec_of(model_spec).combinations if c.compression_note}
     return {}
 
 
 def tier_line(r: SpecimenResult) -> str:
     """One line naming the likelihood tier that produced a result (and the quadrature's error)."""
-    c = r.config
-    line = "likelihood: " + str(c.get("likelihood_note") or c.get("likelihood_tier", "full"))
-    col = c.get("collapsed") or {}
+    stored = FitRecord.from_attrs(r.config)
+    line = "likelihood: " + str(stored.tier_note or stored.tier_used)
+    col = stored.collapsed or {}
     if "quadrature_error" in col:
         line += f"; quadrature error of log L ≤ {col['quadrature_error']:.1e} nats"
     if col.get("route"):

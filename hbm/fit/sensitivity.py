@@ -39,7 +39,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import HbmError
-from ..likelihood.core import _dataset_arrays
+from ..data.specimen import as_specimen
+from ..likelihood.core import observed_stress
 from ..model.core import Loading, Model
 
 QOIS = ("integrated_stress", "log_integrated_stress", "misfit")
@@ -160,8 +161,8 @@ def sobol(model: Model, strain=None, *, bounds: Mapping[str, tuple[float, float]
         (N·(2D+2) with ``calc_second_order``).
     qoi : {"integrated_stress", "log_integrated_stress", "misfit"}
         Scalar quantity of interest (module docstring); "misfit" needs ``data``.
-    data : xarray.Dataset, optional
-        Specimen (``strain``, ``stress``, optional ``time``/``test``).
+    data : Specimen or xarray.Dataset, optional
+        The specimen (a Dataset is converted once).
     seed : int
         Seeds the scrambling of the Sobol' sequence and the bootstrap.
     per_point : bool
@@ -186,9 +187,10 @@ def sobol(model: Model, strain=None, *, bounds: Mapping[str, tuple[float, float]
         raise HbmError(f"n must be a power of 2 (Sobol' sequence), got {n}")
     observed = None
     if data is not None:
-        e, observed, time, test, _ = _dataset_arrays(data)
+        spec = as_specimen(data)
+        observed = observed_stress(spec)
         if strain is None:
-            strain = Loading(e, time, test)
+            strain = spec.loading
     if strain is None:
         raise HbmError("sobol needs strain points or data")
     loading = strain if isinstance(strain, Loading) else Loading(np.asarray(strain, dtype=float))

@@ -27,18 +27,20 @@ import numpy as np
 
 from .sensitivity import sobol as _sobol
 from .._version import __version__
-from ..data import input_line, input_summary
-from ..errors import HbmError, HbmWarning
+from ..data import as_specimen, input_line, input_summary
+from ..errors import HbmWarning
 from ..runtime import seeds
 from ..io import SpecimenResult, json_default, write_specimen_result
 from ..likelihood.collapsed import choose_tier, fit_collapsed
 from ..likelihood.core import make_likelihood
-from ..model import COMBINATIONS, spyrou_model
-from ..model.spyrou import PHYSICAL_RANGE
-from ..likelihood.prior import Prior, PriorError, load_prior
+from ..model import COMBINATIONS, spyrou_model  # (COMBINATIONS: the default base's, re-exported)
+from ..model.spec import DEFAULT_BASE, spec_of
+from ..likelihood.prior import PriorError, load_prior
 from .optimization import optimize as _cma
 from ..samplers.tmcmc import tmcmc as _tmcmc
-from ..runtime.validation import check_physical_bounds, check_seed
+from ..settings.fit import FitRecord, FitSettings, SWEEP
+from ..settings.rules import check_physical_bounds
+from ..samplers.moves import needs_gradient
 from .quality import (
     EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, chain_rhat, chains_line, edges, fit_quality,
     format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
@@ -49,22 +51,11 @@ __all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise
            "RIDGE_NOTE", "chain_rhat", "chains_line"]
 
 def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
-    """``"VOLF:0.05"`` -> ("VOLF", 0.05)."""
+    """A sweep ``"NAME:WIDTH"`` or (name, width) as (name, width); None/"" for no sweep (the rule
+    of :attr:`hbm.settings.FitSettings.sweep`)."""
     if sweep is None or sweep == "" or sweep is False:
         return None
-    if isinstance(sweep, (tuple, list)):
-        name, width = sweep
-    else:
-        name, _, width = str(sweep).partition(":")
-        if not width:
-            raise HbmError(f"sweep: expected PARAM:WIDTH (e.g. VOLF:0.05), got {sweep!r}")
-    try:
-        width = float(width)
-    except ValueError:
-        raise HbmError(f"sweep: width must be a number, got {width!r}") from None
-    if not width > 0:
-        raise HbmError(f"sweep: width must be > 0, got {width}")
-    return str(name), width
+    return SWEEP.split(SWEEP.check(sweep, "sweep"))
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -222,13 +213,14 @@ class FitResult:
         then one line on why raw-parameter means are not a parameter set, then the raw table."""
         r = self.result
         head = [f"specimen {r.specimen_id}: {r.n_samples} posterior samples"]
-        if r.config.get("input"):
-            head.append(input_line(r.config["input"]))
+        stored = FitRecord.from_attrs(r.config)
+        if stored.input:
+            head.append(input_line(stored.input))
         raw = summarize(r, prob=prob)
         pc = int(round(prob * 100))
         rows = [RIDGE_NOTE, f"{'parameter':<14}{'mean':>12}{'sd':>12}{f'{pc}% lower':>12}{f'{pc}% upper':>12}"]
         rows += [f"{k:<14}{v['mean']:>12.5g}{v['sd']:>12.4g}{v['lower']:>12.5g}{v['upper']:>12.5g}"
-                 for k, v in raw.items() if k not in COMBINATIONS]
+                 for k, v in raw.items() if k not in spec_of(r).combination_names]
         if r.fixed:
             rows.append("fixed: " + ", ".join(f"{k}={v:g}" for k, v in r.fixed.items()))
         rows.append(_prior_line(r))
@@ -244,11 +236,11 @@ class FitResult:
         """
         q = self.quality(prob=prob)
         r = self.result
+        stored = FitRecord.from_attrs(r.config)
         q.update({"names": list(r.names), "n_samples": r.n_samples, "fixed": dict(r.fixed),
-                  "summary": {k: v for k, v in summarize(r, prob=prob).items() if k not in COMBINATIONS},
-                  "input": r.config.get("input", ""),
-                  "likelihood_tier": r.config.get("likelihood_tier", "full"),
-                  "likelihood_note": r.config.get("likelihood_note", ""),
+                  "summary": {k: v for k, v in summarize(r, prob=prob).items()
+                              if k not in spec_of(r).combination_names},
+                  "input": stored.input, "likelihood_tier": stored.tier_used, "likelihood_note": stored.tier_note,
                   "chains": {"n_chains": r.chains.n_chains, "method": r.chains.method, "note": r.chains.note,
                              "max_rhat": max((chain_rhat(r, r.samples[:, j]) for j in range(len(r.names))),
                                              default=float("nan"))},
@@ -294,47 +286,58 @@ def check_data_size(sid: str, lik, samples: int, max_evaluations: int | None = N
                       "--max-evaluations caps the cost", HbmWarning, stacklevel=2)
 
 
-def _specimen_id(data) -> str:
-    return str(getattr(data, "attrs", {}).get("id", "specimen"))
+def _base_name(model) -> str | None:
+    """The registered base of ``model`` when it is not the default base (stored in the result file)."""
+    spec = getattr(model, "spec", None)
+    return spec.name if spec is not None and spec.name != DEFAULT_BASE else None
 
 
-def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", noise: str = "iid",
-                 fix: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
-                 seed: int | np.random.SeedSequence = 0, restarts: int = 4, sweep: str | tuple | None = None,
-                 sobol_n: int | None = None, checkpoint_dir: str | os.PathLike | None = None,
-                 out: str | os.PathLike | None = None, progress: bool = True,
-                 tmcmc_options: Mapping[str, Any] | None = None,
-                 optimize_options: Mapping[str, Any] | None = None,
-                 sigma_bounds: tuple[float, float] | None = None,
-                 config_extra: Mapping[str, Any] | None = None,
-                 on_phase: Callable[[str], None] | None = None,
-                 prior: Prior | str | os.PathLike | Mapping | None = None,
-                 max_evaluations: int | None = None, likelihood: str = "auto") -> FitResult:
+def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
+                 checkpoint_dir: str | os.PathLike | None = None, out: str | os.PathLike | None = None,
+                 progress: bool = True, config_extra: Mapping[str, Any] | None = None,
+                 on_phase: Callable[[str], None] | None = None, **options: Any) -> FitResult:
     """CMA-ES optima, TMCMC posterior, posterior predictive and (optionally) Sobol for one specimen.
 
     Parameters
     ----------
-    data : xarray.Dataset
-        A specimen (:func:`hbm.data.load_specimen`); ``attrs["id"]`` names it.
+    data : Specimen or xarray.Dataset
+        A specimen (:func:`hbm.data.load_specimen`; a Dataset is converted once); its ``id`` names it.
     model : Model, optional
         Default :func:`hbm.spyrou_model`.
-    samples : int
-        TMCMC population size N (= posterior draws stored).
-    kernel : {"rw", "manifold"}
-        TMCMC move kernel; "manifold" uses the likelihood's gradient and Fisher information.
-    noise : {"iid", "weighted", "proportional", "ar1"}
-        Noise model (:func:`hbm.likelihood.make_likelihood`).
-    fix, bounds : dict, optional
-        Parameters held fixed / narrowed prior boxes (inside the prior's box; to widen the
-        thesis box pass ``prior=resolve_prior(model, file, bounds)``).
-    seed : int or SeedSequence
-        Root seed; the four phases get spawned children (module docstring).
-    restarts : int
-        CMA-ES restarts (0 skips the optimisation).
-    sweep : "PARAM:WIDTH" or (name, width), optional
-        Thesis §3.1 bound sweep tracing a manifold (e.g. "VOLF:0.05").
-    sobol_n : int or None
-        Sobol base sample size (power of 2); None or 0 skips Sobol.
+    settings : FitSettings, optional
+        The fit's settings (:class:`hbm.settings.FitSettings`: ``samples``, ``move``, ``noise``,
+        ``tier``, ``fix``, ``bounds``, ``seed``, ``restarts``, ``sweep``, ``sobol_n``, ``maxfevals``,
+        ``optimize_options``, ``sigma_bounds``, ``tmcmc_options``, ``max_evaluations``, ``prior``);
+        default the record's defaults.
+    **options
+        Settings as keywords instead (or over ``settings``), e.g. ``samples=4000, move="manifold"``;
+        the older names ``kernel=`` (the move) and ``likelihood=`` (the tier) still work and warn.
+        Highlights: ``move`` -- a TMCMC move of :data:`hbm.samplers.moves.MOVES` ("manifold" uses
+        the likelihood's gradient and Fisher information); ``noise`` -- the noise model
+        (:func:`hbm.likelihood.make_likelihood`); ``fix``/``bounds`` -- parameters held fixed /
+        narrowed prior boxes (inside the prior's box; to widen the thesis box pass
+        ``prior=resolve_prior(model, file, bounds)``); ``seed`` -- the root seed (int or
+        SeedSequence), the four phases get spawned children (module docstring); ``sweep`` --
+        ``"PARAM:WIDTH"`` or (name, width), the thesis §3.1 bound sweep tracing a manifold;
+        ``sobol_n`` -- Sobol base sample size (None or 0 skips Sobol); ``maxfevals`` /
+        ``optimize_options`` -- CMA-ES budget (default 5000 evaluations per run: the optima only
+        seed figures and the manifold) and further options of :func:`hbm.fit.optimization.optimize`;
+        ``sigma_bounds`` -- box of the first noise parameter (the workflow uses one box for all
+        specimens so the hierarchical layer sees a common stage-1 prior); ``prior`` -- user prior
+        (:mod:`hbm.likelihood.prior`; default the thesis box, uniform: bitwise the outputs of a fit
+        without it; loguniform parameters are sampled in log coordinates, the stored posterior,
+        optima, predictive and Sobol box are in natural units); ``max_evaluations`` -- cap on TMCMC
+        log-likelihood evaluations; ``tier`` -- the likelihood tier
+        (:func:`hbm.likelihood.collapsed.choose_tier`): "auto" (default) samples only the nonlinear
+        and noise parameters on the likelihood with the linear amplitudes integrated out exactly
+        where the model's stress is linear in them and the noise keeps their integral Gaussian
+        (:func:`hbm.likelihood.collapsed.fit_collapsed`: a 500-particle TMCMC run and an
+        importance-sampling finish, or N = ``samples`` with at most 10 MH steps per stage when the
+        finish is refused or ``tmcmc_options`` are given), then draws the amplitudes given each
+        posterior sample -- the stored posterior holds every free parameter as with the full
+        likelihood; "full": the sampler over all parameters; the tier used and why are stored
+        (``FitRecord.tier_used``/``tier_note``), evaluation counts count basis evaluations as model
+        evaluations.
     checkpoint_dir : path, optional
         TMCMC checkpoint ``<dir>/<id>.npz``: an interrupted fit resumes from its last stage.
         Removed once the result file is written.  It is resumed whatever made it: pass a folder
@@ -344,59 +347,35 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
         Write the result netCDF here (atomically; ``complete`` flag last).
     progress : bool
         tqdm bar per TMCMC stage.
-    tmcmc_options : dict, optional
-        Extra keyword arguments for :func:`hbm.samplers.tmcmc` (n_steps, max_stages, ...).
-    optimize_options : dict, optional
-        Extra keyword arguments for :func:`hbm.fit.optimization.optimize`; default
-        ``{"maxfevals": 5000}`` per CMA-ES run (the optima only seed figures and the manifold;
-        an unlimited budget costs minutes per specimen for no visible gain).
-    sigma_bounds : (lo, hi), optional
-        Box of the first noise parameter (the workflow uses one box for all specimens so the
-        hierarchical layer sees a common stage-1 prior).
     config_extra : dict, optional
         Extra JSON-able entries for the stored ``config`` attribute (e.g. a settings hash).
     on_phase : callable, optional
         Called with the phase name when a phase starts (progress reporting).
-    prior : Prior, TOML path or mapping, optional
-        User prior (:mod:`hbm.likelihood.prior`); default the thesis box, uniform (bitwise the outputs of a
-        fit without this argument).  Loguniform parameters are sampled in log coordinates; the
-        stored posterior, optima, predictive and Sobol box are in natural units.
-    max_evaluations : int, optional
-        Cap on TMCMC log-likelihood evaluations (:func:`hbm.samplers.tmcmc`); None = no cap.
-    likelihood : {"auto", "collapsed", "full"}
-        Likelihood tier (:func:`hbm.likelihood.collapsed.choose_tier`).  "auto" (default): where the model's
-        stress is linear in its amplitudes and the noise keeps their integral Gaussian, TMCMC
-        samples only the nonlinear and noise parameters on the likelihood with the amplitudes
-        integrated out exactly (:func:`hbm.likelihood.collapsed.fit_collapsed`: a 500-particle TMCMC run
-        and an importance-sampling finish, or N = ``samples`` with at most 10 MH steps per
-        stage when the finish is refused or ``tmcmc_options`` are given), and the amplitudes
-        and original parameters are drawn given each posterior sample; the
-        stored posterior holds every free parameter as with the full likelihood.  "full":
-        today's sampler over all parameters.  The tier and why are stored in
-        ``config["likelihood_tier"]`` and ``config["likelihood_note"]``; evaluation counts
-        count basis evaluations as model evaluations.
 
     Returns
     -------
     FitResult
         ``result.prior`` and ``result.at_bounds`` (box-edge warnings, :func:`at_bounds`) are
         stored in the file too.
+
+    Raises
+    ------
+    SettingError
+        A setting its rule refuses (:mod:`hbm.settings.rules`), before any computation.
     """
     t_start = time.perf_counter()
     model = spyrou_model() if model is None else model
-    if kernel not in ("rw", "manifold"):
-        raise HbmError(f"kernel must be 'rw' or 'manifold', got {kernel!r}")
-    if int(samples) < 4:
-        raise HbmError(f"samples must be >= 4, got {samples}")
-    seed = check_seed(seed)  # the rules of the command line's --seed and --bounds
-    check_physical_bounds(bounds, PHYSICAL_RANGE)
-    sid = _specimen_id(data)
-    prior = load_prior(prior)
-    lik = make_likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)
-    check_data_size(sid, lik, samples, max_evaluations)
-    collapsed, tier_note = choose_tier(lik, likelihood, kernel=kernel)  # before any long computation
-    s_opt, s_tm, s_pred, s_sob = seeds.child_ints(seed, len(seeds.PHASES))  # the phase streams of hbm.runtime.seeds
-    sweep_t = parse_sweep(sweep)
+    s = FitSettings(**options) if settings is None else (settings.replace(**options) if options else settings)
+    check_physical_bounds(s.bounds, spec_of(model).physical_range)
+    data = as_specimen(data)
+    sid = data.id
+    prior = load_prior(s.prior)
+    lik = make_likelihood(model, data, noise=s.noise, fix=s.fix, bounds=s.bounds, sigma_bounds=s.sigma_bounds,
+                          prior=prior)
+    check_data_size(sid, lik, s.samples, s.max_evaluations)
+    collapsed, tier_note = choose_tier(lik, s.tier, move=s.move)  # before any long computation
+    s_opt, s_tm, s_pred, s_sob = seeds.child_ints(s.seed, len(seeds.PHASES))  # the phase streams of hbm.runtime.seeds
+    sweep_t = s.sweep_pair
     if sweep_t is not None and sweep_t[0] in lik.names and lik.forms[lik.index(sweep_t[0])] == "loguniform":
         # the sweep's windows are cut in the optimiser's (log) coordinates; a width in natural
         # units would be misread there
@@ -405,11 +384,10 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     phase = on_phase or (lambda name: None)
 
     optima = None
-    if restarts and int(restarts) > 0:
+    if s.restarts > 0:
         phase("cmaes")
         t = time.perf_counter()
-        oopts = {"maxfevals": 5000, **dict(optimize_options or {})}
-        optima = run_optima(lik, restarts=int(restarts), seed=s_opt, sweep=sweep_t, **oopts)
+        optima = run_optima(lik, restarts=s.restarts, seed=s_opt, sweep=sweep_t, **s.cma_options())
         timings["cmaes"] = time.perf_counter() - t
 
     phase("tmcmc")
@@ -418,20 +396,20 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     if checkpoint_dir is not None:
         ckpt = Path(checkpoint_dir) / f"{sid}.npz"
         ckpt.parent.mkdir(parents=True, exist_ok=True)
-    opts = dict(tmcmc_options or {})
-    if max_evaluations is not None:
-        opts["max_evaluations"] = int(max_evaluations)
-    if kernel == "manifold":
+    opts = dict(s.tmcmc_options or {})
+    if s.max_evaluations is not None:
+        opts["max_evaluations"] = int(s.max_evaluations)
+    if needs_gradient(s.move):
         opts.setdefault("gradient_fim", lik.gradient_fim)
     collapsed_info = None
     if collapsed is not None:  # sample φ only; the amplitudes are integrated, then drawn given φ
-        cf = fit_collapsed(collapsed, int(samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
+        cf = fit_collapsed(collapsed, int(s.samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
         y, log_lik, n_evaluations = cf.samples, cf.log_likelihood, cf.n_evaluations
         # FitResult.tmcmc: the φ run's stages and evidence, with the completed full rows as samples
         tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik, chains=cf.chains)
         log_z, log_z_se, collapsed_info = cf.log_evidence, cf.log_evidence_se, cf.info
     else:
-        tr = _tmcmc(lik, lik.bounds, int(samples), seed=s_tm, kernel=kernel, checkpoint=ckpt,
+        tr = _tmcmc(lik, lik.bounds, int(s.samples), seed=s_tm, move=s.move, checkpoint=ckpt,
                     progress=progress, **opts)
         y, log_lik, n_evaluations = tr.samples, tr.log_likelihood, tr.n_evaluations
         log_z, log_z_se = tr.log_evidence, tr.log_evidence_se
@@ -447,48 +425,31 @@ def fit_specimen(data, *, model=None, samples: int = 2000, kernel: str = "rw", n
     timings["predictive"] = time.perf_counter() - t
 
     sob = None
-    if sobol_n:
+    if s.sobol_n:
         phase("sobol")
         t = time.perf_counter()
-        sbounds = bounds
+        sbounds = s.bounds
         if prior is not None:  # the Sobol input box is the prior's natural box
             sbounds = {n: tuple(map(float, lik.natural_bounds[j])) for j, n in enumerate(lik.model_names)}
-        sob = run_sobol(model, data, n=int(sobol_n), seed=s_sob, fix=fix, bounds=sbounds)
+        sob = run_sobol(model, data, n=int(s.sobol_n), seed=s_sob, fix=s.fix, bounds=sbounds)
         timings["sobol"] = time.perf_counter() - t
 
-    strain = np.asarray(data["strain"].values, float)
-    config = {"samples": int(samples), "kernel": kernel, "noise": noise, "fix": dict(fix or {}) or None,
-              "bounds": {k: list(map(float, v)) for k, v in (bounds or {}).items()} or None,
-              "restarts": int(restarts or 0), "sweep": list(sweep_t) if sweep_t else None,
-              "sobol_n": int(sobol_n or 0), "optimize_options": dict(optimize_options or {}) or None,
-              "sigma_bounds": list(map(float, sigma_bounds)) if sigma_bounds is not None else None,
-              "tmcmc_options": {k: v for k, v in opts.items() if k != "gradient_fim"} or None,
-              "seeds": {"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
-              "n_evaluations": int(n_evaluations), "n_stages": len(tr.stages),
-              "likelihood_tier": "full" if collapsed is None else "collapsed", "likelihood_note": tier_note,
-              "source_file": str(data.attrs.get("source_file", ""))}
-    converted = input_summary(data)
-    if converted:  # the numbers rest on these conversions: keep them with the result
-        config["input"] = converted
-    if prior is not None:
-        config["prior"] = prior.to_dict()
-    if collapsed_info is not None:
-        config["collapsed"] = collapsed_info
-    config.update(dict(config_extra or {}))
-    if isinstance(seed, np.random.SeedSequence):
-        root_seed = int(seed.entropy)
-        config["seed_spawn_key"] = list(map(int, seed.spawn_key))
-    else:
-        root_seed = int(seed)
+    seed = s.seed
+    stored = FitRecord(
+        settings=s.replace(prior=prior), seeds={"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
+        n_evaluations=int(n_evaluations), n_stages=len(tr.stages),
+        tier_used="full" if collapsed is None else "collapsed", tier_note=tier_note, source_file=data.source_file,
+        input=input_summary(data), collapsed=collapsed_info,
+        seed_spawn_key=tuple(map(int, seed.spawn_key)) if isinstance(seed, np.random.SeedSequence) else None,
+        extra=dict(config_extra or {}))
     res = SpecimenResult(
         specimen_id=sid, names=list(lik.names), samples=theta, log_likelihood=np.asarray(log_lik, float),
         log_evidence=float(log_z), log_evidence_se=float(log_z_se),
-        bounds=np.asarray(lik.natural_bounds, float), stages=list(tr.stages), strain=strain,
-        stress=np.asarray(data["stress"].values, float),
-        time=np.asarray(data["time"].values, float) if "time" in data else None,
-        test=np.asarray(data["test"].values) if "test" in data else None,
+        bounds=np.asarray(lik.natural_bounds, float), stages=list(tr.stages), data=data,
         pointwise_log_likelihood=pll, predictive=pred, predictive_model=pred_model, optima=optima, sobol=sob,
-        model=model.name, effects=list(model.effect_names), config=config, seed=root_seed,
+        model=model.name, effects=list(model.effect_names), config=stored.to_attrs(),
+        base_model=_base_name(model),
+        seed=int(seed.entropy) if isinstance(seed, np.random.SeedSequence) else int(seed),
         fixed=dict(lik.fixed), version=__version__,
         prior={n: lik.prior[n].to_dict() for n in lik.names},
         parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())},

@@ -37,7 +37,9 @@ approximation of the exact conditional of c), then P1 = e^{y1}/c, T1 = e^{y2}/(1
 (GF, GM) uniform on the segment c·GF + (1−c)·GM = G inside the box (the conditional of a
 uniform pair given a linear combination).  The pushed-forward φ equals the given φ to rounding.
 
-This is muscle code (it knows the Spyrou parameter names); the samplers never import it.
+The parameters come by role from the model's spec (:class:`hbm.model.spec.MixtureRoles`:
+fraction c, fibre and matrix amplitudes, the two shear moduli; ``roles=``, default the default
+base's), so this module names none of them; the samplers never import it.
 """
 
 from __future__ import annotations
@@ -47,25 +49,30 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import HbmError
-from ..model import COMBINATIONS
+from ..model.spec import MixtureRoles, base_spec
 from ..runtime.seeds import as_generator
 
 __all__ = ["COMBINATION_PARAMS", "FEATURES", "CombinationCoordinates", "combination_box", "combination_features",
            "fibre_point", "in_support", "support_constraints",
            "log_density", "onset_strain", "support_hull", "sample_conditional", "to_features"]
 
-#: parameters entering the combinations, in the column order used by this module
-COMBINATION_PARAMS = ("VOLF", "P1", "T1", "GF", "GM")
-#: names of the combinations (natural units; the features φ are their logs), as in
-#: :func:`hbm.model.spyrou.identifiable_combinations`
-FEATURES = COMBINATIONS
+#: the default base's roles (:attr:`hbm.model.spec.ModelSpec.mixture`) where a caller gives none
+DEFAULT_ROLES: MixtureRoles = base_spec().mixture
+#: parameters entering the combinations, in the column order used by this module (the default roles')
+COMBINATION_PARAMS = DEFAULT_ROLES.params
+#: names of the combinations (natural units; the features φ are their logs), as in the default base's spec
+FEATURES = base_spec().combination_names
+
+
+def _params(roles: MixtureRoles | None) -> tuple[str, ...]:
+    return (roles or DEFAULT_ROLES).params
 
 
 # --------------------------------------------------------------------------------------
 # box handling
 # --------------------------------------------------------------------------------------
-def combination_box(bounds, names: Sequence[str] | None = None) -> np.ndarray:
-    """The (5, 2) box of (VOLF, P1, T1, GF, GM) from ``bounds``.
+def combination_box(bounds, names: Sequence[str] | None = None, *, roles: MixtureRoles | None = None) -> np.ndarray:
+    """The (5, 2) box of the roles' parameters (fraction, fibre, matrix, the shear moduli) from ``bounds``.
 
     Parameters
     ----------
@@ -86,33 +93,35 @@ def combination_box(bounds, names: Sequence[str] | None = None) -> np.ndarray:
     else:
         arr = np.asarray(bounds, float)
         if names is None:
-            names = COMBINATION_PARAMS
+            names = _params(roles)
         names = [str(n) for n in names]
         if arr.ndim != 2 or arr.shape != (len(names), 2):
             raise HbmError(f"combinations: bounds must have shape ({len(names)}, 2), got {arr.shape}")
         src = dict(zip(names, arr))
-    missing = [p for p in COMBINATION_PARAMS if p not in src]
+    params = _params(roles)
+    missing = [p for p in params if p not in src]
     if missing:
-        raise HbmError(f"combinations: need free parameters {list(COMBINATION_PARAMS)}; {missing} missing "
+        raise HbmError(f"combinations: need free parameters {list(params)}; {missing} missing "
                        f"(fixed parameters are not supported: use --pool auto or free them)")
-    box = np.array([np.asarray(src[p], float).reshape(2) for p in COMBINATION_PARAMS])
+    box = np.array([np.asarray(src[p], float).reshape(2) for p in params])
     if not np.all(np.isfinite(box)) or np.any(box[:, 0] >= box[:, 1]):
         raise HbmError(f"combinations: bounds must be finite with lo < hi, got {box.tolist()}")
     if not (0.0 < box[0, 0] and box[0, 1] < 1.0):
-        raise HbmError(f"combinations: VOLF box must lie inside (0, 1), got {box[0].tolist()}")
+        raise HbmError(f"combinations: {params[0]} box must lie inside (0, 1), got {box[0].tolist()}")
     if np.any(box[1:, 0] < 0):
-        raise HbmError(f"combinations: P1, T1, GF, GM boxes must start at >= 0, got {box[1:].tolist()}")
+        raise HbmError(f"combinations: {', '.join(params[1:])} boxes must start at >= 0, got {box[1:].tolist()}")
     return box
 
 
-def support_hull(bounds, names: Sequence[str] | None = None, *, floor: float = 1e-6) -> np.ndarray:
+def support_hull(bounds, names: Sequence[str] | None = None, *, floor: float = 1e-6,
+                 roles: MixtureRoles | None = None) -> np.ndarray:
     """Box (3, 2) containing the support of (G, c·P1, (1−c)·T1) in natural units.
 
     The lower ends are the exact minima (linear in c, so attained at a box corner); a zero
     minimum (P1, T1 or both GF and GM starting at 0) is replaced by ``floor`` × the upper end
     so that the log transform has a finite box (the prior mass below it is O(floor)).
     """
-    (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = combination_box(bounds, names)
+    (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = combination_box(bounds, names, roles=roles)
     g_lo = min(ca * fa + (1 - ca) * ma, cb * fa + (1 - cb) * ma)
     g_hi = max(ca * fb + (1 - ca) * mb, cb * fb + (1 - cb) * mb)
     hull = np.array([[g_lo, g_hi], [ca * pa, cb * pb], [(1 - cb) * ta, (1 - ca) * tb]])
@@ -120,16 +129,17 @@ def support_hull(bounds, names: Sequence[str] | None = None, *, floor: float = 1
     return hull
 
 
-def to_features(names: Sequence[str], samples) -> np.ndarray:
+def to_features(names: Sequence[str], samples, *, roles: MixtureRoles | None = None) -> np.ndarray:
     """(G, c·P1, (1−c)·T1) in natural units (n, 3) from named parameter columns."""
     names = [str(n) for n in names]
     x = np.asarray(samples, float)
     if x.ndim != 2 or x.shape[1] != len(names):
         raise HbmError(f"combinations: samples must have shape (n, {len(names)}) for {names}, got {x.shape}")
-    missing = [p for p in COMBINATION_PARAMS if p not in names]
+    params = _params(roles)
+    missing = [p for p in params if p not in names]
     if missing:
         raise HbmError(f"combinations: samples lack columns {missing} (fixed parameters are not supported)")
-    c, p1, t1, gf, gm = (x[:, names.index(p)] for p in COMBINATION_PARAMS)
+    c, p1, t1, gf, gm = (x[:, names.index(p)] for p in params)
     return np.column_stack([c * gf + (1 - c) * gm, c * p1, (1 - c) * t1])
 
 
@@ -191,6 +201,7 @@ def _check_phi(phi) -> np.ndarray:
 
 
 def log_density(phi, bounds, names: Sequence[str] | None = None, *, n_nodes: int = 16, n_sub: int = 2,
+                roles: MixtureRoles | None = None,
                 chunk: int = 20_000) -> np.ndarray:
     """log p0(φ): density of φ = (log G, log c·P1, log (1−c)·T1) under the uniform box prior.
 
@@ -210,7 +221,7 @@ def log_density(phi, bounds, names: Sequence[str] | None = None, *, n_nodes: int
         −inf outside the support.
     """
     phi = _check_phi(phi)
-    box = combination_box(bounds, names)
+    box = combination_box(bounds, names, roles=roles)
     out = np.empty(phi.shape[0])
     for s in range(0, phi.shape[0], chunk):  # blocks of rows, vectorised inside
         ph = phi[s : s + chunk]
@@ -220,7 +231,8 @@ def log_density(phi, bounds, names: Sequence[str] | None = None, *, n_nodes: int
     return out
 
 
-def combination_features(names: Sequence[str], samples, bounds, **quadrature) -> tuple[np.ndarray, np.ndarray]:
+def combination_features(names: Sequence[str], samples, bounds, *, roles: MixtureRoles | None = None,
+                         density: bool = True, **quadrature) -> tuple[np.ndarray, np.ndarray | None]:
     """Features φ and their stage-1 prior log density for named parameter samples.
 
     Parameters
@@ -230,6 +242,8 @@ def combination_features(names: Sequence[str], samples, bounds, **quadrature) ->
     samples : array (n, len(names))
     bounds : array (len(names), 2) aligned with ``names``, or mapping name -> (lo, hi)
         The uniform prior box the samples were drawn under (a narrowed box works).
+    density : bool
+        Compute ``log_p0`` (a quadrature per row); False: None in its place.
     **quadrature
         ``n_nodes``, ``n_sub`` of :func:`log_density`.
 
@@ -237,7 +251,7 @@ def combination_features(names: Sequence[str], samples, bounds, **quadrature) ->
     -------
     phi : ndarray (n, 3)
         (log G, log c·P1, log (1−c)·T1).
-    log_p0 : ndarray (n,)
+    log_p0 : ndarray (n,) or None
         log density of φ under the uniform prior on the box of (VOLF, P1, T1, GF, GM).
 
     Raises
@@ -247,12 +261,12 @@ def combination_features(names: Sequence[str], samples, bounds, **quadrature) ->
     """
     names = [str(n) for n in names]
     box_names = None if isinstance(bounds, Mapping) else names
-    box = combination_box(bounds, box_names)
-    f = to_features(names, samples)
+    box = combination_box(bounds, box_names, roles=roles)
+    f = to_features(names, samples, roles=roles)
     if np.any(f <= 0):
         raise HbmError("combinations: samples with G, c*P1 or (1-c)*T1 <= 0 have no log feature")
     phi = np.log(f)
-    return phi, log_density(phi, box, **quadrature)
+    return phi, log_density(phi, box, **quadrature) if density else None
 
 
 def _volf_interval(phi: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -306,7 +320,7 @@ def in_support(phi, box: np.ndarray) -> np.ndarray:
 
 
 def fibre_point(phi, bounds, names: Sequence[str] | None = None, *,
-                box: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                box: np.ndarray | None = None, roles: MixtureRoles | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One (VOLF, P1, T1, GF, GM) with combinations φ, and whether φ is in the support of p0.
 
     Each box limit of P1 = e^{y1}/c, T1 = e^{y2}/(1−c) and of G = c·GF + (1−c)·GM is a half-line
@@ -332,7 +346,7 @@ def fibre_point(phi, bounds, names: Sequence[str] | None = None, *,
         Exactly where :func:`log_density` is finite.
     """
     phi = _check_phi(phi)
-    box = combination_box(bounds, names) if box is None else box
+    box = combination_box(bounds, names, roles=roles) if box is None else box
     (ca, cb), (pa, pb), (ta, tb), (fa, fb), (ma, mb) = box
     lo, hi, ok = _volf_interval(phi, box)
     G, a, b = np.exp(phi[:, 0]), np.exp(phi[:, 1]), np.exp(phi[:, 2])
@@ -344,7 +358,7 @@ def fibre_point(phi, bounds, names: Sequence[str] | None = None, *,
 
 
 def sample_conditional(phi, bounds, rng, names: Sequence[str] | None = None, *, n_nodes: int = 16,
-                       n_sub: int = 2) -> np.ndarray:
+                       n_sub: int = 2, roles: MixtureRoles | None = None) -> np.ndarray:
     """Draw (VOLF, P1, T1, GF, GM) from the uniform box prior conditioned on φ.
 
     Parameters
@@ -360,11 +374,12 @@ def sample_conditional(phi, bounds, rng, names: Sequence[str] | None = None, *, 
     Returns
     -------
     ndarray (n, 5)
-        Columns :data:`COMBINATION_PARAMS`; their combinations reproduce φ to rounding.
+        Columns in the roles' order (:attr:`~hbm.model.spec.MixtureRoles.params`); their combinations
+        reproduce φ to rounding.
     """
     rng = as_generator(rng)
     phi = _check_phi(phi)
-    box = combination_box(bounds, names)
+    box = combination_box(bounds, names, roles=roles)
     n = phi.shape[0]
     c_nodes, w, cells = _nodes(phi, box, n_nodes, n_sub)
     mass = w * _integrand(phi, c_nodes, box)
@@ -454,7 +469,9 @@ class CombinationCoordinates:
         Apply the log c / log(1 − c) shear.
     """
 
-    def __init__(self, names: Sequence[str], bounds, *, theta: str = "onset", shear: bool = True):
+    def __init__(self, names: Sequence[str], bounds, *, theta: str = "onset", shear: bool = True,
+                 roles: MixtureRoles | None = None):
+        roles = roles or DEFAULT_ROLES
         self.names = [str(n) for n in names]
         b = np.asarray(bounds, float)
         if b.shape != (len(self.names), 2) or not np.all(np.isfinite(b)) or np.any(b[:, 0] >= b[:, 1]):
@@ -463,15 +480,15 @@ class CombinationCoordinates:
             raise HbmError(f"combinations: theta must be 'onset', 'linear' or 'logit', got {theta!r}")
         self.lo, self.width = b[:, 0].copy(), b[:, 1] - b[:, 0]
         ix = {n: j for j, n in enumerate(self.names)}
-        self._c = ix.get("VOLF") if shear else None
+        self._c = ix.get(roles.fraction) if shear else None
         if self._c is not None and not (0.0 < b[self._c, 0] and b[self._c, 1] < 1.0):
-            raise HbmError(f"combinations: VOLF box must lie inside (0, 1), got {b[self._c].tolist()}")
-        self._up = [ix[p] for p in ("P1", "GF") if p in ix and self._c is not None]
-        self._down = [ix[p] for p in ("T1", "GM") if p in ix and self._c is not None]
-        self._th = ix.get("THETA") if theta != "logit" else None
+            raise HbmError(f"combinations: {roles.fraction} box must lie inside (0, 1), got {b[self._c].tolist()}")
+        self._up = [ix[p] for p in (roles.fibre, roles.shear[0]) if p in ix and self._c is not None]
+        self._down = [ix[p] for p in (roles.matrix, roles.shear[1]) if p in ix and self._c is not None]
+        self._th = ix.get(roles.angle) if theta != "logit" and roles.angle else None
         self._theta_kind = theta
         if self._th is not None and theta == "onset" and not b[self._th, 0] > _MAGIC_ANGLE:
-            raise HbmError(f"combinations: theta='onset' needs a THETA box above {_MAGIC_ANGLE:.2f} deg, "
+            raise HbmError(f"combinations: theta='onset' needs a {roles.angle} box above {_MAGIC_ANGLE:.2f} deg, "
                            f"got {b[self._th].tolist()}")
         self._logit = np.ones(len(self.names), dtype=bool)
         sup = np.array([[-np.inf, np.inf]] * len(self.names))

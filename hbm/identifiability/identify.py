@@ -8,7 +8,8 @@ T2·(λ − 1)) only (1−c)·T1·T2 is, not (1−c)·T1 itself.  This module fi
 * :func:`identifiable_directions` — generalised eigen-analysis of the posterior covariance
   against the (uniform-box) prior covariance in a feature space: log θ_k for every parameter
   with a non-negative box, θ_k itself for parameters whose box reaches below zero, and
-  additionally log(1 − θ_k) for volume fractions (``fractions``, default ("VOLF",)).  (1 − c)
+  additionally log(1 − θ_k) for volume fractions (``fractions``, default the spec's, VOLF for the Spyrou
+  base).  (1 − c)
   is not a power of c, so with log(1 − c) as a feature the product (1 − c)·T1 is an exact
   linear direction log(1 − c) + log T1, found *without being told*.  A direction u is
   identified when its posterior/prior sd ratio sqrt(uᵀC_post u / uᵀC_prior u) is below
@@ -51,14 +52,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from itertools import combinations
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy.linalg import eigh
 
 from ..errors import HbmError
 from .manifolds import ManifoldComparison, VolfT1Manifold, compare_manifolds, volf_t1_manifold  # their own module
-from ..model import COMBINATIONS
+from ..model.spec import ModelSpec, base_spec
 
 __all__ = [
     "IdentifiabilityReport",
@@ -73,14 +74,9 @@ __all__ = [
 # --------------------------------------------------------------------------------------
 # (a) identifiable directions
 # --------------------------------------------------------------------------------------
-def _default_candidates() -> dict[str, tuple[tuple[str, ...], Callable[[Mapping[str, np.ndarray]], np.ndarray]]]:
-    _, fibers, collagen = COMBINATIONS  # "VOLF*P1", "(1-VOLF)*T1"
-    return {
-        collagen: (("VOLF", "T1"), lambda c: (1.0 - c["VOLF"]) * c["T1"]),
-        f"{collagen}*T2": (("VOLF", "T1", "T2"), lambda c: (1.0 - c["VOLF"]) * c["T1"] * c["T2"]),
-        fibers: (("VOLF", "P1"), lambda c: c["VOLF"] * c["P1"]),
-        "VOLF*GF+(1-VOLF)*GM": (("VOLF", "GF", "GM"), lambda c: c["VOLF"] * c["GF"] + (1.0 - c["VOLF"]) * c["GM"]),
-    }
+def _default_candidates(spec: ModelSpec | None = None) -> dict[str, tuple[tuple[str, ...], Callable]]:
+    """The spec's named candidates (:attr:`hbm.model.spec.ModelSpec.candidates`) as name -> (needs, function)."""
+    return {c.name: (c.parameters, c.compute) for c in (spec or base_spec()).candidates}
 
 
 def _cv(x: np.ndarray) -> float:
@@ -112,6 +108,7 @@ def candidate_combinations(
     threshold: float = 0.1,
     n_prior: int = 20000,
     seed=0,
+    spec: ModelSpec | None = None,
 ) -> dict[str, dict]:
     """Posterior summaries of named parameter combinations, with an identification flag.
 
@@ -132,8 +129,8 @@ def candidate_combinations(
     samples : array_like (n, d)
     names : sequence of str
     candidates : mapping name -> (required names, function(columns dict) -> array), optional
-        Default: (1-VOLF)*T1, (1-VOLF)*T1*T2, VOLF*P1, VOLF*GF+(1-VOLF)*GM (those whose
-        parameters exist).
+        Default: the spec's candidates (the Spyrou base: (1-VOLF)*T1, (1-VOLF)*T1*T2, VOLF*P1,
+        VOLF*GF+(1-VOLF)*GM), those whose parameters exist.
     interval : (float, float)
         Quantiles of the reported interval.
     shrink_threshold : float
@@ -168,7 +165,7 @@ def candidate_combinations(
         if prior.ndim != 2 or prior.shape[1] != len(names):
             raise HbmError(f"candidate_combinations: prior draws must be (m, {len(names)}), got {prior.shape}")
         pcols = {n: prior[:, i] for i, n in enumerate(names)}
-    cands = _default_candidates() if candidates is None else dict(candidates)
+    cands = _default_candidates(spec) if candidates is None else dict(candidates)
     out = {}
     for key, (req, fn) in cands.items():
         if not all(r in cols for r in req):
@@ -298,7 +295,7 @@ def identifiable_directions(
     bounds=None,
     log: bool = True,
     threshold: float = 0.1,
-    fractions: Sequence[str] = ("VOLF",),
+    fractions: Sequence[str] | None = None,
     step: float = 0.5,
     min_coef: float = 0.2,
     max_terms: int = 3,
@@ -307,6 +304,7 @@ def identifiable_directions(
     seed=0,
     interval: tuple[float, float] = (0.05, 0.95),
     candidates=None,
+    spec: ModelSpec | None = None,
 ) -> IdentifiabilityReport:
     """Combinations of parameters that the data identify, found from the posterior samples.
 
@@ -339,8 +337,8 @@ def identifiable_directions(
     threshold : float
         A direction is identified when its posterior sd is below ``threshold`` times its prior
         sd (generalised eigenvalue λ = var_post/var_prior < threshold²).
-    fractions : sequence of str
-        Parameters in [0, 1] that also get a log(1 − θ) feature.
+    fractions : sequence of str, optional
+        Parameters in [0, 1] that also get a log(1 − θ) feature (default: the spec's volume fractions).
     step : float
         Rounding step of the exponents.
     min_coef : float
@@ -360,6 +358,8 @@ def identifiable_directions(
     seed : int or Generator
     interval : (float, float)
     candidates : see :func:`candidate_combinations`.
+    spec : ModelSpec, optional
+        The model's vocabulary (fractions, candidates); default the default base's.
 
     Returns
     -------
@@ -380,6 +380,7 @@ def identifiable_directions(
         if b.shape != (len(names), 2) or np.any(b[:, 1] <= b[:, 0]):
             raise HbmError(f"identifiable_directions: bounds must be ({len(names)}, 2) with lower < upper")
     lo, hi = b[:, 0], b[:, 1]
+    fractions = (spec or base_spec()).fractions if fractions is None else fractions
     rng = np.random.default_rng(seed)
     prior = rng.uniform(lo, hi, (int(n_prior), len(names)))
     Fp, labels, owner = _feature_matrix(x, names, lo, hi, log, set(fractions))
@@ -450,7 +451,7 @@ def identifiable_directions(
         })
     directions.sort(key=lambda d: d["sd_ratio"])
     cands = candidate_combinations(x, names, candidates=candidates, interval=interval, threshold=threshold,
-                                   prior=prior if bounds is not None else None)
+                                   prior=prior if bounds is not None else None, spec=spec)
     return IdentifiabilityReport(directions=directions, spectrum=np.sort(sd_ratio), features=labels,
                                  candidates=cands, threshold=float(threshold), eigenvectors=V,
                                  n_identified=k, n_resolved=len(accepted))

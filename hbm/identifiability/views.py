@@ -16,7 +16,7 @@ from scipy.stats import chi2
 from .. import io
 from ..errors import HbmError
 from .identify import identifiable_directions, volf_t1_manifold
-from ..model import SHAPE_PARAMETERS, identifiable_combinations
+from ..model.spec import spec_of
 
 __all__ = ["identified_directions", "manifold_spline", "specimen_variability", "quantity_samples", "pooled_view",
            "population_table"]
@@ -33,7 +33,7 @@ def identified_directions(result: io.SpecimenResult) -> list[dict]:
         a sparse basis of the identified subspace, best first; empty when the samples are too few.
     """
     try:
-        rep = identifiable_directions(result.samples, result.names, bounds=result.bounds)
+        rep = identifiable_directions(result.samples, result.names, bounds=result.bounds, spec=spec_of(result))
     except HbmError:
         return []
     return [{"expression": d["label"], "ratio": float(d["sd_ratio_rounded"]), "median": float(d["median"]),
@@ -41,27 +41,32 @@ def identified_directions(result: io.SpecimenResult) -> list[dict]:
 
 
 def manifold_spline(result: io.SpecimenResult, n_grid: int = 60) -> dict | None:
-    """The specimen's VOLF–T1 manifold (:func:`hbm.identifiability.identify.volf_t1_manifold`) on a grid.
+    """The specimen's fraction–amplitude manifold (the spec's :class:`~hbm.model.spec.Manifold`: VOLF–T1
+    for the Spyrou base; :func:`hbm.identifiability.identify.volf_t1_manifold`) on a grid.
 
-    Points: the CMA-ES sweep optima (one per VOLF window) when there are at least four distinct
-    VOLF values, otherwise binned medians of the posterior samples.
+    Points: the CMA-ES sweep optima (one per window of the fraction) when there are at least four
+    distinct fraction values, otherwise binned medians of the posterior samples.
 
     Returns
     -------
     dict or None
         ``{"x", "y" (grid), "points_x", "points_y", "x_name", "y_name", "source",
-        "combination_rel_spread" (flatness of (1−VOLF)·T1 along the curve), "level", "object"}``;
-        None when VOLF or T1 is fixed or the fit is impossible.
+        "combination_rel_spread" (flatness of (1 − x)·y along the curve), "level", "object"}``;
+        None when the model has no manifold, x or y is fixed, or the fit is impossible.
     """
-    pts = [(o["params"]["VOLF"], o["params"]["T1"]) for o in (result.optima or [])
-           if o.get("kind") == "sweep" and "VOLF" in o["params"] and "T1" in o["params"]]
+    spec_man = spec_of(result).manifold
+    if spec_man is None:
+        return None
+    x, y = spec_man.x, spec_man.y
+    pts = [(o["params"][x], o["params"][y]) for o in (result.optima or [])
+           if o.get("kind") == "sweep" and x in o["params"] and y in o["params"]]
     try:
         if len({round(p[0], 9) for p in pts}) >= 4:
             px, py = np.array(pts).T
             man = volf_t1_manifold(px, py, source="points")
             src = "CMA-ES sweep optima"
-        elif "VOLF" in result.names and "T1" in result.names:
-            man = volf_t1_manifold(result.column("VOLF"), result.column("T1"), source="samples")
+        elif x in result.names and y in result.names:
+            man = volf_t1_manifold(result.column(x), result.column(y), source="samples")
             src = "posterior samples (binned medians)"
             px, py = man.knots_volf, np.exp(man.knots_log_t1)
         else:
@@ -69,8 +74,8 @@ def manifold_spline(result: io.SpecimenResult, n_grid: int = 60) -> dict | None:
     except HbmError:
         return None
     g = man.grid(n_grid)
-    return {"x": g, "y": man(g), "points_x": np.asarray(px), "points_y": np.asarray(py), "x_name": "VOLF",
-            "y_name": "T1", "source": src, "combination_rel_spread": float(man.flatness), "level":
+    return {"x": g, "y": man(g), "points_x": np.asarray(px), "points_y": np.asarray(py), "x_name": x,
+            "y_name": y, "source": src, "combination_rel_spread": float(man.flatness), "level":
             np.asarray(man.level, float), "object": man}
 
 
@@ -112,18 +117,10 @@ def specimen_variability(samples: Mapping[str, np.ndarray], *, log: bool = True)
             "separated_pairs": pairs, "n_pairs": len(ids) * (len(ids) - 1) // 2}
 
 
-def quantity_samples(names, theta) -> dict[str, np.ndarray]:
-    """Identifiable combinations (G, VOLF*P1, (1-VOLF)*T1) plus the shape parameters T2, THETA, EOPT
-    (:data:`hbm.model.SHAPE_PARAMETERS`) from rows of named parameters."""
-    theta = np.asarray(theta, float)
-    col = {n: theta[:, i] for i, n in enumerate(names)}
-    out = {}
-    if all(k in col for k in ("VOLF", "P1", "T1", "GF", "GM")):
-        out.update({k: np.asarray(v) for k, v in identifiable_combinations(list(names), theta).items()})
-    for k in SHAPE_PARAMETERS:
-        if k in col:
-            out[k] = col[k]
-    return out
+def quantity_samples(names, theta, spec=None) -> dict[str, np.ndarray]:
+    """The spec's identifiable combinations plus its shape parameters (the Spyrou base: G, VOLF*P1,
+    (1-VOLF)*T1, T2, THETA, EOPT) from rows of named parameters; default the default base's spec."""
+    return spec_of(spec).quantities(list(names), theta)
 
 
 def pooled_view(h) -> list[dict]:

@@ -16,16 +16,16 @@ import xarray as xr
 
 from ..runtime import seeds
 from .._version import __version__
-from ..model.spyrou import BASE_PARAMETERS
+from ..model.spec import parameter_info
 
-#: model/noise parameter -> (unit as written in hbm, meaning); effects' own parameters come from the model
-PARAMETER_INFO: dict[str, tuple[str, str]] = {p.name: (p.unit, p.meaning) for p in BASE_PARAMETERS}
-PARAMETER_INFO.update({
+#: noise parameter -> (unit as written in hbm, meaning); the base models' parameters come from their specs
+#: (:func:`hbm.model.spec.parameter_info`), effects' own parameters from the model
+PARAMETER_INFO: dict[str, tuple[str, str]] = {
     "sigma": ("MPa", "noise standard deviation"),
     "scale": ("-", "noise scale relative to the thesis weights (sd = scale x max(max|stress|/10, |stress|))"),
     "sigma_rel": ("-", "noise standard deviation per unit model stress"),
     "rho": ("-", "lag-1 autocorrelation of the noise"),
-})
+}
 
 #: coordinates and data variables with a fixed meaning (units, long_name)
 FIXED: dict[str, tuple[str, str]] = {
@@ -59,8 +59,9 @@ def udunits(unit: str) -> str:
 
 
 def parameter_attrs(name: str, info: Mapping[str, tuple[str, str]] | None = None) -> dict[str, str]:
-    """``units``/``long_name`` of a parameter (``info`` first, then :data:`PARAMETER_INFO`)."""
-    unit, meaning = (info or {}).get(name) or PARAMETER_INFO.get(name, ("", ""))
+    """``units``/``long_name`` of a parameter (``info`` first, then the registered base models' and
+    the noise parameters' of :data:`PARAMETER_INFO`)."""
+    unit, meaning = (info or {}).get(name) or parameter_info().get(name) or PARAMETER_INFO.get(name, ("", ""))
     if not unit and not meaning:
         return {"long_name": name}
     return {"units": udunits(unit), "long_name": meaning or name}

@@ -5,17 +5,18 @@ recomputed and the run says which part changed.  A key is the SHA-256 of named c
 each itself a hash, so a mismatch can be explained component by component:
 
 ``data``
-    the loaded arrays (strain, stress, time, test as float64 bytes) and the attributes that
-    change their meaning (id, units, stress measure, deformation input, reference sarcomere
-    length, test labels);
+    the specimen (:class:`hbm.data.Specimen`): its arrays (strain, stress, time, test as float64
+    bytes) and the attributes that change their meaning (id, units, stress measure, deformation
+    input, reference sarcomere length, test labels); further measured series and load cases
+    other than along-fibre tension enter only when present (:meth:`~hbm.data.Specimen.key_extras`),
+    so the key of a stress-only along-fibre specimen is the one hbm always computed;
 ``model``
     the model's name, its effects (id, class, options), parameter names and prior box;
 ``settings``
     everything else the fit depends on (sampler, optimiser and Sobol settings, noise model and
-    box, fixed values, user prior, seed, package version): for a fit, :func:`fit_record` of the
-    very keyword arguments given to :func:`hbm.fit.fit_specimen` -- ONE record, so a new
-    setting is keyed without anyone having to remember a list (only :data:`NOT_KEYED` are left
-    out).
+    box, fixed values, user prior, seed, package version): for a fit,
+    :meth:`hbm.settings.FitSettings.record` of the very settings :func:`hbm.fit.fit_specimen`
+    runs with -- ONE record, so a new setting is keyed where it is declared.
 
 :func:`fit_key` is the key of results AND checkpoints of ``hbm fit`` and ``hbm run``: a
 checkpoint of other data, model or settings is never resumed.
@@ -33,33 +34,15 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .._version import __version__
+from ..data.specimen import as_specimen
+from ..settings.fields import canonical
 
-__all__ = ["MEANING_ATTRS", "NOT_KEYED", "data_key", "model_key", "settings_key", "content_key", "changed",
-           "fit_record", "fit_key", "checkpoint_dir", "set_aside_checkpoints"]
+__all__ = ["MEANING_ATTRS", "data_key", "model_key", "settings_key", "content_key", "changed",
+           "fit_key", "checkpoint_dir", "set_aside_checkpoints"]
 
 #: dataset attributes that change what the arrays mean (hbm.data records its conversions here)
 MEANING_ATTRS = ("id", "units_stress", "units_stress_original", "stress_measure", "stress_measure_original",
                  "deformation_input", "reference_sarcomere_length_um", "test_labels")
-
-
-def _canonical(obj: Any) -> Any:
-    """JSON-able, order-independent form (floats by repr, arrays as lists)."""
-    if isinstance(obj, Mapping):
-        return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
-    if isinstance(obj, (list, tuple)):
-        return [_canonical(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _canonical(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return repr(float(obj))
-    if isinstance(obj, (np.integer, int, bool, str)) or obj is None:
-        return obj.item() if isinstance(obj, np.generic) else obj
-    if isinstance(obj, np.random.SeedSequence):
-        return {"entropy": _canonical(obj.entropy), "spawn_key": list(map(int, obj.spawn_key))}
-    if hasattr(obj, "to_dict"):  # a Prior: its content, not its id()
-        return _canonical(obj.to_dict())
-    return repr(obj)
 
 
 def _sha(*parts: bytes) -> str:
@@ -71,16 +54,22 @@ def _sha(*parts: bytes) -> str:
 
 
 def _json(obj: Any) -> bytes:
-    return json.dumps(_canonical(obj), sort_keys=True, separators=(",", ":")).encode()
+    return json.dumps(canonical(obj), sort_keys=True, separators=(",", ":")).encode()
 
 
-def data_key(ds) -> str:
-    """Hash of a specimen Dataset: its arrays and the attributes that give them meaning."""
-    names = getattr(ds, "data_vars", ds)
-    arrays = [np.ascontiguousarray(np.asarray(ds[v], dtype=float)).tobytes() if v in names else b"-"
-              for v in ("strain", "stress", "time", "test")]
-    attrs = getattr(ds, "attrs", {}) or {}
-    return _sha(*arrays, _json({k: attrs.get(k) for k in MEANING_ATTRS if k in attrs}))
+def data_key(data) -> str:
+    """Hash of a specimen (a :class:`~hbm.data.Specimen`, or a Dataset converted to one): its arrays,
+    the attributes that give them meaning, and its further series and load cases when it has any."""
+    spec = as_specimen(data)
+    stress = spec.observed.get("stress")
+    arrays = [b"-" if a is None else np.ascontiguousarray(a, dtype=float).tobytes()
+              for a in (spec.strain, None if stress is None else stress.values, spec.time, spec.test)]
+    attrs = spec.attrs
+    parts = [*arrays, _json({k: attrs.get(k) for k in MEANING_ATTRS if k in attrs})]
+    extras = spec.key_extras()
+    if extras:  # only when present: the key of a stress-only along-fibre specimen is unchanged
+        parts.append(_json(extras))
+    return _sha(*parts)
 
 
 def _effect_description(e) -> dict:
@@ -116,23 +105,9 @@ def changed(stored: Mapping[str, str] | None, new: Mapping[str, str]) -> list[st
     return [k for k in new if stored.get(k) != new[k]] + [k for k in stored if k not in new]
 
 
-#: keyword arguments of :func:`hbm.fit.fit_specimen` that do not change its result: the data and
-#: model have their own components; paths, progress display and stored extras do not change numbers
-NOT_KEYED = ("data", "model", "out", "checkpoint_dir", "progress", "on_phase", "config_extra")
-
-
-def fit_record(options: Mapping[str, Any]) -> dict:
-    """The settings record of a fit: every ``fit_specimen`` keyword argument in ``options`` except
-    :data:`NOT_KEYED` (canonical JSON form; a seed as entropy and spawn key), plus the package
-    version.  Unset arguments (None) are left out, so that adding a new optional argument does not
-    change the key of fits that do not use it."""
-    record = {k: _canonical(v) for k, v in options.items() if k not in NOT_KEYED and v is not None}
-    record["version"] = __version__
-    return record
-
-
-def fit_key(data, model, options: Mapping[str, Any]) -> tuple[str, dict[str, str]]:
-    """The content key of a fit of ``data`` with ``model`` and ``fit_specimen(**options)``.
+def fit_key(data, model, settings) -> tuple[str, dict[str, str]]:
+    """The content key of a fit of ``data`` with ``model`` and ``settings`` (a
+    :class:`~hbm.settings.FitSettings`, whose :meth:`~hbm.settings.FitSettings.record` is hashed).
 
     Returns
     -------
@@ -140,7 +115,7 @@ def fit_key(data, model, options: Mapping[str, Any]) -> tuple[str, dict[str, str
     parts : dict
         Its components ``data``, ``model``, ``settings`` (for :func:`changed`).
     """
-    parts = {"data": data_key(data), "model": model_key(model), "settings": settings_key(fit_record(options))}
+    parts = {"data": data_key(data), "model": model_key(model), "settings": settings_key(settings.record())}
     return content_key(parts), parts
 
 

@@ -262,8 +262,8 @@ def write_population_summary(path: str | os.PathLike, *, specimen_ids: Sequence[
         first = next(iter(manifolds.values()))
         groups[G_MANIFOLD] = xr.Dataset({"x": (("specimen", "grid"), x), "y": (("specimen", "grid"), y)},
                                         coords={"specimen": ids},
-                                        attrs={"x_name": str(first.get("x_name", "VOLF")),
-                                               "y_name": str(first.get("y_name", "T1"))})
+                                        attrs={"x_name": str(first.get("x_name", "x")),
+                                               "y_name": str(first.get("y_name", "y"))})
     if combinations:
         cv = {}
         for q, stats in combinations.items():

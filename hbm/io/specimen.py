@@ -11,11 +11,13 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from .conventions import annotate, log_prior, prior_draws
+from .conventions import annotate, log_prior, prior_draws, udunits
 from .._version import __version__
+from ..data.specimen import Series, Specimen
 from ..errors import HbmError
 from ..samplers.chains import POOLED, Chains
 from ..samplers.types import StageInfo
+from ..settings.fit import FitRecord
 
 from .common import (
     G_CONST, G_LOGLIK, G_OBS, G_OPTIMA, G_POSTERIOR, G_PRED, G_PRIOR, G_SOBOL, G_STATS, STAGE_KEYS, _ds, _dumps,
@@ -46,8 +48,9 @@ class SpecimenResult:
         Prior box of the free parameters.
     stages : list of StageInfo (or mappings with a subset of its fields)
         Per TMCMC stage, as returned by the sampler; read back as :class:`StageInfo`.
-    strain, stress : ndarray (p,)
-        Observed data; ``time``/``test`` optional.
+    data : Specimen or None
+        The observed specimen (control path and measured series; read back from ``observed_data``
+        with the result's id and without the file's metadata).
     pointwise_log_likelihood, predictive, predictive_model : ndarray (n, p) or None
         Pointwise log-likelihood, noisy posterior-predictive replicate, noise-free prediction.
     optima : list of dict or None
@@ -76,10 +79,7 @@ class SpecimenResult:
     log_evidence_se: float
     bounds: np.ndarray
     stages: list[StageInfo | Mapping[str, Any]] = field(default_factory=list)
-    strain: np.ndarray | None = None
-    stress: np.ndarray | None = None
-    time: np.ndarray | None = None
-    test: np.ndarray | None = None
+    data: Specimen | None = None
     pointwise_log_likelihood: np.ndarray | None = None
     predictive: np.ndarray | None = None
     predictive_model: np.ndarray | None = None
@@ -97,6 +97,9 @@ class SpecimenResult:
     at_bounds: list[dict] | None = None
     parameter_info: dict = field(default_factory=dict)
     chains: Chains = POOLED
+    #: the registered base model (:mod:`hbm.model.spec`) when it is not the default (Spyrou) base; stored as the
+    #: root attribute ``base_model`` only then, so files of the default base stay as they were
+    base_model: str | None = None
 
     def prior_dict(self) -> dict[str, dict[str, Any]]:
         """``{name: {"lo", "hi", "form"}}`` per free parameter (uniform on ``bounds`` when not recorded)."""
@@ -175,6 +178,7 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
 
     draws = {"chain": np.arange(nc), "draw": np.arange(n // nc)}
     info = r.parameter_info
+    stored = FitRecord.from_attrs(r.config)
     post = xr.Dataset({nm: (("chain", "draw"), cd(r.samples[:, i])) for i, nm in enumerate(r.names)},
                       coords=draws)
     post = annotate(post, "parameters", info)
@@ -182,7 +186,7 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
     groups: dict[str, xr.Dataset] = {G_POSTERIOR: post}
     pd = r.prior_dict()
     if len(pd) == d:  # ArviZ's prior group: draws from the prior box, as many as the posterior's
-        pdraws = prior_draws(r.names, pd, n, r.seed, r.config.get("seed_spawn_key", ()))
+        pdraws = prior_draws(r.names, pd, n, r.seed, stored.seed_spawn_key or ())
         groups[G_PRIOR] = annotate(xr.Dataset(
             {nm: (("chain", "draw"), cd(pdraws[:, i])) for i, nm in enumerate(r.names)}, coords=draws),
             "parameters", info)
@@ -198,17 +202,17 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
     _add_stage_stats(stats, coords, r.stages, nc)
     groups[G_STATS] = annotate(xr.Dataset(stats, coords=coords), "stats")
 
-    if r.stress is not None:
-        p = len(r.stress)
-        pc: dict[str, Any] = {"point": np.arange(p)}
-        if r.strain is not None:
-            pc["strain"] = ("point", np.asarray(r.strain, float))
-        if r.time is not None:
-            pc["time"] = ("point", np.asarray(r.time, float))
-        if r.test is not None:
-            pc["test"] = ("point", np.asarray(r.test).astype(np.int64))
-        groups[G_OBS] = annotate(
-            xr.Dataset({"stress": ("point", np.asarray(r.stress, float))}, coords=pc), "observed")
+    if r.data is not None and r.data.observed:
+        spec = r.data
+        pc: dict[str, Any] = {"point": np.arange(spec.n_points), "strain": ("point", spec.strain)}
+        if spec.time is not None:
+            pc["time"] = ("point", spec.time)
+        if spec.test is not None:
+            pc["test"] = ("point", spec.test)
+        # one observed variable per measured series, with its unit (annotate names the known ones)
+        groups[G_OBS] = annotate(xr.Dataset(
+            {k: ("point", s.values, {"long_name": s.long_name, "units": udunits(s.unit)})
+             for k, s in spec.observed.items()}, coords=pc), "observed")
         dcp = {**draws, **pc}
         if r.pointwise_log_likelihood is not None:
             groups[G_LOGLIK] = annotate(xr.Dataset(
@@ -268,7 +272,8 @@ def _specimen_tree(r: SpecimenResult) -> xr.DataTree:
         "prior": _dumps(r.prior_dict()),
         "at_bounds": _dumps(r.at_bounds if r.at_bounds is not None else []),
         "inference_library": "hbm",
-        "likelihood_tier": str(r.config.get("likelihood_tier", "full")),
+        "likelihood_tier": str(stored.tier_used),
+        **({"base_model": str(r.base_model)} if r.base_model else {}),
         "complete": 0,
     })
     return xr.DataTree.from_dict({"/": root, **groups})
@@ -293,6 +298,14 @@ def _rows(var: xr.DataArray) -> np.ndarray:
     """A (chain, draw, point) variable as rows (chain·draw, point), chain-major like ``samples``."""
     v = var.values
     return v.reshape(-1, v.shape[-1])
+
+
+def _observed_specimen(sid: str, obs: xr.Dataset) -> Specimen:
+    """The specimen of a result's ``observed_data`` group: its coordinates and one series per variable."""
+    coord = {k: obs.coords[k].values for k in ("time", "test") if k in obs.coords}
+    series = {str(k): Series(str(k), v.values, str(v.attrs.get("units", "")), str(v.attrs.get("long_name", "")))
+              for k, v in obs.data_vars.items()}
+    return Specimen(sid, obs.coords["strain"].values, coord.get("time"), coord.get("test"), series)
 
 
 def read_specimen_result(path: str | os.PathLike) -> SpecimenResult:
@@ -336,13 +349,11 @@ def read_specimen_result(path: str | os.PathLike) -> SpecimenResult:
         complete=int(attrs.get("complete", 0)) == 1, version=str(attrs.get("hbm_version", "")),
         prior=json.loads(attrs["prior"]) if "prior" in attrs else None,
         at_bounds=json.loads(attrs["at_bounds"]) if "at_bounds" in attrs else None,
-        chains=Chains.from_attrs(dict(post.attrs), int(post.sizes.get("chain", 1))))
+        chains=Chains.from_attrs(dict(post.attrs), int(post.sizes.get("chain", 1))),
+        base_model=str(attrs["base_model"]) if "base_model" in attrs else None)
     obs = _ds(tree, G_OBS)
-    if obs is not None:
-        res.stress = obs["stress"].values
-        for key in ("strain", "time", "test"):
-            if key in obs.coords:
-                setattr(res, key, obs.coords[key].values)
+    if obs is not None and "strain" in obs.coords:
+        res.data = _observed_specimen(res.specimen_id, obs)
     ll = _ds(tree, G_LOGLIK)
     if ll is not None:
         res.pointwise_log_likelihood = _rows(ll["stress"])

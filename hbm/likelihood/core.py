@@ -36,8 +36,9 @@ from typing import Mapping
 
 import numpy as np
 
+from ..data.specimen import Specimen, as_specimen
 from ..errors import DataError, HbmError
-from ..model.core import Loading, Model
+from ..model.core import Model
 from ..model.spyrou import compression_check, model_form
 from .noise import NoiseModel, eq120_weights, get_noise, noise_model_names
 from .prior import Prior, PriorError, load_prior
@@ -50,28 +51,12 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def _dataset_arrays(data) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None, str]:
-    """strain, stress, time, test and a label from an xarray Dataset (or a mapping)."""
-    label = "dataset"
-    try:
-        attrs = getattr(data, "attrs", {}) or {}
-        label = str(attrs.get("id", label))
-        names = set(getattr(data, "data_vars", data))
-    except Exception:  # pragma: no cover - defensive
-        raise HbmError("data must be an xarray.Dataset with variables 'strain' and 'stress'") from None
-    for v in ("strain", "stress"):
-        if v not in names:
-            raise DataError(f"{label}: missing variable {v!r} (need 'strain' and 'stress' along dim 'point')")
-    strain = np.asarray(data["strain"], dtype=float).ravel()
-    stress = np.asarray(data["stress"], dtype=float).ravel()
-    if strain.shape != stress.shape or strain.size == 0:
-        raise DataError(f"{label}: 'strain' and 'stress' must be non-empty and of equal length, "
-                        f"got {strain.size} and {stress.size}")
-    if not (np.isfinite(strain).all() and np.isfinite(stress).all()):
-        raise DataError(f"{label}: 'strain' and 'stress' must be finite numbers")
-    time = np.asarray(data["time"], dtype=float).ravel() if "time" in names else None
-    test = np.asarray(data["test"]).ravel() if "test" in names else None
-    return strain, stress, time, test, label
+def observed_stress(specimen: Specimen) -> np.ndarray:
+    """The stress a likelihood fits: the specimen's main series, finite at every point."""
+    stress = specimen.stress
+    if not np.isfinite(stress).all():
+        raise DataError(f"{specimen.id}: 'strain' and 'stress' must be finite numbers")
+    return stress
 
 
 class Likelihood:
@@ -92,7 +77,8 @@ class Likelihood:
         The effective prior: natural box and form of every model parameter (fixed ones
         included) and noise parameter.
     model : Model
-    data : xarray.Dataset
+    data : Specimen
+        The specimen (a Dataset given to :func:`make_likelihood` is converted once).
     noise : str
         Name of the noise model.
     noise_model : NoiseModel
@@ -114,20 +100,18 @@ class Likelihood:
                  sigma_bounds: tuple[float, float] | None = None,
                  prior: Prior | str | Mapping | None = None) -> None:
         noise_cls = get_noise(noise)
-        strain, stress, time, test, label = _dataset_arrays(data)
-        try:
-            self.loading = Loading(strain, time, test)
-        except ValueError as exc:
-            raise DataError(f"{label}: {exc}") from None
+        data = as_specimen(data)
+        stress = observed_stress(data)
+        self.loading = data.loading
         self.model = model
         self.data = data
         self.noise = noise_cls.name
-        self.label = label
+        self.label = data.id
         self.observed = stress
         self.n_points = stress.size
         self.weights = eq120_weights(stress)
         if not np.all(self.weights > 0):
-            raise DataError(f"{label}: stress is identically zero; the weights of eq. 1.20 are undefined")
+            raise DataError(f"{self.label}: stress is identically zero; the weights of eq. 1.20 are undefined")
         self.noise_model: NoiseModel = noise_cls(observed=stress, history_starts=self.loading.history_starts)
 
         names = model.parameter_names
@@ -401,8 +385,9 @@ def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str,
     ----------
     model : Model
         Constitutive model (``model.stress`` receives the specimen's :class:`Loading`).
-    data : xarray.Dataset
-        Variables ``strain``, ``stress`` (MPa) along dim ``point``; optional ``time``, ``test``.
+    data : Specimen or xarray.Dataset
+        The specimen (:func:`hbm.data.load_specimen`); a Dataset with ``strain``, ``stress`` (MPa)
+        along dim ``point`` and optional ``time``, ``test`` is converted once.
     noise : str
         Name of a registered noise model: "iid", "weighted", "proportional", "ar1" (see
         :mod:`hbm.likelihood.noise`) or one added with :func:`hbm.likelihood.noise.register_noise`.
@@ -432,9 +417,9 @@ def make_likelihood(model: Model, data, *, noise: str = "iid", fix: Mapping[str,
         Spyrou collagen (which turns tensile under axial compression, see
         :func:`hbm.model.spyrou.compression_check`).
     """
+    data = as_specimen(data)
     if model_form(model) == "thesis":
-        strain, _, time, test, label = _dataset_arrays(data)
-        msg = compression_check(strain, "thesis", time=time, test=test, name=label)
+        msg = compression_check(data.loading, "thesis", name=data.id)
         if msg is not None:
             raise DataError(msg)
     return Likelihood(model, data, noise=noise, fix=fix, bounds=bounds, sigma_bounds=sigma_bounds, prior=prior)

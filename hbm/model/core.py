@@ -300,10 +300,14 @@ class Model:
         follow in the order the effects declare them.
     name : str
         Label used in reports.
+    spec : ModelSpec, optional
+        The vocabulary of the base model (:mod:`hbm.model.spec`: combinations, transforms,
+        manifold, export map ...), kept through ``model + effect``, :meth:`with_bounds` and
+        :meth:`replacing`; None for a model built from effects without a declared base.
     """
 
     def __init__(self, effects: Sequence[Effect], parameters: Sequence[Parameter] | None = None,
-                 name: str = "model") -> None:
+                 name: str = "model", spec=None) -> None:
         effects = tuple(effects)
         for e in effects:
             _check_effect(e)
@@ -324,6 +328,7 @@ class Model:
         self.effects = effects
         self.parameters: tuple[Parameter, ...] = tuple(table.values())
         self.name = name
+        self.spec = spec
         self._index = {q.name: i for i, q in enumerate(self.parameters)}
 
     # -- parameter table --------------------------------------------------------------
@@ -389,7 +394,7 @@ class Model:
         """A new model with ``effects`` added; their parameters are appended to the table."""
         extra = [e for e in effects]
         name = self.name + "+" + "+".join(e.name for e in extra) if extra else self.name
-        return Model(self.effects + tuple(extra), parameters=self.parameters, name=name)
+        return Model(self.effects + tuple(extra), parameters=self.parameters, name=name, spec=self.spec)
 
     def replacing(self, old: str, new: Effect) -> "Model":
         """A new model with effect ``old`` replaced by ``new`` in its place (``new`` may declare
@@ -402,7 +407,8 @@ class Model:
         effects = [new if e.name == old else e for e in self.effects]
         parameters = [mine.get(q.name, q) for q in self.parameters if q.name not in gone]
         parts = self.name.split("+")   # the label's part, not a substring of another effect's id
-        return Model(effects, parameters=parameters, name="+".join(new.name if x == old else x for x in parts))
+        return Model(effects, parameters=parameters, name="+".join(new.name if x == old else x for x in parts),
+                     spec=self.spec)
 
     def __add__(self, other: Effect) -> "Model":
         if isinstance(other, Effect):
@@ -422,7 +428,7 @@ class Model:
         unknown = set(bounds) - set(self.parameter_names)
         if unknown:
             raise KeyError(f"unknown parameters {sorted(unknown)}; the model has {self.parameter_names}")
-        return Model(self.effects, parameters=table, name=self.name)
+        return Model(self.effects, parameters=table, name=self.name, spec=self.spec)
 
     # -- evaluation ---------------------------------------------------------------------
     def _params(self, theta: np.ndarray) -> dict[str, np.ndarray]:

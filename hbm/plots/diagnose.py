@@ -20,7 +20,7 @@ _TEST_COLORS = TEST_COLORS
 
 
 def _tests(d):
-    return test_ids(d.test, d.stress.size)
+    return test_ids(d.ds)
 
 
 def _data_panels(fig, gs_row, d, curve: dict | None, pred: np.ndarray, band: tuple | None = None,
@@ -73,7 +73,7 @@ def plot_diagnosis(dg, path: str | os.PathLike, *, evidence_threshold: float) ->
     gs = fig.add_gridspec(4, 2 if has_time else 1, height_ratios=[3, 2, 2.4, 1.5], hspace=0.42, wspace=0.22)
     curve = None
     if dg.base.likelihood is not None:
-        curve = model_curve(dg.base.likelihood, dg.base.theta_max, d.strain, d.time, tests)
+        curve = model_curve(dg.base.likelihood, dg.base.theta_max, d.ds)
     band = (rc["lower"], rc["upper"]) if "lower" in rc else None
     title = (f"{d.name}: {' + '.join(dg.base.effects) or 'base model'} — noise {dg.base.noise}, RMSE "
              f"{dg.base.rmse:.3g} MPa, {int(100 * dg.coverage.get('band', 0.9))}% band covers "
@@ -155,7 +155,7 @@ def plot_extension(ext, path: str | os.PathLike, *, noise_sd: float | None = Non
             ln.remove()         # the last step is drawn below with the others, as dense curves
         for i, s in enumerate(steps):
             ls = styles[-1] if i == len(steps) - 1 else styles[i % (len(styles) - 1)]
-            curve = model_curve(s.likelihood, s.theta_max, d.strain, d.time, tests)
+            curve = model_curve(s.likelihood, s.theta_max, d.ds)
             if curve is not None:
                 draw_curve(ax, curve, axis, tests, lw=1.2, ls=ls)
             else:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.specimen import as_specimen
 from ..fit.specimen import FitResult, fit_quality, map_estimate, map_prediction
 from ..model.core import Loading
 from . import plt, save
@@ -16,14 +17,14 @@ from .tests_view import TEST_COLORS, dense_path, draw_curve, draw_tests, test_id
 __all__ = ["fit_plot"]
 
 
-def _dense_map_curve(likelihood, estimate: dict, strain, time, tests):
+def _dense_map_curve(likelihood, estimate: dict, spec):
     """The MAP model along each test's dense path (None without a likelihood to evaluate)."""
     if likelihood is None:
         return None
     model = likelihood.model
     try:
         theta = np.array([estimate[n] for n in model.parameter_names], float)
-        path = dense_path(strain, time, tests)
+        path = dense_path(spec)
         with np.errstate(all="ignore"):
             s = np.asarray(model.stress(Loading(path["strain"], path["time"], path["test"]), theta), float)
     except Exception:    # noqa: BLE001 -- a parameter missing from the estimate: draw at the data points
@@ -42,8 +43,8 @@ def fit_plot(result, data=None, *, likelihood=None, prob: float = 0.9,
         A :class:`~hbm.fit.FitResult` evaluates the MAP curve with its likelihood (densely along
         each test's path); a stored result uses the best posterior sample's prediction at the
         data points.
-    data : xarray.Dataset, optional
-        Observed curve (``strain``, ``stress``, optional ``time``, ``test``); default the stored data.
+    data : Specimen or xarray.Dataset, optional
+        The observed specimen; default the one stored in the result.
     likelihood : Likelihood, optional
     prob : float
         Mass of the predictive band (0.9).
@@ -55,20 +56,13 @@ def fit_plot(result, data=None, *, likelihood=None, prob: float = 0.9,
     Path or matplotlib.figure.Figure
     """
     r = result.result if isinstance(result, FitResult) else result
-    if data is not None:
-        strain = np.asarray(data["strain"].values, float)
-        stress = np.asarray(data["stress"].values, float)
-        tm = np.asarray(data["time"].values, float) if "time" in data else None
-        test = np.asarray(data["test"].values) if "test" in data else None
-    else:
-        strain, stress, tm = np.asarray(r.strain, float), np.asarray(r.stress, float), r.time
-        tm = None if tm is None else np.asarray(tm, float)
-        test = getattr(r, "test", None)
-    tests = test_ids(test, strain.size)
+    spec = as_specimen(data) if data is not None else r.data
+    strain, stress, tm = spec.strain, spec.stress, spec.time
+    tests = test_ids(spec)
     if likelihood is None and isinstance(result, FitResult):
         likelihood = result.likelihood
     curve_pts = map_prediction(result, likelihood)
-    curve = _dense_map_curve(likelihood, map_estimate(result), strain, tm, tests)
+    curve = _dense_map_curve(likelihood, map_estimate(result), spec)
     band = None
     if r.predictive is not None:
         band = np.quantile(np.asarray(r.predictive, float), [(1 - prob) / 2, (1 + prob) / 2], axis=0)

@@ -18,6 +18,7 @@ from typing import Mapping
 
 import numpy as np
 
+from ..model.spec import spec_of
 from . import plt, save
 
 __all__ = ["specimen_organ_plot", "overlay_plot", "optima_plot", "organ_figures"]
@@ -179,13 +180,15 @@ def optima_plot(sid: str, optima, posterior=None, *, difference, spread, path=No
     cmap = plt.get_cmap("viridis")
     styles = ["-", "--", "-.", ":"]
     widths = np.linspace(4.0, 1.0, n) if n > 1 else [2.0]
-    volf = P[:, pn.index("VOLF")] if "VOLF" in pn else None
-    t1 = P[:, pn.index("T1")] if "T1" in pn else None
+    man = spec_of().manifold   # the optima's labels: the base's manifold coordinates (VOLF, T1)
+    xn, yn = (man.x, man.y) if man is not None else ("", "")
+    xs = P[:, pn.index(xn)] if xn in pn else None
+    ys = P[:, pn.index(yn)] if yn in pn else None
     rel = 100.0 * np.asarray(difference, float)
     for i in range(n):
         col = cmap(i / max(n - 1, 1) * 0.9)
-        lab = ", ".join(x for x in (f"VOLF={volf[i]:.3f}" if volf is not None else "",
-                                    f"T1={t1[i]:.3g}" if t1 is not None else "",
+        lab = ", ".join(x for x in (f"{xn}={xs[i]:.3f}" if xs is not None else "",
+                                    f"{yn}={ys[i]:.3g}" if ys is not None else "",
                                     f"Δ(−log L)={dobj[i]:.2f}", kind[i]) if x)
         ext = optima["extrapolated"].values[i].astype(bool)
         k = int(np.argmax(ext)) if ext.any() else F.size

@@ -10,16 +10,28 @@ import numpy as np
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
-from ..model import COMBINATIONS, SHAPE_PARAMETERS
 from ..identifiability.views import pooled_view, quantity_samples
+from ..model.spec import ModelSpec, spec_of
 from . import plt, save
 
 __all__ = ["manifold_plot", "forest_plot", "hyper_plot", "population_figures", "FOREST_QUANTITIES"]
 
-#: quantities shown in the forest plot (identified ones first)
-FOREST_QUANTITIES = COMBINATIONS + SHAPE_PARAMETERS
-_LABELS = dict(zip(FOREST_QUANTITIES, ("G = c·GF + (1−c)·GM (MPa)", "c·P1 (MPa)", "(1−c)·T1 (MPa)", "T2 (-)",
-                                       "THETA (deg)", "EOPT (-)")))
+
+
+def forest_quantities(spec: ModelSpec) -> tuple[str, ...]:
+    """Quantities shown in the forest plot: the spec's combinations (identified ones first), its shape parameters."""
+    return spec.combination_names + spec.shape_parameters
+
+
+def _label(spec: ModelSpec, name: str) -> str:
+    """A panel title: the quantity's prose form and unit."""
+    units = spec.units()
+    text = next((c.text for c in spec.combinations if c.name == name), name)
+    return f"{text} ({units[name]})" if name in units else text
+
+
+#: the default base's forest quantities
+FOREST_QUANTITIES = forest_quantities(spec_of())
 
 
 def _colors(n):
@@ -67,15 +79,16 @@ def forest_plot(results: Mapping, hier=None, *, prob: float = 0.9, path=None):
     and the population (predictive of a new specimen) at the bottom."""
     ids = sorted(results)
     q = [(1 - prob) / 2, 0.5, (1 + prob) / 2]
+    spec = spec_of(results[ids[0]]) if ids else spec_of()
     indiv = {sid: quantity_samples(list(results[sid].as_dict()),
-                                   np.column_stack(list(results[sid].as_dict().values()))) for sid in ids}
-    quantities = [k for k in FOREST_QUANTITIES if all(k in indiv[s] for s in ids)]
+                                   np.column_stack(list(results[sid].as_dict().values())), spec) for sid in ids}
+    quantities = [k for k in forest_quantities(spec) if all(k in indiv[s] for s in ids)]
     upd, pop = {}, None
     if hier is not None and hier.updated is not None:
         for k, sid in enumerate(hier.specimen_ids):
-            upd[sid] = quantity_samples(hier.param_names, hier.updated[:, k, :])
+            upd[sid] = quantity_samples(hier.param_names, hier.updated[:, k, :], spec)
         if hier.new_specimen is not None:
-            pop = quantity_samples(hier.pooled_names, hier.new_specimen)
+            pop = quantity_samples(hier.pooled_names, hier.new_specimen, spec)
     ncol = 3
     nrow = int(np.ceil(len(quantities) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4.3 * ncol, 0.45 * (len(ids) + 2) * nrow + 1.2), squeeze=False)
@@ -99,7 +112,7 @@ def forest_plot(results: Mapping, hier=None, *, prob: float = 0.9, path=None):
         vals = np.concatenate([indiv[s][k] for s in ids])
         if np.all(vals > 0) and np.quantile(vals, 0.99) / max(np.quantile(vals, 0.01), 1e-300) > 30:
             ax.set_xscale("log")
-        ax.set_title(_LABELS.get(k, k), fontsize=9)
+        ax.set_title(_label(spec, k), fontsize=9)
         ax.grid(axis="x", alpha=0.3)
     for ax in axes.ravel()[len(quantities):]:
         ax.axis("off")
@@ -120,10 +133,11 @@ def hyper_plot(hier, results=None, *, path=None):
     nrow = int(np.ceil(len(view) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 2.7 * nrow), squeeze=False)
     means = {}
+    spec = spec_of(next(iter(results.values()))) if results else spec_of()
     if results:
         means = {sid: {k: float(np.mean(v)) for k, v in quantity_samples(
-            list(results[sid].as_dict()), np.column_stack(list(results[sid].as_dict().values()))).items()}
-            for sid in sorted(results)}
+            list(results[sid].as_dict()), np.column_stack(list(results[sid].as_dict().values())),
+            spec_of(results[sid])).items()} for sid in sorted(results)}
     for ax, v in zip(axes.ravel(), view):
         med, new = v["median"], v["new"]
         allv = np.concatenate([med] + ([new] if new is not None else []))
@@ -140,7 +154,7 @@ def hyper_plot(hier, results=None, *, path=None):
         for sid, m in means.items():
             if v["display"] in m:
                 ax.axvline(m[v["display"]], color="#d95f02", lw=0.8, alpha=0.8)
-        ax.set_title(f"{_LABELS.get(v['display'], v['display'])}\n({v['transform']}; median population sd "
+        ax.set_title(f"{_label(spec, v['display'])}\n({v['transform']}; median population sd "
                      f"{v['sd']:.2g})", fontsize=8.5)
         ax.set_yticks([])
     for ax in axes.ravel()[len(view):]:

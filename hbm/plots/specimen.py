@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from ..model import spyrou_model
+from ..model.spec import spec_of
 from . import RELEVANCE_COLORS, plt, save
 
 __all__ = ["corner_plot", "predictive_plot", "sobol_plot", "specimen_figures", "model_theta"]
@@ -20,9 +21,13 @@ def _thin(n: int, m: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, m, replace=False))
 
 
-def corner_plot(result, *, max_points: int = 1500, color_by: str = "VOLF", path=None):
+def corner_plot(result, *, max_points: int = 1500, color_by: str | None = None, path=None):
     """Corner plot: marginals on the diagonal, 2-D densities below, samples above coloured by
-    ``color_by`` (VOLF), CMA-ES optima overlaid (stars: restarts, diamonds: sweep optima)."""
+    ``color_by`` (default: the fraction of the model's manifold, VOLF for the Spyrou base), CMA-ES
+    optima overlaid (stars: restarts, diamonds: sweep optima)."""
+    if color_by is None:
+        man = spec_of(result).manifold
+        color_by = man.x if man is not None else ""
     names = list(result.names)
     x = result.samples
     d = len(names)
@@ -96,10 +101,10 @@ def predictive_plot(result, *, model=None, extrapolate: float = 1.5, max_draws: 
     """Data with posterior-predictive bands (model-only and with noise), and the prediction beyond
     the tested strain up to ``extrapolate`` × the maximum."""
     model = spyrou_model() if model is None else model
-    strain, stress = np.asarray(result.strain), np.asarray(result.stress)
+    strain, stress = result.data.strain, result.data.stress
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.6))
     q = [0.05, 0.5, 0.95]
-    order = np.argsort(strain, kind="stable") if result.time is None else np.arange(strain.size)
+    order = np.argsort(strain, kind="stable") if result.data.time is None else np.arange(strain.size)
     if result.predictive is not None:
         lo, med, hi = np.quantile(result.predictive, q, axis=0)
         a1.fill_between(strain[order], lo[order], hi[order], color="#9ecae1", alpha=0.6,

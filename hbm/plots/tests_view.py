@@ -16,6 +16,7 @@ import textwrap
 
 import numpy as np
 
+from ..data.specimen import Specimen
 from ..model.core import Loading
 from . import plt
 
@@ -24,20 +25,20 @@ __all__ = ["TEST_COLORS", "test_ids", "dense_path", "model_curve", "draw_tests",
 TEST_COLORS = plt.get_cmap("tab10").colors
 
 
-def test_ids(test, n: int) -> np.ndarray:
-    """The test id of each point (zeros without a test column)."""
-    return np.zeros(n, int) if test is None else np.asarray(test)
+def test_ids(spec: Specimen) -> np.ndarray:
+    """The test id of each point of a specimen (zeros without a test column)."""
+    return np.zeros(spec.n_points, int) if spec.test is None else spec.test
 
 
-def dense_path(strain: np.ndarray, time: np.ndarray | None, test: np.ndarray, factor: int = 8) -> dict:
-    """The loading path with ``factor`` − 1 interpolated points between neighbours of one history.
+def dense_path(spec: Specimen, factor: int = 8) -> dict:
+    """The specimen's loading path with ``factor`` − 1 interpolated points between neighbours of one history.
 
     A history (time continuing, or one test without time) is densified as a whole; the inserted
     points belong to the test of the point they follow.  Returns ``strain``, ``time`` (or None)
     and ``test`` arrays of the dense path.
     """
-    strain = np.asarray(strain, float)
-    hist = Loading(strain, time, test).history
+    strain, time, test = spec.strain, spec.time, test_ids(spec)
+    hist = spec.loading.history
     xs, ts, ks = [], [], []
     for h in np.unique(hist):
         idx = np.flatnonzero(hist == h)
@@ -55,13 +56,13 @@ def dense_path(strain: np.ndarray, time: np.ndarray | None, test: np.ndarray, fa
             "test": k, "piece": piece}
 
 
-def model_curve(lik, x, strain: np.ndarray, time: np.ndarray | None, test: np.ndarray, factor: int = 8) -> dict:
-    """``lik``'s model stress at free vector ``x`` along the dense path (:func:`dense_path`).
+def model_curve(lik, x, spec: Specimen, factor: int = 8) -> dict:
+    """``lik``'s model stress at free vector ``x`` along the specimen's dense path (:func:`dense_path`).
 
     Returns the dense path with ``stress``; ``None`` when the model cannot be evaluated off the
     data points (the caller then draws the prediction at the data points).
     """
-    path = dense_path(strain, time, test, factor)
+    path = dense_path(spec, factor)
     try:
         theta = np.asarray(lik.model_theta(np.asarray(x, float)[None, :]))[0]
         with np.errstate(all="ignore"):

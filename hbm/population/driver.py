@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -11,11 +10,12 @@ import numpy as np
 
 from .. import io
 from ..runtime import seeds
+from ..data.specimen import as_specimen
 from ..errors import HbmError
 from ..model import spyrou_model
 from ..samplers.hierarchical import GroupedResult, grouped_hierarchical, hierarchical
 from ..runtime.progress import log_progress as _log
-from .config import PopulationConfig, check_config
+from .config import PopulationConfig
 from .fallbacks import refine_collapsed, to_refine
 from .layer import sample_layer
 from .pooling import Layout, pack_results, pooling_strategy
@@ -32,9 +32,9 @@ def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping |
     ----------
     results : mapping of specimen id -> SpecimenResult
         Stage-1 results, all fitted with the same parameters and prior boxes.
-    datasets : mapping of specimen id -> xarray.Dataset, optional
-        The specimens' data: the joint sampler (the default) needs them; without them the layer reuses
-        the stage-1 samples (:func:`joint_applies`).
+    datasets : mapping of specimen id -> Specimen (or xarray.Dataset), optional
+        The specimens' data (Datasets are converted once): the joint sampler (the default) needs them;
+        without them the layer reuses the stage-1 samples (:func:`joint_applies`).
     model : Model, optional
         The stage-1 model; default :func:`hbm.spyrou_model`.
     config : PopulationConfig, optional
@@ -56,11 +56,12 @@ def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping |
         Fewer than two specimens, specimens fitted with different parameters/boxes, a bad
         ``pooled``, or refinements needed without ``datasets``.
     """
-    cfg = dataclasses.replace(config, **kwargs) if config is not None else PopulationConfig(**kwargs)
-    check_config(cfg)
+    cfg = config.replace(**kwargs) if config is not None else PopulationConfig(**kwargs)
     if len(results) < 2:
         raise HbmError(f"the population layer needs at least two specimens, got {len(results)}")
     model = spyrou_model() if model is None else model
+    if datasets is not None:  # converted once (a Dataset of older code or a notebook becomes a Specimen)
+        datasets = {sid: d if d is None else as_specimen(d) for sid, d in datasets.items()}
     data = pack_results(results, model, cfg)
     strategy = pooling_strategy(cfg.pooled, data)
     layout = strategy.layout(data, cfg)

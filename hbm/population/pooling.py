@@ -7,9 +7,12 @@ of the exact fallback and how to draw a new specimen.
 
 * :class:`ParameterPooling` -- model parameters: "informed" (those the posteriors inform,
   :func:`~hbm.samplers.hierarchical.auto_pool`), "all" or a list of names.
-* :class:`CombinationPooling` -- "combinations": a population over φ = (log G, log c·P1,
-  log (1−c)·T1), T2, THETA (+ EOPT when informed), with the exact stage-1 prior density of φ
+* :class:`CombinationPooling` -- "combinations": a population over the logs of the model's three
+  mixture combinations φ (the Spyrou base: log G, log c·P1, log (1−c)·T1), its shape parameters
+  (the Spyrou base: T2, THETA, + EOPT when informed), with the exact stage-1 prior density of φ
   (:mod:`hbm.identifiability.combinations`).
+
+Parameter names, transforms and roles come from the model's spec (:mod:`hbm.model.spec`).
 """
 
 from __future__ import annotations
@@ -22,20 +25,28 @@ import numpy as np
 
 from .. import io
 from ..runtime import seeds
-from ..identifiability.combinations import (COMBINATION_PARAMS, combination_box, fibre_point, log_density,
-                                            sample_conditional, support_hull, to_features)
+from ..identifiability.combinations import (
+    combination_box, combination_features, fibre_point, log_density, sample_conditional, support_hull, to_features)
 from ..errors import HbmError
-from ..model import COMBINATIONS
+from ..model.spec import ModelSpec, base_spec
 from ..samplers.hierarchical import auto_pool
 from ..runtime.progress import log_progress as _log
-from .config import (
-    COMBINATION_COLUMNS, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES, PopulationConfig)
+from .config import POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES, PopulationConfig, combination_columns
 
 __all__ = ["Stage1Data", "Layout", "ParameterPooling", "CombinationPooling", "pack_results", "pooling_strategy",
-           "COMBINATION_NEEDS"]
+           "COMBINATION_NEEDS", "combination_needs"]
 
-#: model parameters ``--pool combinations`` needs free
-COMBINATION_NEEDS = COMBINATION_PARAMS + ("T2", "THETA")
+
+def combination_needs(spec: ModelSpec) -> tuple[str, ...]:
+    """The model parameters ``--pool combinations`` needs free: the mixture's five and the shape
+    parameters pooled always (empty for a model without a mixture)."""
+    if spec.mixture is None:
+        return ()
+    return spec.mixture.params + tuple(p for p in spec.shape_parameters if p not in spec.pooled_when_informed)
+
+
+#: model parameters ``--pool combinations`` needs free (the default base's)
+COMBINATION_NEEDS = combination_needs(base_spec())
 
 
 @dataclass
@@ -52,8 +63,8 @@ class Stage1Data:
     model_names : list of str
         The free model parameters among the columns (the noise columns are not pooled).
     transforms : dict
-        Transform of each model parameter (:data:`~hbm.population.DEFAULT_TRANSFORMS`, the
-        configuration's overrides; "logit" where "log" would need a positive box).
+        Transform of each model parameter (the spec's, the configuration's overrides; "logit" where
+        "log" would need a positive box).
     log_likelihood : dict or None
         The stored stage-1 log-likelihoods of every specimen's samples (None unless all have them).
     """
@@ -64,6 +75,7 @@ class Stage1Data:
     model_names: list
     transforms: dict
     log_likelihood: dict | None
+    spec: ModelSpec | None = None
 
     def samples(self) -> dict[str, np.ndarray]:
         """Specimen -> stage-1 samples."""
@@ -89,7 +101,8 @@ def pack_results(results: Mapping[str, io.SpecimenResult], model, cfg: Populatio
             raise HbmError(f"hierarchical: specimen {sid} was fitted with a non-uniform prior on "
                            f"{', '.join(logu)}; the population layer needs uniform stage-1 priors")
     model_names = [n for n in names if n in model.parameter_names]
-    transforms = {n: DEFAULT_TRANSFORMS.get(n, "logit") for n in model_names}
+    spec = getattr(model, "spec", None) or base_spec()
+    transforms = {n: spec.transform(n) for n in model_names}
     transforms.update({k: v for k, v in dict(cfg.transforms or {}).items() if k in model_names})
     for n in model_names:  # log needs a positive box
         if transforms[n] == "log" and first.bounds[names.index(n), 0] <= 0:
@@ -97,7 +110,8 @@ def pack_results(results: Mapping[str, io.SpecimenResult], model, cfg: Populatio
     # stage-1 log-likelihoods for the coverage diagnostic (its likelihood extrapolation), when stored
     ll = {sid: np.asarray(r.log_likelihood, float) for sid, r in results.items()
           if getattr(r, "log_likelihood", None) is not None and len(r.log_likelihood) == len(r.samples)}
-    return Stage1Data(results, names, first.bounds, model_names, transforms, ll if len(ll) == len(results) else None)
+    return Stage1Data(results, names, first.bounds, model_names, transforms, ll if len(ll) == len(results) else None,
+                      spec)
 
 
 @dataclass
@@ -129,13 +143,15 @@ class Layout:
 
 
 def pooling_strategy(pooled, data: Stage1Data):
-    """The strategy of ``PopulationConfig.pooled``: "auto" (default: "combinations" when VOLF, P1, T1,
-    GF, GM, T2, THETA are free, otherwise "informed"), "combinations", "informed", "all" or names."""
+    """The strategy of ``PopulationConfig.pooled``: "auto" (default: "combinations" when the model has a
+    mixture and its parameters (:func:`combination_needs`) are free, otherwise "informed"),
+    "combinations", "informed", "all" or names."""
     if (isinstance(pooled, (list, tuple)) and len(pooled) == 1
             and pooled[0] in POOL_MODES):
         pooled = pooled[0]  # the CLI splits --pool on commas
     if pooled in (None, "auto"):
-        pooled = POOL_COMBINATIONS if all(n in data.model_names for n in COMBINATION_NEEDS) else POOL_INFORMED
+        needs = combination_needs(data.spec)
+        pooled = POOL_COMBINATIONS if needs and all(n in data.model_names for n in needs) else POOL_INFORMED
     return CombinationPooling() if pooled == POOL_COMBINATIONS else ParameterPooling(pooled)
 
 
@@ -203,16 +219,17 @@ class CombinationAugment:
     (:func:`hbm.samplers.hierarchical.refine_individual`); a class so that dask can ship it.
     """
 
-    def __init__(self, names: Sequence[str], bounds: np.ndarray, log_u: float) -> None:
+    def __init__(self, names: Sequence[str], bounds: np.ndarray, log_u: float, roles=None) -> None:
         self.names, self.bounds, self.log_u = list(names), np.asarray(bounds, float), float(log_u)
+        self.roles = roles or base_spec().mixture
 
     def __call__(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        f = to_features(self.names, theta)
-        ok = np.all(f > 0, axis=1)  # T1 = 0 exactly has no log feature (prior mass 0)
+        f = to_features(self.names, theta, roles=self.roles)
+        ok = np.all(f > 0, axis=1)  # an amplitude exactly 0 has no log feature (prior mass 0)
         phi = np.log(np.where(ok[:, None], f, 1.0))
         lp = np.full(theta.shape[0], -np.inf)
         if ok.any():
-            lp[ok] = log_density(phi[ok], self.bounds, self.names) + self.log_u
+            lp[ok] = log_density(phi[ok], self.bounds, self.names, roles=self.roles) + self.log_u
         return np.hstack([theta, phi]), lp
 
 
@@ -228,21 +245,24 @@ class PhiCoordinates:
     which is the joint posterior's own conditional.
     """
 
-    def __init__(self, names: Sequence[str], bounds: np.ndarray, hull: np.ndarray, log_u: float) -> None:
+    def __init__(self, names: Sequence[str], bounds: np.ndarray, hull: np.ndarray, log_u: float,
+                 roles=None) -> None:
         self.names, self.bounds, self.log_u = list(names), np.asarray(bounds, float), float(log_u)
-        self.comb = [self.names.index(p) for p in COMBINATION_PARAMS]
-        self.other = [j for j, n in enumerate(self.names) if n not in COMBINATION_PARAMS]
+        self.roles = roles = roles or base_spec().mixture   # the mixture of the model's spec (default base's)
+        self.comb = [self.names.index(p) for p in roles.params]
+        self.other = [j for j, n in enumerate(self.names) if n not in roles.params]
         self.box = np.vstack([np.asarray(hull, float), self.bounds[self.other]])
-        self.cbox = combination_box(self.bounds, self.names)  # built once: theta_of is in the sampler's inner loop
-        self.names_y = list(COMBINATION_COLUMNS) + [self.names[j] for j in self.other]
+        # built once: theta_of is in the sampler's inner loop
+        self.cbox = combination_box(self.bounds, self.names, roles=roles)
+        self.names_y = list(combination_columns(roles)) + [self.names[j] for j in self.other]
 
     def y_of(self, theta: np.ndarray) -> np.ndarray:
         theta = np.asarray(theta, float)
-        return np.column_stack([np.log(to_features(self.names, theta)), theta[:, self.other]])
+        return np.column_stack([np.log(to_features(self.names, theta, roles=self.roles)), theta[:, self.other]])
 
     def theta_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A θ with combinations φ = y[:, :3] (:func:`hbm.identifiability.combinations.fibre_point`) and whether one exists."""
-        parts, ok = fibre_point(y[:, :3], self.bounds, self.names, box=self.cbox)
+        parts, ok = fibre_point(y[:, :3], self.bounds, self.names, box=self.cbox, roles=self.roles)
         theta = np.empty((y.shape[0], len(self.names)))
         theta[:, self.comb] = parts
         theta[:, self.other] = y[:, 3:]
@@ -254,7 +274,7 @@ class PhiCoordinates:
 
     def draw_theta(self, y: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         theta = np.empty((y.shape[0], len(self.names)))
-        theta[:, self.comb] = sample_conditional(y[:, :3], self.bounds, rng, self.names)
+        theta[:, self.comb] = sample_conditional(y[:, :3], self.bounds, rng, self.names, roles=self.roles)
         theta[:, self.other] = y[:, 3:]
         return theta
 
@@ -275,37 +295,46 @@ class CombinationPooling:
     mode = POOL_COMBINATIONS
 
     def layout(self, data: Stage1Data, cfg: PopulationConfig) -> Layout:
-        names, bounds, model_names = data.names, np.asarray(data.bounds, float), data.model_names
-        missing = [p for p in COMBINATION_NEEDS if p not in model_names]
+        names, bounds, model_names, spec = data.names, np.asarray(data.bounds, float), data.model_names, data.spec
+        if spec is None or spec.mixture is None:
+            raise HbmError("--pool combinations needs a model whose spec declares a mixture of its combinations; "
+                           "use --pool informed")
+        roles = spec.mixture
+        missing = [p for p in combination_needs(spec) if p not in model_names]
         if missing:
             raise HbmError(f"--pool combinations needs free parameters {', '.join(missing)} (fixed or absent); "
                            f"use --pool informed")
         choice = auto_pool(data.samples(), names, bounds, data.transforms, candidates=model_names)
-        self.extra = extra = [n for n in model_names if n in ("EOPT", "T2", "THETA")
-                              and (n != "EOPT" or n in choice.pooled)]
-        phis = {sid: np.log(to_features(names, r.samples)) for sid, r in data.results.items()}
-        # box of the φ columns: the support hull of the combinations (a zero lower end, T1 from 0, is
-        # floored; widened if a sample lies below the floor so every sample is inside)
-        hull = np.log(support_hull(bounds, names))
+        self.extra = extra = [n for n in model_names if n in spec.shape_parameters
+                              and (n not in spec.pooled_when_informed or n in choice.pooled)]
+        # φ of every stage-1 row; its prior density only when the reuse layer asks (the joint sampler does not)
+        phis = {sid: combination_features(names, r.samples, bounds, roles=roles, density=False)[0]
+                for sid, r in data.results.items()}
+        # box of the φ columns: the support hull of the combinations (a zero lower end, an amplitude from 0,
+        # is floored; widened if a sample lies below the floor so every sample is inside)
+        hull = np.log(support_hull(bounds, names, roles=roles))
         allphi = np.concatenate(list(phis.values()))
         hull[:, 0] = np.minimum(hull[:, 0], allphi.min(axis=0) - 1e-9)
         hull[:, 1] = np.maximum(hull[:, 1], allphi.max(axis=0) + 1e-9)
-        aug_names = list(names) + list(COMBINATION_COLUMNS)
+        columns = list(combination_columns(roles))
+        aug_names = list(names) + columns
         aug_bounds = np.vstack([bounds, hull])
-        pooled = list(COMBINATION_COLUMNS) + extra
-        tr = {**{c: "identity" for c in COMBINATION_COLUMNS}, **{n: data.transforms[n] for n in extra}}
+        pooled = columns + extra
+        tr = {**{c: "identity" for c in columns}, **{n: data.transforms[n] for n in extra}}
         # stage-1 prior of the pooled columns: p0(φ) × uniform densities of the other pooled columns
         log_u = -float(sum(np.log(np.ptp(bounds[names.index(n)])) for n in extra))
         reasons = {k: v["reason"] for k, v in choice.reasons.items()}
         reasons["combinations"] = ("--pool combinations: population over "
-                                   + ", ".join(f"log {c}" for c in COMBINATIONS)
+                                   + ", ".join(f"log {c}" for c in roles.names)
                                    + f" (exact stage-1 prior density) and {', '.join(extra)}")
         _log(f"pooled (combinations): {', '.join(pooled)}", cfg.progress)
-        self.names, self.bounds, self.model_names = list(names), bounds, list(model_names)
-        self.augment = CombinationAugment(names, bounds, log_u)
-        self.coords = PhiCoordinates(names, bounds, hull, log_u)
+        self.names, self.bounds, self.model_names, self.roles = list(names), bounds, list(model_names), roles
+        self.augment = CombinationAugment(names, bounds, log_u, roles)
+        self.coords = PhiCoordinates(names, bounds, hull, log_u, roles)
+        cbox = combination_box(bounds, names, roles=roles)
+
         def prior() -> dict:  # p0(φ) × the uniform densities of the other pooled columns, per stage-1 row
-            return {sid: log_density(phis[sid], bounds, names) + log_u for sid in data.results}
+            return {sid: log_density(phis[sid], cbox) + log_u for sid in data.results}
 
         return Layout(aug_names, aug_bounds, tr, pooled, data.stage1(phis), None,
                       {"transforms": tr, "pooled": pooled, "pool_reasons": reasons, "mode": POOL_COMBINATIONS},
@@ -316,9 +345,9 @@ class CombinationPooling:
         return {s: np.asarray(h.updated[s])[:, : len(self.names)] for s in h.specimens}
 
     def new_specimen(self, h, cfg: PopulationConfig) -> tuple[np.ndarray, list, dict]:
-        """Pooled columns from the predictive, (VOLF, P1, T1, GF, GM) | φ from the box prior, unpooled
+        """Pooled columns from the predictive, the mixture's five parameters | φ from the box prior, unpooled
         model parameters from their uniform stage-1 prior (stream ``new_specimen``)."""
-        names, bounds = self.names, self.bounds
+        names, bounds, roles = self.names, self.bounds, self.roles
         rng = seeds.rng(int(cfg.seed), "new_specimen")
         pred = np.asarray(h.predictive)
         # The normal population lives on the hull box of φ, but p0 (hence a real specimen) lives on a
@@ -326,14 +355,14 @@ class CombinationPooling:
         # parameters and are rejected (rejection sampling of the population restricted to the support).
         # The likelihood ignores that truncation mass Z_S(ψ); the rejected fraction, E_ψ[1 − Z_S(ψ)],
         # bounds its effect and goes into the attributes.
-        inside = np.isfinite(log_density(pred[:, : len(COMBINATION_COLUMNS)], bounds, names))
+        inside = np.isfinite(log_density(pred[:, :3], bounds, names, roles=roles))
         outside_fraction = float(1.0 - inside.mean())
         if not inside.any():
             raise HbmError("--pool combinations: every new-specimen draw lies outside the prior support of the "
                            "combinations; the population is not usable")
         pred = pred[inside]
-        parts = sample_conditional(pred[:, : len(COMBINATION_COLUMNS)], bounds, rng, names)
-        derived_cols = {p: parts[:, k] for k, p in enumerate(COMBINATION_PARAMS)}
+        parts = sample_conditional(pred[:, :3], bounds, rng, names, roles=roles)
+        derived_cols = {p: parts[:, k] for k, p in enumerate(roles.params)}
         for n in self.model_names:
             if n not in derived_cols and n not in self.extra:
                 lo, hi = bounds[names.index(n)]

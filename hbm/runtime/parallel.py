@@ -32,7 +32,7 @@ from .dask_worker import drop_dask_unraisables
 from .blas import BLAS_ENV, single_thread_env
 from ..errors import HbmError, OutputError, OutputLockedError
 from ..samplers.checkpoint import checkpoint_progress
-from .validation import check_workers
+from ..settings.rules import check_workers
 
 __all__ = ["ALLOWED_FAILURES", "NO_WORKER_TIMEOUT", "NO_WORKER_TIMEOUT_EXTERNAL",
            "BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",

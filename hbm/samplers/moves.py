@@ -38,7 +38,7 @@ from .linalg import batched_cholesky
 from .local_proposal import LocalMetric, fit_local_metric, local_step, nearest_reference
 
 __all__ = ["Walkers", "MoveStep", "Tuning", "StageSetup", "Move", "RandomWalk", "Manifold", "LocalWalk",
-           "MOVES", "register_move", "get_move", "adapt_scale", "metropolis"]
+           "MOVES", "register_move", "get_move", "needs_gradient", "adapt_scale", "metropolis"]
 
 
 class Walkers(NamedTuple):
@@ -324,10 +324,12 @@ class Manifold:
     box_coordinates = True
     unbounded = False
     adapts = "epsilon"
+    #: the move needs ``gradient_fim`` (:func:`needs_gradient`)
+    needs_gradient = True
 
     def prepare(self, setup: StageSetup) -> tuple[Any, Walkers]:
         if setup.gradient_fim is None:
-            raise HbmError("tmcmc: kernel='manifold' needs gradient_fim")
+            raise HbmError("tmcmc: move='manifold' needs gradient_fim")
         g0, f0 = setup.gradient_fim(setup.walkers.x)
         aux = (np.asarray(g0, dtype=float).copy(), np.asarray(f0, dtype=float).copy())
         ridge_prec = self.ridge * np.linalg.inv(setup.sigma)
@@ -410,3 +412,9 @@ def get_move(move: "str | Move") -> Move:
         raise HbmError("tmcmc: move must be a registered name or an object with name, box_coordinates, "
                        "unbounded, adapts, prepare, step, adapt and fingerprint")
     return move
+
+
+def needs_gradient(move: "str | Move") -> bool:
+    """Whether ``move`` (a name of :data:`MOVES` or a :class:`Move`) needs the log-likelihood's
+    gradient and Fisher information (``gradient_fim``; a move says so by ``needs_gradient = True``)."""
+    return bool(getattr(get_move(move), "needs_gradient", False))

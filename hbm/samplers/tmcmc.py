@@ -30,6 +30,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Optional
 
@@ -124,7 +125,7 @@ def _check_bijection(bijection: Optional[Bijection], move: Move, d: int) -> None
     if not isinstance(bijection, Bijection):
         raise HbmError("tmcmc: bijection needs name, support, forward(theta) and inverse(u)")
     if move.box_coordinates:
-        raise HbmError(f"tmcmc: a bijection needs a move in sampling coordinates such as kernel='rw' "
+        raise HbmError(f"tmcmc: a bijection needs a move in sampling coordinates such as move='rw' "
                        f"(move {move.name!r} works in box coordinates)")
     sup = np.asarray(bijection.support, float)
     if sup.shape != (d, 2) or np.any(sup[:, 0] >= sup[:, 1]):
@@ -361,14 +362,18 @@ def _result_chains(state: TMCMCState, config: TMCMCConfig) -> Chains:
     return decision
 
 
-def _resolve_move(kernel: str, proposal: Optional[str], move: "str | Move | None") -> "str | Move":
-    """The move of the driver's arguments: ``move=``, or the older ``kernel=`` / ``proposal=`` names."""
-    if kernel not in ("rw", "manifold"):
+def _resolve_move(move: "str | Move | None", kernel: Optional[str], proposal: Optional[str]) -> "str | Move":
+    """The move of the driver's arguments: ``move=``, or the older names ``kernel=`` / ``proposal=``
+    (deprecated: they warn)."""
+    for old, value in (("kernel", kernel), ("proposal", proposal)):
+        if value is not None:
+            warnings.warn(f"tmcmc({old}=...) is deprecated; use move=", DeprecationWarning, stacklevel=3)
+    if kernel not in (None, "rw", "manifold"):
         raise HbmError(f"tmcmc: kernel must be 'rw' or 'manifold', got {kernel!r}")
     if proposal not in (None, "rw", "local"):
         raise HbmError(f"tmcmc: proposal must be 'rw' or 'local', got {proposal!r}")
     if move is not None:
-        if kernel != "rw" or proposal not in (None, "rw"):
+        if kernel not in (None, "rw") or proposal not in (None, "rw"):
             raise HbmError("tmcmc: give either move= or kernel=/proposal=, not both")
         return move
     if kernel == "manifold" and proposal == "local":
@@ -380,12 +385,12 @@ def _resolve_move(kernel: str, proposal: Optional[str], move: "str | Move | None
 # driver
 # ----------------------------------------------------------------------------------------
 def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None, *, seed,
-          kernel: str = "rw", move: "str | Move | None" = None, gradient_fim: Optional[GradientFIM] = None,
+          move: "str | Move | None" = None, gradient_fim: Optional[GradientFIM] = None,
           cov_target: Optional[float] = None,
           proposal_scale: float = 0.2, n_steps: Optional[int] = None, max_stages: int = 100,
           checkpoint: Optional[str | os.PathLike] = None, progress: bool = True,
           max_evaluations: Optional[int] = None, preset: Optional[str] = None,
-          bijection: Optional[Bijection] = None, **options: Any) -> TMCMCResult:
+          bijection: Optional[Bijection] = None, kernel: Optional[str] = None, **options: Any) -> TMCMCResult:
     """Transitional MCMC from the uniform prior on ``bounds`` to the posterior, with log-evidence.
 
     Parameters
@@ -398,11 +403,9 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         Population size N; None = the preset's, else :data:`~.types.DEFAULT_N_SAMPLES`.
     seed : int
         Seed of the PCG64 generator (required: runs are reproducible and resumable).
-    kernel : {"rw", "manifold"}
-        Random walk (population covariance, adapted scale) or simplified mMALA; a short form of
-        ``move`` (with ``proposal="local"`` in ``options`` for the local walk).
     move : str or Move, optional
-        The MH move: a name of :data:`hbm.samplers.moves.MOVES` ("rw", "manifold", "local") or a
+        The MH move: a name of :data:`hbm.samplers.moves.MOVES` ("rw", the default: random walk with
+        the population covariance and an adapted scale; "manifold": simplified mMALA; "local") or a
         :class:`~.moves.Move` object (e.g. ``Manifold(ridge=1e-3)``, ``LocalWalk(neighbours=15)``).
     gradient_fim : callable, optional
         θ (n, d) → (gradient (n, d), Fisher information (n, d, d)) of the log-likelihood;
@@ -433,8 +436,9 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         for the muscle model).  None (default): the run is unchanged.
     **options
         Further :class:`~.types.TMCMCConfig` fields (transform, n_islands, min_steps, max_steps,
-        mixing_target, target_acceptance, adapt_scale, resampling, min_dbeta), and
-        ``proposal`` ("rw" or "local": the short form of ``move="local"``).
+        mixing_target, target_acceptance, adapt_scale, resampling, min_dbeta).
+    kernel : {"rw", "manifold"}, optional
+        Deprecated name of ``move`` (as ``proposal="rw"|"local"`` in ``options``); warns.
 
     Returns
     -------
@@ -450,7 +454,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
         base.pop("n_samples", None), base.pop("cov_target", None)
         options = {**base, **options}
     n_samples = DEFAULT_N_SAMPLES if n_samples is None else n_samples
-    move = _resolve_move(kernel, options.pop("proposal", None), move)
+    move = _resolve_move(move, kernel, options.pop("proposal", None))
     if max_evaluations is not None:
         options["max_evaluations"] = int(max_evaluations)
     unknown = set(options) - {f.name for f in dataclasses.fields(TMCMCConfig)}
@@ -463,7 +467,7 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
     config.validate()
     b = check_bounds(bounds)
     if isinstance(config.move, Manifold) and gradient_fim is None:
-        raise HbmError("tmcmc: kernel='manifold' needs gradient_fim")
+        raise HbmError("tmcmc: move='manifold' needs gradient_fim")
     if seed is None or isinstance(seed, np.random.Generator):
         raise HbmError("tmcmc: seed must be an int (reproducible, resumable runs)")
     _check_bijection(bijection, config.move, len(b))
@@ -482,7 +486,8 @@ def tmcmc(log_likelihood: LogLikelihood, bounds, n_samples: Optional[int] = None
     ll_timed = timed(log_likelihood)
     gf_timed = None if gradient_fim is None else timed(gradient_fim)
     fp = fingerprint(config, b, seed, None if bijection is None else str(bijection.name))
-    settings = {"n_samples": config.n_samples, "kernel": kernel, "seed": repr(seed), "d": len(b)}
+    settings = {"n_samples": config.n_samples, "move": getattr(config.move, "name", str(config.move)),
+                "seed": repr(seed), "d": len(b)}
     path = Path(checkpoint) if checkpoint is not None else None
     stages: list[StageInfo] = []
     resumed = 0

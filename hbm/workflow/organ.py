@@ -43,6 +43,13 @@ from ..effects import REGISTRY, make_effect
 from ..errors import HbmError, HbmWarning
 from ..model import BASE_EFFECTS, spyrou_model
 from ..model.core import Model
+from ..model.spec import spec_of
+
+
+def _fraction(model) -> str:
+    """The fraction of the model's manifold (VOLF for the Spyrou base): the optima are ordered by it."""
+    man = spec_of(model).manifold
+    return man.x if man is not None else ""
 from ..organ import (
     FusiformGeometry, OrganResponse, extrapolation_mask, force_levels, load_geometry, nominal_stress,
     organ_response, theta_from_samples)
@@ -371,9 +378,9 @@ def predict_organ_results(specimens: Mapping[str, io.SpecimenResult], geometry: 
     prep: dict[str, dict] = {}
     for k, sid in enumerate(ids):
         r = specimens[sid]
-        if r.strain is None or not np.size(r.strain):
+        if r.data is None:
             raise HbmError(f"specimen {sid}: the result holds no observed strains (needed for the extrapolation check)")
-        tested = float(np.max(r.strain))
+        tested = float(np.max(r.data.strain))
         if not tested > 0:
             raise HbmError(f"specimen {sid}: largest tested strain is {tested:g}; expected > 0")
         rng = seeds.rng(int(seed), "organ_posterior", k)
@@ -387,7 +394,7 @@ def predict_organ_results(specimens: Mapping[str, io.SpecimenResult], geometry: 
         if r.optima:
             best = min(float(o["objective"]) for o in r.optima)
             sel = [o for o in r.optima if float(o["objective"]) <= best + near]
-            sel.sort(key=lambda o: float(o["params"].get("VOLF", 0.0)))
+            sel.sort(key=lambda o: float(o["params"].get(_fraction(model), 0.0)))
             d["optima"], d["best"] = sel, best
             d["optima_dropped"] = len(r.optima) - len(sel)
         prep[sid] = d
@@ -575,7 +582,8 @@ def organ_section(pred: OrganPrediction, *, base: str | os.PathLike | None = Non
             n_opt = ds.sizes["optimum"]
             if n_opt >= 2:
                 within, beyond = optima_spread(ds)
-                vol = ds["parameters"].sel(parameter="VOLF").values if "VOLF" in ds["parameter"] else None
+                x = _fraction(None)
+                vol = ds["parameters"].sel(parameter=x).values if x in ds["parameter"] else None
                 spreads.append(f"| {sid} | {n_opt} | "
                                + (f"{vol.min():.2f}–{vol.max():.2f}" if vol is not None else "–")
                                + f" | {optima_agreement(ds)} of {n_opt} | {_pct(within)} | {_pct(beyond)} |")

@@ -21,8 +21,9 @@ import numpy as np
 
 from .._version import __version__
 from ..fit.specimen import at_bounds, fit_quality, format_at_bounds, summarize
+from ..settings.fit import FitRecord
 from ..identifiability.manifolds import compare_manifolds
-from ..model import COMBINATIONS, SHAPE_PARAMETERS
+from ..model.spec import spec_of
 from ..samplers.hierarchical import group_differences, variance_split
 from ..runtime.files import atomic_write_text
 from ..identifiability.views import population_table, quantity_samples, specimen_variability
@@ -63,9 +64,10 @@ def _header(wres, base: Path) -> str:
 
 
 def _settings(wres, base: Path) -> str:
-    """## Run settings: the RunConfig options that shape the results."""
+    """## Run settings: the run's settings that shape the results (the TMCMC move keeps its stored label,
+    "kernel", so that a report of unchanged results is unchanged)."""
     cfg = wres.config
-    rows = [("samples (TMCMC N)", cfg.samples), ("kernel", cfg.kernel), ("noise model", cfg.noise),
+    rows = [("samples (TMCMC N)", cfg.samples), ("kernel", cfg.move), ("noise model", cfg.noise),
             ("seed", cfg.seed), ("workers", cfg.workers if cfg.workers is not None else "all cores"),
             ("scheduler", cfg.scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS") or "embedded LocalCluster"),
             ("CMA-ES restarts / budget per run", f"{cfg.restarts} / {cfg.maxfevals} evaluations"),
@@ -101,13 +103,13 @@ def _timings(wres, base: Path) -> str:
 def _specimen(wres, sid: str, base: Path) -> str:
     """### <id>: evidence, posterior table, identified directions, manifold, Sobol, figures."""
     r = wres.results[sid]
+    converted = FitRecord.from_attrs(r.config).input
     rows = [(k, fmt(v["mean"]), fmt(v["sd"], 3), f"[{fmt(v['lower'])}, {fmt(v['upper'])}]")
             for k, v in summarize(r).items()]
     txt = [f"### {sid}\n",
            f"log-evidence **{r.log_evidence:.3f} ± {r.log_evidence_se:.3f}** ({len(r.stages)} TMCMC stages, "
            f"{r.n_samples} samples" + (f", fixed {r.fixed}" if r.fixed else "") + ")\n",
-           *([f"Input converted: {r.config['input']} (stresses here are Cauchy, MPa).\n"]
-             if r.config.get("input") else []),
+           *([f"Input converted: {converted} (stresses here are Cauchy, MPa).\n"] if converted else []),
            _table(["quantity", "mean", "sd", "90% interval"], rows)]
     dirs = wres.directions.get(sid)
     if dirs is not None:
@@ -119,11 +121,13 @@ def _specimen(wres, sid: str, base: Path) -> str:
                                      + f" (sd ratio {d['ratio']:.2g})" for d in dirs[:6])
                            or "none (no combination of up to three parameters is pinned that tightly)"))
     m = wres.manifolds.get(sid)
-    if m is not None:
-        txt.append(f"\nVOLF–T1 manifold from {m['source']}: VOLF ∈ [{fmt(min(m['points_x']), 3)}, "
-                   f"{fmt(max(m['points_x']), 3)}], variation of (1−VOLF)·T1 along it ((max−min)/median) "
+    man = spec_of(r).manifold
+    if m is not None and man is not None:
+        x, y, level = man.x, man.y, man.level_text
+        txt.append(f"\n{x}–{y} manifold from {m['source']}: {x} ∈ [{fmt(min(m['points_x']), 3)}, "
+                   f"{fmt(max(m['points_x']), 3)}], variation of {level} along it ((max−min)/median) "
                    f"{m['combination_rel_spread']:.1%}"
-                   + (f"; level (1−VOLF)·T1 = {fmt(m['level'][0])} [{fmt(m['level'][1])}, {fmt(m['level'][2])}]"
+                   + (f"; level {level} = {fmt(m['level'][0])} [{fmt(m['level'][1])}, {fmt(m['level'][2])}]"
                       if "level" in m else "") + ".")
     if r.sobol:
         order = sorted(r.sobol["ST"], key=lambda k: -np.nan_to_num(r.sobol["ST"][k], nan=-1))
@@ -172,9 +176,9 @@ def _fit_quality(wres, base: Path) -> str:
 
 def _tier(r) -> str:
     """The likelihood tier of a stored result, with the evidence's source when it is not TMCMC's."""
-    c = r.config if isinstance(r.config, dict) else {}
-    tier = str(c.get("likelihood_tier", "full"))
-    source = (c.get("collapsed") or {}).get("evidence_source") if isinstance(c.get("collapsed"), dict) else None
+    stored = FitRecord.from_attrs(r.config if isinstance(r.config, dict) else {})
+    tier = str(stored.tier_used)
+    source = stored.collapsed.get("evidence_source") if isinstance(stored.collapsed, dict) else None
     return tier if not source or source == "tmcmc" else f"{tier} (evidence: {source})"
 
 
@@ -182,35 +186,41 @@ def _combinations(wres, base: Path) -> str:
     """## Identifiable combinations: posterior mean and 90 % interval of each, per specimen."""
     results = wres.results
     ids = sorted(results)
-    combos = [c for c in COMBINATIONS if all(c in summarize(results[s]) for s in ids)] if ids else []
+    spec = _spec(wres)
+    combos = [c for c in spec.combination_names if all(c in summarize(results[s]) for s in ids)] if ids else []
     if not combos:
         return ""
     rows = []
     for sid in ids:
         s = summarize(results[sid])
         rows.append([sid] + [f"{fmt(s[c]['mean'])} [{fmt(s[c]['lower'])}, {fmt(s[c]['upper'])}]" for c in combos])
-    return ("## Identifiable combinations (posterior mean [90% interval], MPa)\n\n"
-            "Uniaxial data can at best identify G = c·GF + (1−c)·GM, c·P1 and (1−c)·T1 (c = VOLF); "
-            "the individual parameters slide along manifolds. When the collagen works in its "
-            "near-linear range (small T2·(λH − 1) over the tested strains) only (1−c)·T1·T2 is "
-            "learnt and (1−c)·T1 trades off against T2: see each specimen's identified "
-            "combinations above.\n\n"
-            + _table(["specimen"] + combos, rows))
+    units = sorted({c.unit for c in spec.combinations if c.name in combos})
+    note = spec.texts.get("combinations", "")
+    return (f"## Identifiable combinations (posterior mean [90% interval], {', '.join(units)})\n\n"
+            + (note + "\n\n" if note else "") + _table(["specimen"] + combos, rows))
+
+
+def _spec(wres):
+    """The spec of the run's base model (its results'; the default base's without results)."""
+    return spec_of(next(iter(wres.results.values()), None))
 
 
 def _manifolds(wres, base: Path) -> str:
-    """## VOLF–T1 manifolds across specimens: level and flatness of (1−VOLF)·T1 per specimen."""
+    """## x–y manifolds across specimens (the spec's manifold: VOLF–T1 for the Spyrou base): level and
+    flatness of (1 − x)·y per specimen."""
     objs = {k: m["object"] for k, m in wres.manifolds.items() if "object" in m}
-    if len(objs) < 2:
+    man = _spec(wres).manifold
+    if len(objs) < 2 or man is None:
         return ""
+    title, level = f"## {man.x}–{man.y} manifolds across specimens", man.level_text
     try:
         cmp = compare_manifolds(objs)
-        return ("## VOLF–T1 manifolds across specimens\n\nLevel of (1−VOLF)·T1 along each "
+        return (f"{title}\n\nLevel of {level} along each "
                 "specimen's manifold (flatness: (max−min)/median along the spline; ≈ 0 means the "
-                "manifold is the hyperbola (1−VOLF)·T1 = const).\n\n" + cmp.table()
+                f"manifold is the hyperbola {level} = const).\n\n" + cmp.table()
                 + f"\n\nSpread of the levels (max/min): {cmp.spread:.3g}.")
     except Exception as exc:  # comparison is a bonus; never lose the report over it
-        return f"## VOLF–T1 manifolds across specimens\n\n(comparison failed: {exc})"
+        return f"{title}\n\n(comparison failed: {exc})"
 
 
 def _population(wres, base: Path) -> str:
@@ -218,44 +228,47 @@ def _population(wres, base: Path) -> str:
     h = wres.hierarchical
     if h is None:
         return ""
+    spec = _spec(wres)
     pt = population_table(h)
     rows = [(k, v["transform"], f"{fmt(v['median'])} [{fmt(v['median_lower'])}, {fmt(v['median_upper'])}]",
              f"[{fmt(v.get('new_lower'))}, {fmt(v.get('new_upper'))}]", fmt(v["sd_transformed"], 3))
             for k, v in pt.items()]
     txt = ["## Population estimates (hierarchical layer)\n",
-           f"Each parameter θ_k ~ Normal(mu_k, sd_k) in a transformed space (column 'transform': log for "
-           f"positive moduli spanning decades, logit on the prior box for bounded quantities, identity "
-           f"(truncated to the box) for THETA whose posteriors pile up at 60°); uniform hyperprior on mu, "
+           f"Each parameter θ_k ~ Normal(mu_k, sd_k) in a transformed space (column 'transform': "
+           f"{spec.texts.get('transforms', 'log, logit or identity, by the model')}); uniform hyperprior on mu, "
            f"{h.attrs.get('hyperprior', {}).get('sd', 'log-uniform sd')}; " + _how_sampled(h) + "\n",
            _table(["quantity", "transform", "population median [90%]", "new specimen 90%",
                    "population sd (transformed units)"], rows)]
     reasons = dict(h.attrs.get("pool_reasons") or {})
-    if h.attrs.get("mode") == "combinations":
+    if h.attrs.get("mode") == "combinations" and spec.mixture is not None:
         reasons.pop("combinations", None)
         pooled = list(h.attrs.get("pooled", []))
+        labels = [c.text for c in spec.combinations]
+        mixed = ", ".join(spec.mixture.params)
         txt.append(
             f"\nPooled (`--pool combinations`, the default for the base model): {', '.join(pooled)}. A uniaxial "
-            "curve identifies G = VOLF·GF + (1−VOLF)·GM, VOLF·P1 and (1−VOLF)·T1, not VOLF, P1, T1, GF, GM "
+            f"curve identifies {', '.join(labels[:-1])} and {labels[-1]}, not {mixed} "
             "one by one, so the population is put on the logs of the combinations (a log-normal population "
-            "of each) together with T2 and THETA; the exact density that the uniform stage-1 prior induces "
-            "on the combinations is divided out of the importance ratios. Given its combinations, a "
-            "specimen's VOLF, P1, T1, GF, GM keep their stage-1 prior"
-            + (", and so does EOPT (not pooled)" if "EOPT" not in pooled else "")
+            f"of each) together with {' and '.join(spec.pooled_shape)}; the exact density that the uniform "
+            "stage-1 prior induces on the combinations is divided out of the importance ratios. Given its "
+            f"combinations, a specimen's {mixed} keep their stage-1 prior"
+            + "".join(f", and so does {p} (not pooled)" for p in spec.pooled_when_informed if p not in pooled)
             + ". Fraction of new-specimen draws outside the support of the combinations (rejected): "
             f"{fmt(h.attrs.get('outside_support_fraction'), 2)}.")
-        if "EOPT" in reasons:
-            txt.append(f"\nEOPT is pooled only when the posteriors inform it: {reasons['EOPT']}")
+        for p in spec.pooled_when_informed:
+            if p in reasons:
+                txt.append(f"\n{p} is pooled only when the posteriors inform it: {reasons[p]}")
     elif reasons:
         # why each parameter is (not) pooled: a population over parameters the curves do not
         # inform makes the reused-sample importance weights degenerate
         txt.append("\nPooled parameters (`--pool informed`: posterior sd in the transformed space below 2/3 "
                    "of the prior's in at least half of the specimens; the others keep their own prior):\n")
         txt.extend(f"- {v}" if str(v).startswith(f"{k}:") else f"- {k}: {v}" for k, v in reasons.items())
-    pop = quantity_samples(h.pooled_names, h.new_specimen) if h.new_specimen is not None else {}
+    pop = quantity_samples(h.pooled_names, h.new_specimen, spec) if h.new_specimen is not None else {}
     if pop:
         med = {}
         if h.updated is not None:
-            med = {c: np.median(quantity_samples(h.param_names, h.updated.reshape(-1, h.updated.shape[-1]))[c])
+            med = {c: np.median(quantity_samples(h.param_names, h.updated.reshape(-1, h.updated.shape[-1]), spec)[c])
                    for c in pop}
         rows = [(c, f"[{fmt(np.quantile(v, 0.05))}, {fmt(np.quantile(v, 0.95))}]", fmt(np.median(v)),
                  fmt(med.get(c)))
@@ -395,9 +408,10 @@ def _variability(wres, base: Path) -> str:
     if len(ids) < 2:
         return ""
     rows = []
+    spec = _spec(wres)
     qs = {sid: quantity_samples(list(results[sid].as_dict()),
-                                np.column_stack(list(results[sid].as_dict().values()))) for sid in ids}
-    for k in COMBINATIONS + SHAPE_PARAMETERS:
+                                np.column_stack(list(results[sid].as_dict().values())), spec) for sid in ids}
+    for k in spec.combination_names + spec.shape_parameters:
         if not all(k in qs[s] for s in ids):
             continue
         v = specimen_variability({s: qs[s][k] for s in ids})

@@ -25,7 +25,6 @@ number of workers or on the order tasks finish.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -39,121 +38,42 @@ from .. import io
 from ..runtime.blas import single_thread_env
 from .._version import __version__
 from ..data import GROUP_KEY, load_specimens, specimen_groups
-from ..errors import DataError, HbmError
+from ..errors import DataError
 from ..fit.specimen import fit_specimen
 from ..model import spyrou_model
+from ..model.spec import sweep_parameter
 from ..runtime.parallel import dask_client, map_specimens, spawn_specimen_seeds
-from ..population import DEFAULT_SD_RANGE, PopulationConfig, run_population
+from ..population import run_population
+from ..settings import DEFAULT_OUT, FitRecord, FitSettings, PopulationSettings, RunSettings
 from .report import write_report
 from ..runtime.files import atomic_write_text, file_lock
 from ..runtime.progress import log_progress as _log
 from ..identifiability.views import identified_directions, manifold_spline
 
-#: default output folder of hbm run and hbm fit: untracked (.gitignore), so that a run never replaces
-#: the shipped reference results in results/
-DEFAULT_OUT = "hbm-results"
+__all__ = ["DEFAULT_OUT", "RunConfig", "RunSettings", "WorkflowResult", "run_workflow", "fit_task"]
 
-__all__ = ["DEFAULT_OUT", "RunConfig", "WorkflowResult", "run_workflow", "fit_task"]
-
+#: the settings of a run (:class:`hbm.settings.RunSettings`; ``RunConfig`` is its older name)
+RunConfig = RunSettings
 
 
-@dataclass
-class RunConfig:
-    """Settings of ``hbm run`` (see the CLI help for their meaning)."""
-
-    data: str = "data/specimens"
-    out: str = DEFAULT_OUT
-    samples: int = 2000
-    kernel: str = "rw"
-    noise: str = "iid"
-    workers: int | None = None
-    scheduler: str | None = None
-    seed: int = 0
-    sobol: bool = True
-    sobol_n: int = 1024
-    restarts: int = 3
-    sweep: str | None = "VOLF:0.07"
-    maxfevals: int = 3000
-    fix: dict | None = None
-    bounds: dict | None = None
-    hierarchical: bool = True
-    hier_samples: int = 1000
-    hier_max_steps: int = 25
-    hier_pooled: list | str | None = "auto"
-    hier_estimator: str = "raw"
-    hier_transforms: dict | None = None
-    hier_sd_range: tuple = DEFAULT_SD_RANGE
-    #: exact fallback of the population layer for flagged specimens ("gibbs") or None (reuse + TMCMC refinement)
-    hier_exact: str | None = "gibbs"
-    figures: bool = True
-    progress: bool = True
-    retries: int = 1
-    quick: bool = False
-    tmcmc_options: dict | None = None
-    #: likelihood tier of every specimen's fit ("auto": collapsed where the model allows, or "full")
-    likelihood: str = "auto"
-    #: user prior (:meth:`hbm.likelihood.prior.Prior.to_dict`), or None for the model's box (uniform)
-    prior: dict | None = None
-    #: reference sarcomere length (µm) for files with a sarcomere_length_um column (``--sl0``)
-    sl0: float | None = None
-    #: metadata key whose values group the specimens (``--group-by``); None: ``# group:`` lines, if any
-    group_by: str | None = None
-
-    def __post_init__(self) -> None:
-        if self.quick:  # a smoke run: every phase, small budgets
-            self.samples = min(self.samples, 500)
-            self.restarts = min(self.restarts, 2)
-            self.maxfevals = min(self.maxfevals, 2000)
-            self.sweep = "VOLF:0.1" if self.sweep else None
-            self.sobol_n = min(self.sobol_n, 128)
-            self.hier_samples = min(self.hier_samples, 500)
-        if self.kernel not in ("rw", "manifold"):
-            raise HbmError(f"--kernel must be rw or manifold, got {self.kernel!r}")
-        if int(self.samples) < 10:
-            raise HbmError(f"--samples must be >= 10, got {self.samples}")
-
-    def fit_options(self, sigma_bounds: tuple[float, float]) -> dict:
-        """The keyword arguments of every specimen's :func:`hbm.fit.fit_specimen` (all but data,
-        seed and paths) -- the ONE settings record: the same dict runs the fits and keys their
-        results and checkpoints (:func:`hbm.io.identity.fit_key`), so no setting can be forgotten."""
-        return {"samples": self.samples, "kernel": self.kernel, "noise": self.noise, "fix": self.fix,
-                "bounds": self.bounds, "restarts": self.restarts, "sweep": self.sweep,
-                "sobol_n": self.sobol_n if self.sobol else None, "tmcmc_options": self.tmcmc_options,
-                "optimize_options": {"maxfevals": self.maxfevals}, "sigma_bounds": tuple(sigma_bounds),
-                "likelihood": self.likelihood,
-                **({"prior": self.prior, "bounds": None} if self.prior else {})}
-
-    def population_config(self) -> PopulationConfig:
-        """The settings of the population layer (:func:`hbm.population.run_population`)."""
-        return PopulationConfig(seed=self.seed, pooled=self.hier_pooled, samples=self.hier_samples,
-                                max_steps=self.hier_max_steps, estimator=self.hier_estimator,
-                                transforms=self.hier_transforms, sd_range=self.hier_sd_range,
-                                stage1_samples=self.samples, noise=self.noise, fix=self.fix, bounds=self.bounds,
-                                retries=self.retries, progress=self.progress, exact=self.hier_exact,
-                                # a smoke run: the joint sampler's chains shorter too
-                                **({"layer_burn": 100, "layer_keep": 50} if self.quick else {}))
-
-
-def fit_task(data, *, seed, out_path: str, checkpoint: str, settings_hash: str, options: Mapping,
+def fit_task(data, *, out_path: str, checkpoint: str, settings_hash: str, settings: FitSettings, model=None,
              identity_parts: Mapping[str, str] | None = None) -> str:
     """One dask task: fit one specimen and write ``out_path``; returns the path.
 
-    ``settings_hash`` is the specimen's content key (:mod:`hbm.io.identity`), stored with the
-    result together with its components ``identity_parts``.  A retried task (worker lost)
-    resumes from the TMCMC checkpoint.  A file that is already complete with the same key is
-    returned untouched (idempotent).
+    ``settings`` are the specimen's (its own seed included), ``settings_hash`` its content key
+    (:mod:`hbm.io.identity`), stored with the result together with its components
+    ``identity_parts``.  A retried task (worker lost) resumes from the TMCMC checkpoint.  A file
+    that is already complete with the same key is returned untouched (idempotent).
     """
     single_thread_env()
     if io.is_complete(out_path) and _stored_hash(out_path) == settings_hash:
         return out_path
     ck = Path(checkpoint)
-    opts = dict(options)
-    opts.setdefault("tmcmc_options", None)
     # the one writer rule: a concurrent 'hbm fit --out' of this file makes this specimen fail, not both
     with file_lock(out_path, "specimen result"):
         # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
-        fit_specimen(data, seed=seed, out=out_path, checkpoint_dir=ck.parent, progress=False,
-                     config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})}, **opts)
+        fit_specimen(data, model=model, settings=settings, out=out_path, checkpoint_dir=ck.parent, progress=False,
+                     config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})})
     return out_path
 
 
@@ -167,12 +87,12 @@ def _drop_checkpoint(ckpt: Path) -> None:
 
 def _stored_hash(path) -> str | None:
     """The content key a finished specimen file was computed under (None for older files)."""
-    return io.read_attrs(path).get("config", {}).get("settings_hash")
+    return FitRecord.from_attrs(io.read_attrs(path).get("config")).settings_hash
 
 
 def _stored_identity(path) -> dict | None:
     """The key's components stored with a finished specimen file (None for older files)."""
-    return io.read_attrs(path).get("config", {}).get("identity")
+    return FitRecord.from_attrs(io.read_attrs(path).get("config")).identity
 
 
 # ----------------------------------------------------------------------------- the run
@@ -197,7 +117,7 @@ class WorkflowResult:
 
 def _common_sigma_box(datasets: Mapping[str, Any]) -> tuple[float, float]:
     """One noise box for every specimen: the hierarchical layer needs a common stage-1 prior."""
-    smax = max(float(np.max(np.abs(ds["stress"].values))) for ds in datasets.values())
+    smax = max(float(np.max(np.abs(spec.stress))) for spec in datasets.values())
     return (1e-4, max(0.05, 0.5 * smax))
 
 
@@ -207,7 +127,7 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
 
     Parameters
     ----------
-    config : RunConfig, optional
+    config : RunSettings, optional
         Settings; keyword arguments override/construct it (``run_workflow(data=..., out=...)``).
     client : distributed.Client, optional
         Use this client instead of creating one (``workers``/``scheduler`` are then ignored);
@@ -222,7 +142,11 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     -------
     WorkflowResult
     """
-    cfg = dataclasses.replace(config, **kwargs) if config is not None else RunConfig(**kwargs)
+    cfg = config.replace(**kwargs) if config is not None else RunSettings(**kwargs)
+    model = model if model is not None else spyrou_model()
+    swept = sweep_parameter(model)  # the default sweep: the model's manifold fraction, unless it is fixed
+    cfg = cfg.with_sweep(swept if swept not in (cfg.fix or {}) else None,
+                         model.spec.manifold.sweep_width if swept is not None else 0.07)
     t_all = time.perf_counter()
     out = Path(cfg.out)
     (out / "specimens").mkdir(parents=True, exist_ok=True)
@@ -230,15 +154,15 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     if cfg.hierarchical:  # a specimen without its group fails before any fit
         specimen_groups(datasets, cfg.group_by)
     ids = sorted(datasets)
-    model = model if model is not None else spyrou_model()
     sigma_box = _common_sigma_box(datasets)
-    options = cfg.fit_options(sigma_box)  # the one settings record (RunConfig.fit_options)
-    # one content key per specimen (hbm.io.identity): its data, the model, the settings with its own seed
+    # the one settings record of every specimen's fit: it runs the fit and keys its result and checkpoint
+    # (hbm.io.identity: the data, the model, the settings with the specimen's own seed)
     specimen_seeds = spawn_specimen_seeds(cfg.seed, ids)
-    keyed = {sid: identity.fit_key(datasets[sid], model, {**options, "seed": specimen_seeds[sid]}) for sid in ids}
+    fit_settings = {sid: cfg.fit_settings(sigma_box, seed=specimen_seeds[sid]) for sid in ids}
+    keyed = {sid: identity.fit_key(datasets[sid], model, fit_settings[sid]) for sid in ids}
     keys = {sid: keyed[sid][0] for sid in ids}
     parts = {sid: keyed[sid][1] for sid in ids}
-    settings = identity.fit_record({**options, "seed": cfg.seed})  # for run.json
+    settings = cfg.fit_settings(sigma_box).record()  # for run.json
     paths = {sid: io.specimen_path(out, sid) for sid in ids}
     # a checkpoint is keyed by the content key: one made on other data or another model is never resumed
     ckpts = {sid: identity.checkpoint_dir(out / "checkpoints", sid, keys[sid]) / f"{sid}.npz" for sid in ids}
@@ -260,7 +184,6 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     _log(f"{len(ids)} specimens in {cfg.data}: {len(skipped)} complete (skipped), {len(todo)} to fit"
          + (f" ({sum(c.exists() for c in ckpts.values())} resuming from checkpoints)"
             if any(ckpts[s].exists() for s in todo) else ""), cfg.progress)
-    options = {"model": model, **options}
     timings: dict[str, float] = {}
     if client is not None:
         ctx = contextlib.nullcontext(client)
@@ -269,7 +192,7 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     else:
         ctx = dask_client(cfg.workers, cfg.scheduler)
     with ctx as cl:
-        wres = _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, (keys, parts), options, out, model,
+        wres = _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, (keys, parts), fit_settings, out, model,
                        timings)
 
     # ---- report
@@ -278,23 +201,23 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
     wres.report_path = write_report(wres, out / "report.md", extra_sections=extra_sections)
     timings["report"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
-    run_info = {"settings": settings, "config": dataclasses.asdict(cfg), "specimens": ids, "skipped": skipped,
+    run_info = {"settings": settings, "config": cfg.to_attrs(), "specimens": ids, "skipped": skipped,
                 "errors": wres.errors, "timings": timings, "hbm_version": __version__}
     atomic_write_text(out / "run.json", json.dumps(run_info, indent=2, default=io.json_default))
     _log(f"done in {timings['total']:.1f} s -> {wres.report_path}", cfg.progress)
     return wres
 
 
-def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, options, out, model, timings):
+def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit_settings, out, model, timings):
     """Fits (dask), hierarchical layer, identifiability, figures (dask) -> WorkflowResult."""
     t = time.perf_counter()
     errors: dict[str, str] = {}
     task_times: dict[str, float] = {}
     if todo:
         keys, parts = identities
-        mres = map_specimens(_fit_one, {sid: (todo[sid], str(paths[sid]), str(ckpts[sid]), keys[sid], parts[sid])
-                                        for sid in todo},
-                             seed=cfg.seed, client=cl, kwargs={"options": options},
+        mres = map_specimens(_fit_one, {sid: (todo[sid], str(paths[sid]), str(ckpts[sid]), keys[sid], parts[sid],
+                                              fit_settings[sid]) for sid in todo},
+                             seed=cfg.seed, client=cl, kwargs={"model": model},
                              prefix="fit", retries=cfg.retries, progress=cfg.progress,
                              checkpoints={sid: ckpts[sid] for sid in todo}, all_ids=ids)
         errors, task_times = mres.errors, mres.task_times
@@ -322,10 +245,10 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, opt
         t = time.perf_counter()
         hpath = out / "hierarchical.nc"
         # keyed over the specimen results it pools and its own settings: reused when none changed
-        pop_cfg = _with_groups(cfg.population_config(), cfg, {sid: datasets[sid] for sid in results})
+        pop_cfg = _with_groups(cfg.population_settings(), cfg, {sid: datasets[sid] for sid in results})
         hkey = identity.content_key({
             "specimens": identity.settings_key({sid: _stored_hash(paths[sid]) for sid in sorted(results)}),
-            "population": identity.settings_key(pop_cfg.key_settings()),
+            "population": identity.settings_key(pop_cfg.record()),
             "model": identity.model_key(model), "version": __version__})
         stored = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
         if stored is not None and stored.attrs.get("content_key") == hkey:
@@ -378,7 +301,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, opt
     return wres
 
 
-def _with_groups(pop_cfg: PopulationConfig, cfg: RunConfig, datasets: Mapping) -> PopulationConfig:
+def _with_groups(pop_cfg: PopulationSettings, cfg: RunSettings, datasets: Mapping) -> PopulationSettings:
     """The population settings with the fitted specimens' groups (``group_by`` / ``# group:``), if any."""
     try:
         groups = specimen_groups(datasets, cfg.group_by)
@@ -387,7 +310,7 @@ def _with_groups(pop_cfg: PopulationConfig, cfg: RunConfig, datasets: Mapping) -
         return pop_cfg
     if groups is None:
         return pop_cfg
-    return dataclasses.replace(pop_cfg, groups=groups, group_by=cfg.group_by or GROUP_KEY)
+    return pop_cfg.replace(groups=groups, group_by=cfg.group_by or GROUP_KEY)
 
 
 def _figures_task(path: str, fig_dir: str, model=None) -> list[str]:
@@ -398,8 +321,9 @@ def _figures_task(path: str, fig_dir: str, model=None) -> list[str]:
     return [str(p) for p in pspec.specimen_figures(r, fig_dir, model=model)]
 
 
-def _fit_one(item, *, seed, options: Mapping) -> str:
-    """map_specimens adapter: item = (dataset, out_path, checkpoint_path, content key, its parts)."""
-    data, out_path, ckpt, key, parts = item
-    return fit_task(data, seed=seed, out_path=out_path, checkpoint=ckpt, settings_hash=key, options=options,
+def _fit_one(item, *, seed, model) -> str:
+    """map_specimens adapter: item = (specimen, out_path, checkpoint_path, content key, its parts, its settings);
+    ``seed`` (the specimen's stream of the seed table) is already the settings' seed."""
+    data, out_path, ckpt, key, parts, settings = item
+    return fit_task(data, out_path=out_path, checkpoint=ckpt, settings_hash=key, settings=settings, model=model,
                     identity_parts=parts)

@@ -20,7 +20,7 @@ evaluations are included), CPU (process time) and wall seconds, |log Ẑ − gol
 posterior-mean error of the seven gold quantities in gold sd (``muscle_posterior.summarise``),
 whether the reported SE covers the error (|error| ≤ 2 SE, as ``evaluations_to_accuracy.py``)
 and whether the run reached |Δlog Ẑ| ≤ 0.3 and worst mean ≤ 0.3 sd.  Then the CPU of a whole
-default ``fit_specimen`` (CMA-ES, TMCMC, predictive) with ``likelihood="auto"`` (collapsed) and
+default ``fit_specimen`` (CMA-ES, TMCMC, predictive) with ``tier="auto"`` (collapsed) and
 ``"full"`` on the benchmark curve, interleaved over ``--fit-seeds`` seeds.
 
 A section is appended to ``results/benchmarks/evaluations_to_accuracy.md`` and every run is written
@@ -124,8 +124,8 @@ def run_fits(seeds) -> list[dict]:
     for seed in seeds:
         for tier in ("auto", "full"):
             c, w = time.process_time(), time.perf_counter()
-            res = fit_specimen(ds, seed=seed, progress=False, likelihood=tier, sigma_bounds=mp.SIGMA_BOUNDS)
-            out.append({"setting": f"fit_specimen default, likelihood={tier}", "seed": seed,
+            res = fit_specimen(ds, seed=seed, progress=False, tier=tier, sigma_bounds=mp.SIGMA_BOUNDS)
+            out.append({"setting": f"fit_specimen default, tier={tier}", "seed": seed,
                         "cpu": time.process_time() - c, "wall": time.perf_counter() - w,
                         "tier": res.result.config["likelihood_tier"],
                         "evaluations": res.result.config["n_evaluations"],

@@ -4,7 +4,7 @@ item 2, issue 27 item 4), interleaved case by case so that both see the same mac
 Cases: the shipped 150-point three-rate relaxation record (``results/multirate_relaxation``), the
 measured curves given with ``--measured`` (e.g. ../shared/realdata/*.csv), and the cases of the
 hidden-effect demo (``workflows/hidden_effect_demo.py``, its seeds).  Each diagnosis is the
-default one (CLI defaults: ``--max-time 300``) with ``likelihood=`` each tier in turn.
+default one (CLI defaults: ``--max-time 300``) with ``tier=`` each tier in turn.
 
     PYTHONPATH=. nice -n 10 python workflows/benchmarks/detective_tiers.py --json /tmp/tiers.json \\
         --measured ../shared/realdata/*.csv --demo viscoelastic clean
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
             t, c = time.perf_counter(), time.process_time()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                dg = diagnose(ds, fix=fix, seed=seed, max_time=MAX_TIME, likelihood=tier)
+                dg = diagnose(ds, fix=fix, seed=seed, max_time=MAX_TIME, tier=tier)
             rows.append(_row(name, tier, dg, time.perf_counter() - t, time.process_time() - c))
             r = rows[-1]
             print(f"{name:<28} {tier:<5} {r['verdict']:<12} {','.join(r['selected']):<20} wall {r['wall']:>6} s "

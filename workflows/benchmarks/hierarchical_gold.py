@@ -162,8 +162,8 @@ def peer_spec(results, datasets, hf) -> dict:
                      "zbox": [zlo if np.isfinite(zlo) else None, zhi if np.isfinite(zhi) else None],
                      "mu_range": [float(hm.mu_lo[k]), float(hm.mu_hi[k])],
                      "sd_range": [float(hm.sd_lo[k]), float(hm.sd_hi[k])]})
-    specs = [{"id": sid, "strain": datasets[sid]["strain"].values.tolist(),
-              "stress": datasets[sid]["stress"].values.tolist()} for sid in hf.specimen_ids]
+    specs = [{"id": sid, "strain": datasets[sid].strain.tolist(),
+              "stress": datasets[sid].stress.tolist()} for sid in hf.specimen_ids]
     return {"box": box, "pooled": cols, "specimens": specs}
 
 

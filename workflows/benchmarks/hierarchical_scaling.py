@@ -242,7 +242,7 @@ def main(argv=None) -> int:
     sizes = [200, 400] if args.quick else [int(s) for s in args.sizes.split(",")]
     cfg = RunConfig(quick=args.quick)
     if args.quick:
-        cfg.hier_samples, cfg.hier_max_steps = 100, 5
+        cfg = cfg.replace(hier_samples=100, hier_max_steps=5)
     n_max = max(sizes)
     stage1, names, bounds = stage1_samples(n_max, args.seed, Path(args.cache))
     model_names = list(spyrou_model().parameter_names)

@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     nb, nb_version = _numba_loglik()
     if nb is not None:
         x = np.ascontiguousarray(th9)
-        s_obs = np.asarray(data["stress"].values, float)
+        s_obs = np.asarray(data.stress, float)
         ref, got = lik(th9), nb(x, strain, s_obs)
         ok = np.isfinite(ref)
         rel = float(np.max(np.abs(got[ok] - ref[ok]) / np.maximum(np.abs(ref[ok]), 1.0)))

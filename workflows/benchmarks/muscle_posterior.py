@@ -67,7 +67,7 @@ CONFIGS: dict[str, dict] = {
                            "n_islands": 1},
     "box-rw-20steps-N10k": {"n_samples": 10000, "transform": "none", "n_steps": 20, "adapt_scale": False,
                             "n_islands": 1, "_seeds": 3},
-    "manifold-20steps-N1500": {"kernel": "manifold", "n_steps": 20, "_seeds": 1},
+    "manifold-20steps-N1500": {"move": "manifold", "n_steps": 20, "_seeds": 1},
     # levers measured for the default (see README.md, "Levers tried")
     "cov1.5-N2k": {"n_samples": 2000, "cov_target": 1.5},
     "cov1.25-N2k": {"n_samples": 2000, "cov_target": 1.25},
@@ -133,7 +133,7 @@ def run_one(lik, gold, name, kwargs, seed, n_override=None) -> dict:
         kw["n_samples"] = int(n_override)
     n = kw.pop("n_samples", None)
     args = (lik, lik.bounds) if n is None else (lik, lik.bounds, n)
-    gf = lik.gradient_fim if kw.get("kernel") == "manifold" else None
+    gf = lik.gradient_fim if kw.get("move") == "manifold" else None
     t, c = time.perf_counter(), time.process_time()
     res = tmcmc(*args, seed=seed, gradient_fim=gf, progress=False, **kw)
     wall, cpu = time.perf_counter() - t, time.process_time() - c

@@ -50,7 +50,10 @@ from hbm.population import run_population
 spec, data, out = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
 datasets = load_specimens(data)
 results = {s: io.read_specimen_result(spec / f"{s}.nc") for s in sorted(datasets)}
-cfg = RunConfig(data=data, out=out, progress=False).population_config()
+run_cfg = RunConfig(data=data, out=out, progress=False)
+# population_settings since issue 34's settings records (population_config before)
+cfg = getattr(run_cfg, "population_settings", None) or run_cfg.population_config
+cfg = cfg()
 t, c = time.perf_counter(), time.process_time()
 hf, path = run_population(results, datasets, spyrou_model(), config=cfg, out=out)
 wall, cpu = time.perf_counter() - t, time.process_time() - c

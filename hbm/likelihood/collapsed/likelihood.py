@@ -23,6 +23,7 @@ structure are refused with the reason (:func:`collapse_reason`).
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -31,13 +32,14 @@ from ...errors import HbmError, SettingError
 from ..core import Likelihood
 from ...model.core import Model
 from ...model.linear import structure_of, why_not_linear
+from ...samplers.moves import needs_gradient
 from ..noise import AR1Noise, IidNoise, WeightedNoise
 from .induced import CollapseError, ColumnPrior, Term
 from .quadrature import BoxGaussianIntegral
 
 __all__ = ["CollapsedLikelihood", "collapse_reason", "choose_tier", "GAUSSIAN_NOISE", "TIERS"]
 
-#: values of ``likelihood=`` / ``--likelihood``
+#: the likelihood tiers (the registry of ``FitSettings.tier`` / ``--tier``): auto, collapsed, full
 TIERS = ("auto", "collapsed", "full")
 
 #: noise models under which the amplitude integral stays Gaussian (their covariance does not
@@ -278,19 +280,23 @@ class CollapsedLikelihood:
                 "quadrature": {"nodes_per_panel": self.nodes, "window_sd": self.width}}
 
 
-def choose_tier(lik: Likelihood, likelihood: str = "auto", *, kernel: str = "rw") -> tuple[CollapsedLikelihood | None, str]:
+def choose_tier(lik: Likelihood, tier: str = "auto", *, move: str = "rw",
+                kernel: str | None = None) -> tuple[CollapsedLikelihood | None, str]:
     """The likelihood tier of a fit: the collapsed likelihood when it applies, else the full one.
 
     Parameters
     ----------
     lik : Likelihood
-    likelihood : {"auto", "collapsed", "full"}
-        "auto": collapsed when the model has a linear structure (verified numerically at 8
-        points of the prior box), the noise model keeps the amplitude integral Gaussian and the
-        kernel is the random walk; "collapsed": the same, but an error when it does not apply;
-        "full": today's full-space likelihood.
-    kernel : str
-        TMCMC kernel ("manifold" needs the full likelihood's gradient).
+    tier : {"auto", "collapsed", "full"}
+        One of :data:`TIERS`.  "auto": collapsed when the model has a linear structure (verified
+        numerically at 8 points of the prior box), the noise model keeps the amplitude integral
+        Gaussian and the move is the random walk; "collapsed": the same, but an error when it does
+        not apply; "full": today's full-space likelihood.
+    move : str
+        The fit's TMCMC move (the collapsed tier runs the random walk "rw"; "manifold" needs the
+        full likelihood's gradient).
+    kernel : str, optional
+        Deprecated name of ``move``.
 
     Returns
     -------
@@ -304,14 +310,18 @@ def choose_tier(lik: Likelihood, likelihood: str = "auto", *, kernel: str = "rw"
     SettingError
         Unknown ``likelihood``, or "collapsed" where it does not apply (the reason is named).
     """
-    if likelihood not in TIERS:
-        raise SettingError(f"likelihood must be one of {', '.join(TIERS)}, got {likelihood!r}")
-    if likelihood == "full":
+    if kernel is not None:
+        warnings.warn("choose_tier(kernel=...) is deprecated; use move=", DeprecationWarning, stacklevel=2)
+        move = kernel
+    if tier not in TIERS:
+        raise SettingError(f"tier must be one of {', '.join(TIERS)}, got {tier!r}")
+    if tier == "full":
         return None, "full likelihood (requested)"
     why = None
     cl = None
-    if kernel != "rw":
-        why = f"the {kernel!r} kernel needs the gradient of the full likelihood"
+    if move != "rw":
+        why = (f"the {move!r} move needs the gradient of the full likelihood" if needs_gradient(move)
+               else f"the collapsed tier samples with the random walk ('rw'), not the {move!r} move")
     elif not isinstance(lik.model, Model):
         why = f"{type(lik.model).__name__} is not an hbm Model built from effects (a black box declares no amplitudes)"
     else:
@@ -326,8 +336,8 @@ def choose_tier(lik: Likelihood, likelihood: str = "auto", *, kernel: str = "rw"
             except HbmError as exc:
                 why = str(exc)
     if cl is None:
-        if likelihood == "collapsed":
-            raise SettingError(f"likelihood 'collapsed' is not available: {why}")
+        if tier == "collapsed":
+            raise SettingError(f"tier 'collapsed' is not available: {why}")
         return None, f"full likelihood ({why})"
     return cl, ("collapsed likelihood: amplitudes " + ", ".join(cl.free_columns)
                 + " integrated exactly; sampled " + ", ".join(cl.names))
