@@ -35,6 +35,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -60,6 +61,8 @@ TRUTH = {"log_G": (np.log(0.02), 0.4), "log_VOLF*P1": (np.log(0.05), 0.5), "log_
 ENTROPY = 37_2026
 N_POINTS, NOISE_REL = 50, 0.01
 OUT = ROOT / "results" / "benchmarks"
+#: default folder of the populations and runs (the system's temporary folder)
+SCRATCH = Path(tempfile.gettempdir()) / "hbm_population_scaling"
 
 
 def _logistic(z, lo, hi):
@@ -122,12 +125,12 @@ def _hbm(args: list[str], env_extra: dict | None = None) -> tuple[float, float, 
     return wall, (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime), out.stderr[-2000:]
 
 
-def layer_record(out: Path) -> dict:
+def layer_record(out: Path, run_json: bool = True) -> dict:
     """What the stored files say about the layer: evaluations, CPU, ArviZ R-hat/ESS, coverage."""
     import arviz as az
 
     hf = io.read_hierarchical(out / "hierarchical.nc")
-    run = json.loads((out / "run.json").read_text())
+    run = json.loads((out / "run.json").read_text()) if run_json else {"timings": {}}
     post = az.from_netcdf(out / "hierarchical.nc").posterior
     rh, es = az.rhat(post), az.ess(post, method="bulk")  # unrounded (az.summary rounds to 2 decimals)
     diag = {"r_hat": {v: float(rh[v]) for v in rh.data_vars}, "ess_bulk": {v: float(es[v]) for v in es.data_vars}}
@@ -147,7 +150,8 @@ def layer_record(out: Path) -> dict:
             "rhat_max": max(diag["r_hat"].values()), "ess_bulk_min": min(diag["ess_bulk"].values()),
             "rhat": diag["r_hat"], "ess_bulk": diag["ess_bulk"],
             "rhat_specimen_max": lay.get("rhat_specimen_max"), "warnings": hf.attrs.get("warnings", []),
-            "coverage": cover, "timings": {k: v for k, v in t.items() if k != "task_times"}}
+            "coverage": cover, "timings": {k: v for k, v in t.items() if k != "task_times"},
+            "dask": lay.get("dask")}
 
 
 def run(a) -> int:
@@ -195,6 +199,87 @@ def dask(a) -> int:
     return 0
 
 
+def _stage1(sid: str, ds, model, sigma_box, cache: Path, from_run: Path | None):
+    """Specimen ``sid``'s stage-1 result: the run's own when ``from_run``/specimens has it, else a TMCMC
+    fit as the run makes it without CMA-ES and Sobol (they do not enter the layer), cached in ``cache``."""
+    from hbm.fit import fit_specimen
+
+    for path in ([from_run / "specimens" / f"{sid}.nc"] if from_run else []) + [cache / f"{sid}.nc"]:
+        if io.is_complete(path):
+            return io.read_specimen_result(path)
+    k = int(sid[3:])
+    fit_specimen(ds, model=model, samples=2000, seed=np.random.SeedSequence(ENTROPY, spawn_key=(10_000, k)),
+                 restarts=0, sobol_n=None, sweep=None, sigma_bounds=sigma_box, progress=False, out=cache / f"{sid}.nc")
+    return io.read_specimen_result(cache / f"{sid}.nc")
+
+
+_LAYER = r"""
+import json, sys, time
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from pathlib import Path
+from hbm.workflow.run import RunSettings
+from hbm.population import run_population
+from hbm.runtime.parallel import dask_client
+sys.path.insert(0, str(Path(sys.argv[1]) / "workflows" / "benchmarks"))
+import population_scaling as ps
+n, workers, out = int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4])
+data, cache, from_run = Path(sys.argv[5]), Path(sys.argv[6]), Path(sys.argv[7]) if sys.argv[7] else None
+from hbm.data import load_specimens
+from hbm.model import spyrou_model
+from hbm.workflow.run import _common_sigma_box
+model = spyrou_model()
+datasets = load_specimens(str(data))
+box = _common_sigma_box(datasets)
+cache.mkdir(parents=True, exist_ok=True)
+results = {sid: ps._stage1(sid, datasets[sid], model, box, cache, from_run) for sid in sorted(datasets)}
+cfg = RunSettings(data=str(data), out=str(out), progress=False).population_settings()
+with dask_client(workers) as client:
+    t, c = time.perf_counter(), time.process_time()
+    hf, path = run_population(results, datasets, model, config=cfg, out=out, client=client)
+    wall = time.perf_counter() - t
+print(json.dumps({"layer_call_wall_s": wall}))
+"""
+
+
+def layer(a) -> int:
+    """The layer alone on ``pop<size>`` with ``--workers`` (a list: each in turn; bitwise compared)."""
+    data = Path(a.data) / f"pop{a.size}"
+    cache = Path(a.out_runs) / "stage1"
+    from_run = Path(a.from_run) if a.from_run else None
+    rows, files = [], {}
+    for w in map(int, str(a.workers or "2").split(",")):
+        out = Path(a.out_runs) / f"layer{a.size}_w{w}"
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "hierarchical.nc").unlink(missing_ok=True)
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+        t = time.perf_counter()
+        p = subprocess.run([sys.executable, "-c", _LAYER, str(ROOT), str(a.size), str(w), str(out), str(data),
+                            str(cache), str(from_run or "")], capture_output=True, text=True, env=env, cwd=str(ROOT))
+        if p.returncode != 0:
+            raise SystemExit(f"layer failed:\n{p.stderr[-3000:]}")
+        rec = layer_record(out, run_json=False)
+        rec.update(workers=w, process_wall_s=time.perf_counter() - t, load=os.getloadavg(),
+                   **json.loads(p.stdout.strip().splitlines()[-1]))
+        files[w] = io.read_hierarchical(out / "hierarchical.nc")
+        rows.append(rec)
+        print(f"{a.size} specimens, {w} worker(s): layer {rec['layer_cpu_s']:.1f} CPU s ({rec['layer_cpu_s'] / a.size:.2f} "
+              f"per specimen), {rec['layer_wall_s']:.0f} s wall, dask {rec['dask']}, {rec['evaluations']:,} evaluations, "
+              f"max R-hat {rec['rhat_max']:.4f}, min ESS {rec['ess_bulk_min']:.0f}, covered "
+              f"{sum(c['inside'] for c in rec['coverage'].values())}/{len(rec['coverage'])}", flush=True)
+    if len(files) > 1:
+        first = files[min(files)]
+        for w, f in files.items():
+            same = (np.array_equal(first.hyper_samples, f.hyper_samples) and np.array_equal(first.updated, f.updated)
+                    and np.array_equal(first.new_specimen, f.new_specimen))
+            for r in rows:
+                if r["workers"] == w:
+                    r[f"bitwise_same_as_workers_{min(files)}"] = bool(same)
+            print(f"workers {w}: bitwise identical to workers {min(files)}: {same}", flush=True)
+    _save("layer", {str(a.size): rows}, merge=True)
+    return 0
+
+
 def _save(key: str, value, merge: bool = False) -> None:
     path = OUT / "population_scaling.json"
     rec = json.loads(path.read_text()) if path.exists() else {}
@@ -205,18 +290,21 @@ def _save(key: str, value, merge: bool = False) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
-    for name in ("make", "run", "dask"):
+    for name in ("make", "run", "dask", "layer"):
         p = sub.add_parser(name)
-        p.add_argument("--data", default=os.environ.get("HBM_POPULATION_DATA", "/tmp/hbm_population_scaling/data"))
-        p.add_argument("--out-runs", default=os.environ.get("HBM_POPULATION_RUNS", "/tmp/hbm_population_scaling/runs"))
+        p.add_argument("--data", default=os.environ.get("HBM_POPULATION_DATA", str(SCRATCH / "data")),
+                       help="the synthetic populations (default $HBM_POPULATION_DATA or <tmp>/hbm_population_scaling/data)")
+        p.add_argument("--out-runs", default=os.environ.get("HBM_POPULATION_RUNS", str(SCRATCH / "runs")),
+                       help="the runs (default $HBM_POPULATION_RUNS or <tmp>/hbm_population_scaling/runs)")
         p.add_argument("--sizes", default="6,24,96")
-        p.add_argument("--workers", type=int, default=None)
+        p.add_argument("--workers", default=None, help="worker count (layer: a list, e.g. 1,2, each in turn)")
+        p.add_argument("--from-run", default=None, help="layer: use the stage-1 results of this run folder where complete")
         p.add_argument("--figures", action="store_true")
         p.add_argument("--layer-only", action="store_true")
         p.add_argument("--size", type=int, default=96)
         p.add_argument("--repeats", type=int, default=2)
     a = ap.parse_args(argv)
-    return {"make": make, "run": run, "dask": dask}[a.cmd](a)
+    return {"make": make, "run": run, "dask": dask, "layer": layer}[a.cmd](a)
 
 
 if __name__ == "__main__":
