@@ -114,3 +114,22 @@ def test_run_option_hier_exact_reaches_the_population_layer(monkeypatch, tmp_pat
         got[label] = exc.value.args[0]
     assert got["default"].exact == "gibbs" and got["none"].exact is None
     assert got["quick"].layer_burn < got["default"].layer_burn and got["quick"].layer_keep < got["default"].layer_keep
+
+
+def test_a_layer_short_of_the_targets_keeps_its_warning(capsys):
+    """R-hat above 1.01 or bulk ESS below 400 for a hyper-parameter: the warning is printed and returned (the
+    file's ``warnings`` and the report carry it); within the targets nothing is."""
+    from hbm.population import PopulationConfig
+    from hbm.population.layer import _report
+
+    def info(rhat, ess):
+        return {"evaluations": 10, "wall_s": 1.0, "rhat_hyper_max": rhat, "rhat_specimen_max": 1.0,
+                "ess_hyper_min": ess, "hyper": {"mu_x": {"rhat": rhat, "ess": ess}, "sd_x": {"rhat": 1.0, "ess": 900.0}},
+                "chains": 6, "n_keep": 100, "rhat_specimen_worst": "a:x"}
+
+    cfg = PopulationConfig(progress=False)
+    assert _report(info(1.005, 900.0), ["x"], cfg) == []
+    for rhat, ess in ((1.02, 900.0), (1.005, 58.0)):
+        msgs = _report(info(rhat, ess), ["x"], cfg)
+        assert len(msgs) == 1 and "not converged: mu_x" in msgs[0] and "--hier-samples 1200" in msgs[0]
+    assert "WARNING: population layer not converged" in capsys.readouterr().err

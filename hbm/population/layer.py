@@ -204,7 +204,7 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
     updated = {sid: coords.draw_theta(y[:, i], rng_out) for i, sid in enumerate(ids)}
     predictive = draw_population(hm, raw, raw.shape[0], np.random.default_rng(seeds.child(root, 5)))
     info = _summary(res, ids, names_y, hm, chains, cpu, use_dask)
-    _report(info, names_y, cfg)
+    info["warnings"] = _report(info, names_y, cfg)
     return LayerDraws(model=hm, raw=raw, hyper=hm.natural(raw), chains=chains, specimens=ids, updated=updated,
                       predictive=predictive, names=list(hm.names), info=info)
 
@@ -231,8 +231,9 @@ def _summary(res, ids, names_y, hm, chains, cpu, use_dask) -> dict:
             "dask": bool(use_dask)}
 
 
-def _report(info: dict, names_y, cfg: PopulationConfig) -> None:
-    """The run's line and a warning if the chains have not converged."""
+def _report(info: dict, names_y, cfg: PopulationConfig) -> list[str]:
+    """The run's line, and a warning if the chains have not converged (returned: ``hierarchical.nc`` and the
+    report keep it)."""
     _log(f"population layer: {info['evaluations']:,} model evaluations, {info['wall_s']:.1f} s; max R-hat "
          f"{info['rhat_hyper_max']:.3f} (hyper-parameters), {info['rhat_specimen_max']:.3f} (specimens), "
          f"min bulk ESS {info['ess_hyper_min']:.0f} (hyper-parameters)", cfg.progress)
@@ -241,5 +242,8 @@ def _report(info: dict, names_y, cfg: PopulationConfig) -> None:
         what = ", ".join(f"{k} (R-hat {info['hyper'][k]['rhat']:.3f}, ESS {info['hyper'][k]['ess']:.0f})" for k in bad)
         if info["rhat_specimen_max"] > RHAT_SPECIMEN:
             what += ("; " if what else "") + f"{info['rhat_specimen_worst']} (R-hat {info['rhat_specimen_max']:.3f})"
-        _log(f"WARNING: population layer not converged: {what}; longer chains help (--hier-samples "
-             f"{2 * info['chains'] * info['n_keep']} doubles the kept draws)", True)
+        msg = (f"population layer not converged: {what}; longer chains help (--hier-samples "
+               f"{2 * info['chains'] * info['n_keep']} doubles the kept draws)")
+        _log(f"WARNING: {msg}", True)
+        return [msg]
+    return []
