@@ -32,7 +32,7 @@ expected Fisher information of the Gaussian noise model, built from the model Ja
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -60,6 +60,14 @@ def observed_stress(specimen: Specimen) -> np.ndarray:
         raise DataError(f"{specimen.id}: 'strain' and 'stress' must be finite numbers")
     return stress
 
+
+
+def free_index(names: Sequence[str], name: str) -> int:
+    """Column of free parameter ``name`` among ``names`` (one error text for every likelihood)."""
+    try:
+        return list(names).index(name)
+    except ValueError:
+        raise HbmError(f"{name!r} is not a free parameter; free parameters are {', '.join(names)}") from None
 
 class Likelihood:
     """Log-likelihood of one specimen curve; built by :func:`make_likelihood`.
@@ -194,10 +202,7 @@ class Likelihood:
 
     def index(self, name: str) -> int:
         """Column of free parameter ``name`` in theta."""
-        try:
-            return self.names.index(name)
-        except ValueError:
-            raise HbmError(f"{name!r} is not a free parameter; free parameters are {', '.join(self.names)}") from None
+        return free_index(self.names, name)
 
     def with_bounds(self, **bounds: tuple[float, float]) -> "Likelihood":
         """A copy with some model-parameter boxes replaced (natural units; forms and noise boxes kept).

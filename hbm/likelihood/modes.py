@@ -34,6 +34,7 @@ from ..model.core import Model
 from ..model.energy3d import energy_from_model
 from ..model.loadcases import LoadCase, check_mode, get_load_case
 from ..model.spec import spec_of
+from .core import free_index
 from .prior import Prior, load_prior
 
 __all__ = ["ModeSeries", "ModesLikelihood", "make_modes_likelihood", "is_multimode", "TEST_SCALE_SD",
@@ -209,10 +210,8 @@ class ModesLikelihood:
                 f"{len(self.kinds)} kinds, {self.n_points} values, free={', '.join(self.names)}>")
 
     def index(self, name: str) -> int:
-        try:
-            return self.names.index(name)
-        except ValueError:
-            raise HbmError(f"{name!r} is not a free parameter; free parameters are {', '.join(self.names)}") from None
+        """Column of free parameter ``name`` in theta."""
+        return free_index(self.names, name)
 
     def to_natural(self, theta) -> np.ndarray:
         """Working rows -> natural units (exp of the log-uniform columns)."""

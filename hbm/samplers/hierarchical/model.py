@@ -425,6 +425,17 @@ class HierarchicalModel:
         coef = np.concatenate([lin, -0.5 * prec, cross], axis=1)
         return coef, const
 
+    def _log_truncation(self, mu: np.ndarray, sdt: np.ndarray) -> np.ndarray:
+        """log of each independent column's mass inside the transformed box, (n_ψ, d): computed only where
+        the box is finite (elsewhere exactly 0)."""
+        lnm = np.zeros(mu.shape)
+        t = self._truncated
+        if t.any():
+            a = (self.zlo[t] - self.c[t]) / self.s[t]
+            b = (self.zhi[t] - self.c[t]) / self.s[t]
+            lnm[:, t] = log_mass((a - mu[:, t]) / sdt[:, t], (b - mu[:, t]) / sdt[:, t])
+        return lnm
+
     def _diagonal_coefficients(self, mu: np.ndarray, sdt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`coefficients` of independent columns (no full covariance, no extra variance): the same
         numbers by fewer operations (the joint sampler calls it for every ψ move); the truncation mass
@@ -432,12 +443,7 @@ class HierarchicalModel:
         d = self.d
         prec = 1.0 / sdt**2
         const = -0.5 * np.sum(mu**2 * prec, axis=1) - np.sum(np.log(sdt), axis=1)
-        lnm = np.zeros(mu.shape)
-        t = self._truncated
-        if t.any():
-            a = (self.zlo[t] - self.c[t]) / self.s[t]
-            b = (self.zhi[t] - self.c[t]) / self.s[t]
-            lnm[:, t] = log_mass((a - mu[:, t]) / sdt[:, t], (b - mu[:, t]) / sdt[:, t])
+        lnm = self._log_truncation(mu, sdt)
         const -= np.sum(lnm, axis=1)
         const -= 0.5 * d * _LOG2PI
         return np.concatenate([mu * prec, -0.5 * prec], axis=1), const
@@ -454,12 +460,7 @@ class HierarchicalModel:
         sd = raw[:, d : 2 * d]
         sdt = (np.exp(sd) if self.sd_prior == "loguniform" else sd) / self.s
         prec = 1.0 / sdt**2
-        lnm = np.zeros(mu.shape)
-        t = self._truncated
-        if t.any():
-            a = (self.zlo[t] - self.c[t]) / self.s[t]
-            b = (self.zhi[t] - self.c[t]) / self.s[t]
-            lnm[:, t] = log_mass((a - mu[:, t]) / sdt[:, t], (b - mu[:, t]) / sdt[:, t])
+        lnm = self._log_truncation(mu, sdt)
         const = -0.5 * mu**2 * prec - np.log(sdt) - lnm - 0.5 * _LOG2PI
         return mu * prec * SF[:, :d] - 0.5 * prec * SF[:, d : 2 * d] + n * const
 
