@@ -253,7 +253,6 @@ class _Master:
         self.rng_psi, self.rng_amp, self.rng_nc = (np.random.default_rng(
             np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (j,))) for j in (1, 2, 3))
         self.psi_steps, self.pop_rounds = int(psi_steps), int(pop_rounds)
-        nx = self.x.shape[1]
         # ψ's random walk starts from the chains' starting spread (adapted in burn-in)
         self.psi_L = np.diag(np.maximum(np.std(self.x, axis=0), 1e-3 * np.ptp(hyper.box, axis=1)))
         self.psi_step = 0.0
