@@ -133,3 +133,28 @@ def test_a_layer_short_of_the_targets_keeps_its_warning(capsys):
         msgs = _report(info(rhat, ess), ["x"], cfg)
         assert len(msgs) == 1 and "not converged: mu_x" in msgs[0] and "--hier-samples 1200" in msgs[0]
     assert "WARNING: population layer not converged" in capsys.readouterr().err
+
+
+def test_a_population_spread_at_the_hyperprior_floor_is_reported(capsys):
+    """sd draws piled at the hyperprior's lower end (sd_range[0] × mu's range) are named with their fraction
+    below 1.1 × the floor; a spread well above it is not; the run's warnings carry the line."""
+    from hbm.population import PopulationConfig
+    from hbm.population.layer import _report, at_floor
+    from hbm.samplers.hierarchical import HierarchicalModel
+
+    hm = HierarchicalModel(["a", "b"], np.array([[0.0, 10.0], [-5.0, 5.0]]), sd_range=(0.01, 1.0))
+    assert np.allclose(hm.sd_lo, [0.1, 0.1])  # 0.01 × the width 10 of either mu range
+    n = 4000
+    sd_a = 0.1 * np.linspace(1.0, 1.2, n, endpoint=False)   # half of them below 0.11
+    sd_b = np.full(n, 2.0)
+    raw = np.column_stack([np.full(n, 5.0), np.zeros(n), np.log(sd_a), np.log(sd_b)])
+    got = at_floor(hm, raw)
+    assert list(got) == ["sd_a"] and got["sd_a"][0] == pytest.approx(0.5, abs=1e-3)
+    assert got["sd_a"][1] == pytest.approx(0.1)
+    info = {"evaluations": 10, "wall_s": 1.0, "rhat_hyper_max": 1.0, "rhat_specimen_max": 1.0, "ess_hyper_min": 900.0,
+            "hyper": {"sd_a": {"rhat": 1.0, "ess": 900.0}}, "chains": 6, "n_keep": 100, "rhat_specimen_worst": "x:a",
+            "sd_at_floor": got}
+    msgs = _report(info, ["a", "b"], PopulationConfig(progress=False))
+    assert len(msgs) == 1 and "sd_a (50 % of the draws below 1.1 x its floor 0.1)" in msgs[0]
+    assert "hyperprior's lower end" in capsys.readouterr().err
+    assert at_floor(hm, raw[:, [0, 1, 3, 3]]) == {}

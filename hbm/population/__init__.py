@@ -41,10 +41,10 @@ Seeds: the streams ``layer`` and ``layer_specimen`` k of the joint sampler; ``hi
 """
 
 from .config import (
-    COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES,
-    PopulationConfig)
+    COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, JOINT_SD_RANGE, POOL_COMBINATIONS, POOL_INFORMED,
+    POOL_MODES, PopulationConfig)
 from .driver import run_population
 from .pooling import COMBINATION_NEEDS
 
-__all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS",
-           "POOL_INFORMED", "POOL_MODES", "COMBINATION_COLUMNS", "COMBINATION_NEEDS"]
+__all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "JOINT_SD_RANGE",
+           "POOL_COMBINATIONS", "POOL_INFORMED", "POOL_MODES", "COMBINATION_COLUMNS", "COMBINATION_NEEDS"]

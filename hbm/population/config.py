@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from ..model.spec import base_spec
 from ..settings.population import (
-    DEFAULT_SD_RANGE, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES, PopulationSettings)
+    DEFAULT_SD_RANGE, JOINT_SD_RANGE, POOL_COMBINATIONS, POOL_INFORMED, POOL_MODES, PopulationSettings)
 
 __all__ = ["PopulationConfig", "PopulationSettings", "POOL_MODES", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE",
-           "POOL_COMBINATIONS", "POOL_INFORMED", "COMBINATION_COLUMNS", "combination_columns"]
+           "JOINT_SD_RANGE", "POOL_COMBINATIONS", "POOL_INFORMED", "COMBINATION_COLUMNS", "combination_columns"]
 
 #: the default base's population transforms (its spec's :attr:`~hbm.model.spec.ModelSpec.transforms`; the
 #: layer asks the spec of the model it fits)

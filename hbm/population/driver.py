@@ -104,7 +104,7 @@ def _write_joint(cfg: PopulationConfig, draws, out: Path | None, names: Sequence
     attrs.update({"bounds": bounds, "layer": info, "warnings": list(info.get("warnings", [])),
                   "evaluations": int(info["evaluations"]), "refined": [],
                   "hyperprior": {"mu": "uniform on transformed box",
-                                 "sd": f"loguniform on {tuple(cfg.sd_range)} x mu range"}})
+                                 "sd": f"loguniform on {cfg.sd_bounds(joint=True)} x mu range"}})
     hf = io.HierarchicalFile(param_names=list(names), hyper_names=list(draws.hyper_names),
                              hyper_samples=np.asarray(draws.hyper), specimen_ids=list(draws.specimens),
                              updated=np.stack([draws.updated[s] for s in draws.specimens], axis=1),
@@ -125,7 +125,7 @@ def _fit(cfg: PopulationConfig, layout: Layout, log_likelihood: Mapping | None):
     Returns the result and its warnings (raised and kept ones, without repeats).
     """
     options = dict(transforms=layout.transforms, pooled=layout.pooled, n_samples=int(cfg.samples),
-                   progress=cfg.progress, sd_range=tuple(cfg.sd_range), estimator=cfg.estimator,
+                   progress=cfg.progress, sd_range=cfg.sd_bounds(joint=False), estimator=cfg.estimator,
                    log_prior=layout.log_prior, tmcmc_options=cfg.tmcmc_options(), log_likelihood=log_likelihood)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -150,7 +150,7 @@ def _group_payload(cfg: PopulationConfig, h) -> dict | None:
     return {"key": cfg.group_by or "group", "names": list(h.groups), "specimen_group": dict(h.specimen_group),
             "pooled": list(h.names), "means": np.asarray(h.group_means), "predictive": np.asarray(h.group_predictive),
             "hyperprior": {"group means": "normal(mu, sd_between) truncated to the range of mu",
-                           "sd_between, sd_within": f"each loguniform on {tuple(cfg.sd_range)} x mu range"}}
+                           "sd_between, sd_within": f"each loguniform on {cfg.sd_bounds(joint=False)} x mu range"}}
 
 
 def _reuse_attrs(h) -> dict:
@@ -166,7 +166,7 @@ def _write(cfg: PopulationConfig, h, out: Path | None, names: Sequence[str], upd
     attrs.update({"method": "reuse", "estimator": cfg.estimator, "log_evidence_parts": h.log_evidence_parts,
                   "warnings": list(warn_msgs), "refined": list(refined), "ess_summary": h.ess_summary,
                   "hyperprior": {"mu": "uniform on transformed box",
-                                 "sd": f"loguniform on {tuple(cfg.sd_range)} x mu range"}})
+                                 "sd": f"loguniform on {cfg.sd_bounds(joint=False)} x mu range"}})
     hf = io.HierarchicalFile(param_names=list(names), hyper_names=list(h.hyper_names),
                              hyper_samples=np.asarray(h.hyper_samples), specimen_ids=list(h.specimens),
                              updated=np.stack([updated[s] for s in h.specimens], axis=1),

@@ -37,7 +37,7 @@ from .batch import SpecimenLikelihoods, amplitude_columns
 from .config import PopulationConfig
 from .fallbacks import specimen_likelihood
 
-__all__ = ["SHARD_SIZE", "LayerDraws", "sample_layer"]
+__all__ = ["SHARD_SIZE", "LayerDraws", "sample_layer", "at_floor"]
 
 #: most specimens per shard (the shards, hence the draws, depend on the number of specimens only): 96
 #: specimens make four shards, two per worker of a two-worker cluster
@@ -48,6 +48,9 @@ UPDATED_DRAWS = 4000
 RHAT_TARGET, ESS_TARGET = 1.01, 400.0
 #: R-hat above which a specimen column is reported as not converged
 RHAT_SPECIMEN = 1.05
+#: a population sd whose draws lie within FLOOR_BAND × the hyperprior's lower end in more than FLOOR_MASS of
+#: the draws is reported: its spread is set by the prior's floor, not by the data
+FLOOR_BAND, FLOOR_MASS = 1.1, 0.05
 
 
 @dataclass
@@ -159,7 +162,7 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
         raise HbmError(f"the population layer needs the datasets of {', '.join(missing)} (pass datasets=...)")
     coords = strategy.coords
     hm = HierarchicalModel(layout.names, layout.bounds, pooled=layout.pooled, transforms=layout.transforms,
-                           sd_range=tuple(cfg.sd_range))
+                           sd_range=cfg.sd_bounds(joint=True))
     names_y = list(coords.names_y)
     pool_y = [names_y.index(p) for p in hm.names]
     features = PooledFeatures(hm, pool_y, getattr(coords, "log_u", None))
@@ -204,9 +207,31 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
     updated = {sid: coords.draw_theta(y[:, i], rng_out) for i, sid in enumerate(ids)}
     predictive = draw_population(hm, raw, raw.shape[0], np.random.default_rng(seeds.child(root, 5)))
     info = _summary(res, ids, names_y, hm, chains, cpu, use_dask)
+    info["sd_at_floor"] = at_floor(hm, raw)
     info["warnings"] = _report(info, names_y, cfg)
     return LayerDraws(model=hm, raw=raw, hyper=hm.natural(raw), chains=chains, specimens=ids, updated=updated,
                       predictive=predictive, names=list(hm.names), info=info)
+
+
+def at_floor(hm: HierarchicalModel, raw: np.ndarray) -> dict:
+    """Pooled columns whose population sd piles up at the hyperprior's lower end: name -> (fraction of the
+    draws below ``FLOOR_BAND`` × the floor, the floor), for those above ``FLOOR_MASS``.
+
+    Parameters
+    ----------
+    hm : HierarchicalModel
+    raw : ndarray (n, 2d+q)
+        Hyper draws in the model's raw coordinates.
+    """
+    sd = hm.natural(raw)[:, hm.d:2 * hm.d]
+    out = {}
+    for k, p in enumerate(hm.names):
+        if f"sd_{p}" in hm.fix:
+            continue
+        frac = float(np.mean(sd[:, k] < FLOOR_BAND * hm.sd_lo[k]))
+        if frac > FLOOR_MASS:
+            out[f"sd_{p}"] = (frac, float(hm.sd_lo[k]))
+    return out
 
 
 def _summary(res, ids, names_y, hm, chains, cpu, use_dask) -> dict:
@@ -245,5 +270,14 @@ def _report(info: dict, names_y, cfg: PopulationConfig) -> list[str]:
         msg = (f"population layer not converged: {what}; longer chains help (--hier-samples "
                f"{2 * info['chains'] * info['n_keep']} doubles the kept draws)")
         _log(f"WARNING: {msg}", True)
-        return [msg]
-    return []
+        out = [msg]
+    else:
+        out = []
+    if info.get("sd_at_floor"):
+        msg = ("population spread at the hyperprior's lower end: " + ", ".join(
+            f"{k} ({100 * f:.0f} % of the draws below {FLOOR_BAND:g} x its floor {lo:.3g})"
+            for k, (f, lo) in info["sd_at_floor"].items())
+            + "; the data allow a narrower population than the prior (sd_range setting, a fraction of mu's range)")
+        _log(f"WARNING: {msg}", True)
+        out.append(msg)
+    return out

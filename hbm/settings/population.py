@@ -9,13 +9,18 @@ from ..errors import SettingError
 from .fields import Settings, record, setting
 from .rules import NON_NEGATIVE_INT, POSITIVE_INT, SEED, ChoiceRule, IntRule
 
-__all__ = ["PopulationSettings", "DEFAULT_SD_RANGE", "POOL_COMBINATIONS", "POOL_INFORMED", "POOL_MODES"]
+__all__ = ["PopulationSettings", "DEFAULT_SD_RANGE", "JOINT_SD_RANGE",
+           "POOL_COMBINATIONS", "POOL_INFORMED", "POOL_MODES"]
 
-#: sd_k in [0.05, 1] x the width of mu_k's range.  The lower end keeps the unidentified directions
-#: (VOLF, P1, T1, GF, GM individually) from drawing populations far narrower than every
+#: the reuse layer's sd_k range, [0.05, 1] x the width of mu_k's range.  The lower end keeps the unidentified
+#: directions (VOLF, P1, T1, GF, GM individually) from drawing populations far narrower than every
 #: individual posterior -- the log-uniform sd prior would otherwise put mass there, where the
 #: stage-1 samples cannot represent the population (importance ESS ~ 1).
 DEFAULT_SD_RANGE = (0.05, 1.0)
+#: the joint sampler's (the default layer's), [0.01, 1] x mu_k's range: it evaluates every specimen's likelihood, so
+#: it needs no such floor, and 0.05 lay above real spreads (0.69 in log (1-c)*T1, 0.80 in logit T2: a
+#: population of sd 0.5 there was excluded and missed at every size; results/benchmarks/population_layer.md)
+JOINT_SD_RANGE = (0.01, 1.0)
 #: ``--pool combinations``: pool the identifiable combinations instead of the raw parameters
 POOL_COMBINATIONS = "combinations"
 #: ``--pool informed``: pool the model parameters that the posteriors inform (auto_pool)
@@ -52,8 +57,9 @@ class PopulationSettings(Settings):
         Importance estimator of :func:`~hbm.samplers.hierarchical.hierarchical`.
     transforms : dict, optional
         Per-parameter transforms overriding the model's (its spec's population transforms).
-    sd_range : tuple of float
-        Population sd range as a fraction of mu's range.
+    sd_range : tuple of float, optional
+        Population sd range as a fraction of mu's range (None: :data:`JOINT_SD_RANGE` for the joint sampler,
+        :data:`DEFAULT_SD_RANGE` for the reuse layer; :meth:`sd_bounds`).
     stage1_samples : int
         The specimens' TMCMC N (caps a refinement's N).
     noise, fix, bounds
@@ -96,7 +102,8 @@ class PopulationSettings(Settings):
                                            help="further keyword arguments of the layer's TMCMC")
     estimator: str = setting("raw", rule=_ESTIMATOR, help="importance estimator of p(d_i|psi): raw or kernel")
     transforms: dict | None = setting(None, help="per-parameter population transforms over the model's")
-    sd_range: tuple = setting(DEFAULT_SD_RANGE, help="population sd range as a fraction of mu's range")
+    sd_range: tuple | None = setting(None, help="population sd range as a fraction of mu's range (None: the "
+                                                "layer's own, JOINT_SD_RANGE or DEFAULT_SD_RANGE)")
     stage1_samples: int = setting(2000, rule=POSITIVE_INT, help="the specimens' TMCMC N")
     noise: str = setting("iid", help="stage-1 noise model (for refinements)")
     fix: dict | None = setting(None, help="stage-1 fixed parameters (for refinements)")
@@ -120,6 +127,12 @@ class PopulationSettings(Settings):
         if self.sampler_options is not None and not isinstance(self.sampler_options, Mapping):
             raise SettingError(f"sampler_options must be a dict of TMCMC keyword arguments, got "
                                f"{self.sampler_options!r}")
+
+    def sd_bounds(self, joint: bool) -> tuple:
+        """The sd range of the joint sampler (``joint``) or of the reuse layer: ``sd_range`` if set."""
+        if self.sd_range is not None:
+            return tuple(float(v) for v in self.sd_range)
+        return JOINT_SD_RANGE if joint else DEFAULT_SD_RANGE
 
     def tmcmc_options(self) -> dict:
         """Keyword arguments of every TMCMC run of the layer: the MH step cap, then ``sampler_options``.

@@ -14,7 +14,7 @@ from typing import Any
 from ..errors import SettingError
 from .fields import record, setting
 from .fit import RUN_SWEEP, FitSettings
-from .population import DEFAULT_SD_RANGE, PopulationSettings
+from .population import PopulationSettings
 from .rules import POSITIVE_INT, POWER_OF_TWO, SAMPLE_SIZE, WORKERS, NON_NEGATIVE_INT, ChoiceRule
 
 __all__ = ["RunSettings", "DEFAULT_OUT", "QUICK"]
@@ -68,7 +68,8 @@ class RunSettings(FitSettings):
     hier_estimator: str = setting("raw", rule=ChoiceRule(lambda: ("raw", "kernel"), "importance estimator"),
                                   help="estimator of p(d_i|psi)")
     hier_transforms: dict | None = setting(None, help="population transforms over the model's")
-    hier_sd_range: tuple = setting(DEFAULT_SD_RANGE, help="population sd range as a fraction of mu's range")
+    hier_sd_range: tuple | None = setting(None, help="population sd range as a fraction of mu's range (None: the "
+                                                     "layer's own)")
     #: the population layer: the joint sampler ("gibbs") or None (reuse + TMCMC refinement)
     hier_exact: str | None = setting("gibbs", help="the joint sampler of the population and every specimen "
                                                    "(gibbs or None)")

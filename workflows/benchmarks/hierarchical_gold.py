@@ -54,7 +54,7 @@ from hbm.identifiability.combinations import COMBINATION_PARAMS, log_density, sa
 from hbm.data import synthetic_specimen  # noqa: E402
 from hbm.fit import fit_specimen  # noqa: E402
 from hbm.model import spyrou_model  # noqa: E402
-from hbm.population import COMBINATION_COLUMNS, DEFAULT_SD_RANGE, run_population  # noqa: E402
+from hbm.population import COMBINATION_COLUMNS, DEFAULT_SD_RANGE, JOINT_SD_RANGE, run_population  # noqa: E402
 from hbm.samplers.hierarchical import HierarchicalModel  # noqa: E402
 from hbm.runtime.files import atomic_write_text  # noqa: E402
 from hbm.workflow.run import _common_sigma_box  # noqa: E402
@@ -146,6 +146,11 @@ def _arviz(path) -> dict:
             "ess_bulk_min": float(min(ess[v] for v in ess.data_vars)), "chains": int(post.sizes["chain"])}
 
 
+def _sd_range(hf) -> tuple:
+    """The hyperprior sd range the layer of ``hf`` used: the joint sampler's or the reuse layer's default."""
+    return JOINT_SD_RANGE if hf.attrs.get("layer") else DEFAULT_SD_RANGE
+
+
 def peer_spec(results, datasets, hf) -> dict:
     """Everything the NUTS peer needs: data, box, pooled columns with transforms and hyperprior ranges."""
     first = next(iter(results.values()))
@@ -154,7 +159,7 @@ def peer_spec(results, datasets, hf) -> dict:
     pooled = list(hf.attrs["pooled"])
     pb = hf.attrs["bounds"]
     tr = hf.attrs["transforms"]
-    hm = HierarchicalModel(pooled, np.array([pb[p] for p in pooled]), transforms=tr, sd_range=DEFAULT_SD_RANGE)
+    hm = HierarchicalModel(pooled, np.array([pb[p] for p in pooled]), transforms=tr, sd_range=_sd_range(hf))
     cols = []
     for k, p in enumerate(pooled):
         zlo, zhi = float(hm.zlo[k]), float(hm.zhi[k])

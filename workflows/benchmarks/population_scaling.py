@@ -54,7 +54,8 @@ if str(ROOT) not in sys.path:
 from hbm import io  # noqa: E402
 from hbm.data import save_specimen, synthetic_specimen  # noqa: E402
 from hbm.data.plausibility import implausible  # noqa: E402
-from hbm.identifiability.combinations import COMBINATION_PARAMS, log_density, sample_conditional, support_hull  # noqa: E402
+from hbm.identifiability.combinations import (COMBINATION_PARAMS, log_density, sample_conditional, support_hull,  # noqa: E402
+                                              to_features)
 from hbm.model import spyrou_model  # noqa: E402
 from hbm.model.core import Loading  # noqa: E402
 from hbm.population import COMBINATION_COLUMNS  # noqa: E402
@@ -131,8 +132,28 @@ def _hbm(args: list[str], env_extra: dict | None = None) -> tuple[float, float, 
     return wall, (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime), out.stderr[-2000:]
 
 
-def layer_record(out: Path, run_json: bool = True) -> dict:
-    """What the stored files say about the layer: evaluations, CPU, ArviZ R-hat/ESS, coverage."""
+def drawn(ids, model, data: Path) -> dict:
+    """The drawn specimens' own population in the layer's coordinates: column -> (sample mean, sample sd) of
+    the specimens ``ids`` from their true parameters (the ``# parameters:`` line of ``data/<id>.csv``)."""
+    names, box = list(model.parameter_names), model.bounds
+    pars = []
+    for sid in ids:
+        with open(data / f"{sid}.csv") as f:
+            pars.append(json.loads(next(ln for ln in f if ln.startswith("# parameters:")).split(":", 1)[1]))
+    th = np.array([[q[p] for p in names] for q in pars])
+    cols = dict(zip(COMBINATION_COLUMNS, np.log(to_features(names, th)).T))
+    for p in ("T2", "EOPT"):
+        lo, hi = box[names.index(p)]
+        x = th[:, names.index(p)]
+        cols[p] = np.log((x - lo) / (hi - x))
+    cols["THETA"] = th[:, names.index("THETA")]
+    return {c: (float(v.mean()), float(v.std(ddof=1))) for c, v in cols.items()}
+
+
+def layer_record(out: Path, data: Path, run_json: bool = True) -> dict:
+    """What the stored files say about the layer: evaluations, CPU, ArviZ R-hat/ESS, and the coverage of the
+    generating population (``TRUTH``) and of the drawn specimens' own mean and sd (:func:`drawn`) by the 5-95 %
+    intervals of the hyper-posterior."""
     import arviz as az
 
     hf = io.read_hierarchical(out / "hierarchical.nc")
@@ -142,13 +163,15 @@ def layer_record(out: Path, run_json: bool = True) -> dict:
     diag = {"r_hat": {v: float(rh[v]) for v in rh.data_vars}, "ess_bulk": {v: float(es[v]) for v in es.data_vars}}
     lay = hf.attrs.get("layer", {})
     cover = {}
+    sample = drawn(hf.specimen_ids, spyrou_model(), data)
     for p in hf.attrs.get("pooled", []):
         for kind, j in (("mu", 0), ("sd", 1)):
             name = f"{kind}_{p}"
             if p in TRUTH and name in hf.hyper_names:
                 lo, hi = np.quantile(hf.hyper(name), [0.05, 0.95])
                 cover[name] = {"truth": float(TRUTH[p][j]), "q05": float(lo), "q95": float(hi),
-                               "inside": bool(lo <= TRUTH[p][j] <= hi)}
+                               "inside": bool(lo <= TRUTH[p][j] <= hi), "drawn": sample[p][j],
+                               "drawn_inside": bool(lo <= sample[p][j] <= hi)}
     t = run["timings"]
     return {"specimens": len(hf.specimen_ids), "evaluations": int(hf.evaluations or 0),
             "layer_cpu_s": float(lay.get("cpu_s", float("nan"))), "layer_wall_s": float(lay.get("wall_s", float("nan"))),
@@ -170,7 +193,7 @@ def run(a) -> int:
         if a.workers is not None:
             args += ["--workers", str(a.workers)]
         wall, cpu, _ = _hbm(args)
-        rec = layer_record(out)
+        rec = layer_record(out, data)
         rec.update(run_wall_s=wall, run_cpu_s=cpu, load=os.getloadavg())
         rows[str(n)] = rec
         _save("run", rows, merge=True)
@@ -239,7 +262,8 @@ datasets = load_specimens(str(data))
 box = _common_sigma_box(datasets)
 cache.mkdir(parents=True, exist_ok=True)
 results = {sid: ps._stage1(sid, datasets[sid], model, box, cache, from_run) for sid in sorted(datasets)}
-cfg = RunSettings(data=str(data), out=str(out), progress=False).population_settings()
+extra = json.loads(sys.argv[8]) if len(sys.argv) > 8 else {}
+cfg = RunSettings(data=str(data), out=str(out), progress=False, **extra).population_settings()
 with dask_client(workers) as client:
     t, c = time.perf_counter(), time.process_time()
     hf, path = run_population(results, datasets, model, config=cfg, out=out, client=client)
@@ -254,18 +278,19 @@ def layer(a) -> int:
     cache = Path(a.out_runs) / "stage1"
     from_run = Path(a.from_run) if a.from_run else None
     rows, files = [], {}
+    settings = {} if a.sd_range is None else {"hier_sd_range": [float(v) for v in a.sd_range.split(",")]}
     for w in map(int, str(a.workers or "2").split(",")):
-        out = Path(a.out_runs) / f"layer{a.size}_w{w}"
+        out = Path(a.out_runs) / f"layer{a.size}{a.tag}_w{w}"
         out.mkdir(parents=True, exist_ok=True)
         (out / "hierarchical.nc").unlink(missing_ok=True)
         env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
         t = time.perf_counter()
         p = subprocess.run([sys.executable, "-c", _LAYER, str(ROOT), str(a.size), str(w), str(out), str(data),
-                            str(cache), str(from_run or "")], capture_output=True, text=True, env=env, cwd=str(ROOT))
+                            str(cache), str(from_run or ""), json.dumps(settings)], capture_output=True, text=True, env=env, cwd=str(ROOT))
         if p.returncode != 0:
             raise SystemExit(f"layer failed:\n{p.stderr[-3000:]}")
-        rec = layer_record(out, run_json=False)
-        rec.update(workers=w, process_wall_s=time.perf_counter() - t, load=os.getloadavg(),
+        rec = layer_record(out, data, run_json=False)
+        rec.update(workers=w, settings=settings, process_wall_s=time.perf_counter() - t, load=os.getloadavg(),
                    **json.loads(p.stdout.strip().splitlines()[-1]))
         files[w] = io.read_hierarchical(out / "hierarchical.nc")
         rows.append(rec)
@@ -282,7 +307,7 @@ def layer(a) -> int:
                 if r["workers"] == w:
                     r[f"bitwise_same_as_workers_{min(files)}"] = bool(same)
             print(f"workers {w}: bitwise identical to workers {min(files)}: {same}", flush=True)
-    _save("layer", {str(a.size): rows}, merge=True)
+    _save("layer", {f"{a.size}{a.tag}": rows}, merge=True)
     return 0
 
 
@@ -309,6 +334,9 @@ def main(argv=None) -> int:
         p.add_argument("--layer-only", action="store_true")
         p.add_argument("--size", type=int, default=96)
         p.add_argument("--repeats", type=int, default=2)
+        p.add_argument("--sd-range", default=None, help="layer: the hyperprior's sd range as LO,HI (fractions of "
+                       "mu's range; default the run's)")
+        p.add_argument("--tag", default="", help="layer: suffix of the output folder and of the record's key")
     a = ap.parse_args(argv)
     return {"make": make, "run": run, "dask": dask, "layer": layer}[a.cmd](a)
 

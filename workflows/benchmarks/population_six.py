@@ -104,7 +104,7 @@ def layer(a) -> int:
                            **_diag(rec.pop("path")))
             rows.append(rec)
             print(json.dumps(rec), flush=True)
-    _save("layer", rows)
+    _save(a.record or "layer", rows)
     return 0
 
 
@@ -132,7 +132,7 @@ def run(a) -> int:
                     shutil.copytree(Path(tmp) / "specimens", Path(a.keep) / f"{label}{rep}", dirs_exist_ok=True)
             rows.append(rec)
             print(json.dumps(rec), flush=True)
-    _save("run", rows)
+    _save(a.record or "run", rows)
     return 0
 
 
@@ -151,6 +151,8 @@ def main(argv=None) -> int:
                        help="checkout to compare with (default $HBM_BEFORE or ../before; 'none': this checkout only)")
         p.add_argument("--specimens", default="hbm-results/specimens", help="stage-1 results of the six (layer)")
         p.add_argument("--repeats", type=int, default=2)
+        p.add_argument("--record", default=None, help="key of the record in population_six.json (default the "
+                       "subcommand's name: it replaces that record)")
         p.add_argument("--geometry", default=None, help="e.g. data/geometry/fusiform.toml (run)")
         p.add_argument("--keep", default=None, help="copy each run's specimens/ to KEEP/<label><repeat> (run)")
     a = ap.parse_args(argv)
