@@ -21,7 +21,7 @@ import numpy as np
 from .._version import __version__
 from ..data.specimen import as_specimen
 from ..errors import HbmError, HbmWarning
-from ..identifiability.modes import TestsIdentifiability, fit_point, tests_identifiability
+from ..identifiability.modes import ModesIdentifiability, fit_point, linearised_identifiability
 from ..io.modes import write_modes_result
 from ..likelihood.modes import ModesLikelihood, make_modes_likelihood
 from ..model import spyrou_model
@@ -60,7 +60,7 @@ class ModesFit:
     seeds : dict
     timings : dict
     path : Path or None
-    identifiability : TestsIdentifiability or None
+    identifiability : ModesIdentifiability or None
         What the tests identify, linearised at the highest-likelihood draw (None when not computed).
     """
 
@@ -77,7 +77,7 @@ class ModesFit:
     seeds: dict
     timings: dict = field(default_factory=dict)
     path: Path | None = None
-    identifiability: TestsIdentifiability | None = None
+    identifiability: ModesIdentifiability | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -224,13 +224,13 @@ def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int =
     return fit
 
 
-def _identifiability(fit: ModesFit) -> TestsIdentifiability | None:
+def _identifiability(fit: ModesFit) -> ModesIdentifiability | None:
     """The Fisher analysis of the fit's tests at its highest-likelihood draw, compared with the posterior;
     None (with a warning) when a model solve fails at the point (the rest of the fit stands)."""
     lik = fit.likelihood
     row, where = fit_point(lik, fit.samples, fit.log_likelihood)
     try:
-        ident = tests_identifiability(lik, row, point_label=where)
+        ident = linearised_identifiability(lik, row, point_label=where)
     except HbmError as e:
         warnings.warn(f"{lik.label}: what the tests identify was not computed ({e})", HbmWarning, stacklevel=3)
         return None

@@ -1,6 +1,6 @@
 """What a specimen's tests identify: a linearised (Fisher) analysis across loading modes (issue 35, item 5).
 
-At one point of the sampling space (:func:`tests_identifiability`; a fit passes its highest-likelihood
+At one point of the sampling space (:func:`linearised_identifiability`; a fit passes its highest-likelihood
 draw, :func:`fit_point`) the Jacobian J_s of every measured series s with respect to the free model
 parameters (and the per-test stress scales, when fitted) is taken in the *sampling* coordinates
 (``ModesLikelihood.names``: natural units for uniform priors, logs for log-uniform ones) by central
@@ -22,7 +22,8 @@ positive and unbounded) the linearised sd with all tests, with each test alone a
 out; ``width_added`` = sd(all but the test) / sd(all).  A quantity whose data-only sd is above
 :data:`PRIOR_DOMINATED` × its prior sd is *prior-dominated* (the tests carry less than 4× the box's
 information along it).  ``sd_data`` is the data-only limit (the
-prior's weight → 0, the structural directions projected out; inf when the tests do not inform it).
+prior box's weight → 0 (the per-test scales keep their Gaussian prior), the structural directions
+projected out; inf when the tests do not inform it).
 
 This module names no parameter: it reads names from the likelihood and the spec.
 """
@@ -40,7 +41,7 @@ from ..likelihood.modes import TEST_SCALE_SD
 from ..model.loadcases import LOAD_CASES, check_mode
 from ..model.spec import spec_of
 
-__all__ = ["TestsIdentifiability", "tests_identifiability", "fit_point", "NULL_TOL", "PROBE_STRAINS",
+__all__ = ["ModesIdentifiability", "linearised_identifiability", "series_jacobians", "fit_point", "NULL_TOL", "PROBE_STRAINS",
            "PRIOR_DOMINATED", "REL_STEP"]
 
 #: the finite-difference step, relative to each coordinate's prior box width in the sampling space
@@ -61,9 +62,9 @@ _LOADING_MIN = 0.2
 
 
 @dataclass
-class TestsIdentifiability:
+class ModesIdentifiability:
     """The linearised identifiability of a specimen's tests (module docstring); built by
-    :func:`tests_identifiability`.
+    :func:`linearised_identifiability`.
 
     Attributes
     ----------
@@ -259,16 +260,39 @@ def _stencil(lik, row: np.ndarray, cols: np.ndarray, rel_step: float) -> tuple[n
     return rows, b - a
 
 
-def _jacobians(values: list[np.ndarray], p: int, step: np.ndarray) -> list[np.ndarray]:
-    """(n_values, p) Jacobian of each series from its (2p, n_values) stencil values."""
-    return [((v[:p] - v[p:]) / step[:, None]).T for v in values]
+def series_jacobians(lik, point, rel_step: float = REL_STEP) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """The Jacobian of every measured series at ``point`` in the sampling coordinates, by central finite
+    differences in **one** batched ``predict_series`` call over all ±h rows.
+
+    Parameters
+    ----------
+    lik : ModesLikelihood
+    point : array_like (d,)
+        A row in the sampling coordinates (``lik.names``).
+    rel_step : float
+        Step relative to each coordinate's prior box width (shrunk near a physical limit).
+
+    Returns
+    -------
+    jacobians : list of ndarray (n_values, p)
+        Parallel to ``lik.series``; columns: the free model parameters, then the per-test scales.
+    rows : ndarray (2p, d)
+        The stencil (+h rows, then −h rows).
+    step : ndarray (p,)
+        The difference of the two rows of each column.
+    """
+    row = np.asarray(point, float).ravel()
+    cols = _perturbed(lik)
+    p = cols.size
+    rows, step = _stencil(lik, row, cols, rel_step)
+    values = lik.predict_series(rows)          # one batched call: every ±h row, every test
+    return [((v[:p] - v[p:]) / step[:, None]).T for v in values], rows, step
 
 
-def _probe_fisher(lik, row: np.ndarray, cols: np.ndarray, rows: np.ndarray, step: np.ndarray,
-                  sd: np.ndarray) -> tuple[np.ndarray, tuple[str, ...], int]:
+def _probe_fisher(lik, rows: np.ndarray, step: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, tuple[str, ...], int]:
     """Whitened information of every loading mode the energy evaluates, each observable at PROBE_STRAINS,
     noise 1 % of the observable's largest |value| (only its null space is used)."""
-    p = cols.size
+    p = step.size
     params = lik.model._params(lik.model_theta(rows))
     total = np.zeros((p, p))
     modes, n = [], 0
@@ -355,8 +379,8 @@ def _complement(N: np.ndarray, p: int) -> np.ndarray:
     return u[:, N.shape[1]:]
 
 
-def tests_identifiability(lik, point, *, point_label: str = "the given point",
-                          rel_step: float = REL_STEP) -> TestsIdentifiability:
+def linearised_identifiability(lik, point, *, point_label: str = "the given point",
+                          rel_step: float = REL_STEP) -> ModesIdentifiability:
     """The linearised identifiability of ``lik``'s tests at ``point`` (module docstring).
 
     Parameters
@@ -372,7 +396,7 @@ def tests_identifiability(lik, point, *, point_label: str = "the given point",
 
     Returns
     -------
-    TestsIdentifiability
+    ModesIdentifiability
 
     Raises
     ------
@@ -384,8 +408,7 @@ def tests_identifiability(lik, point, *, point_label: str = "the given point",
         raise HbmError(f"identifiability: the point must be {lik.d} finite numbers ({', '.join(lik.names)})")
     cols = _perturbed(lik)
     p = cols.size
-    rows, step = _stencil(lik, row, cols, rel_step)
-    J = _jacobians(lik.predict_series(rows), p, step)          # one batched call: every ±h row, every test
+    J, rows, step = series_jacobians(lik, row, rel_step)
     sig = lik.to_natural(row[None])[0, lik.n_model: lik.n_model + len(lik.kinds)]
     test_ids = list(dict.fromkeys(s.test.id for s in lik.series))
     tests = [{"id": int(t.id), "label": t.label, "mode": t.load_case} for t in lik.data.tests if t.id in test_ids]
@@ -397,8 +420,10 @@ def tests_identifiability(lik, point, *, point_label: str = "the given point",
     D = np.diag(sd)
     Fw_t = np.einsum("ij,tjk,kl->til", D, fisher, D)          # whitened: prior sd 1 per coordinate
     Fw = Fw_t.sum(axis=0)
+    # the per-test scales' N(1, 0.05²) is a chosen prior, not the box: the data-only limit keeps it
+    kept = np.diag([1.0 if lik.names[c].startswith("scale_test") else 0.0 for c in cols])
     lam = np.linalg.eigvalsh(Fw)
-    probe, probe_modes, n_probe = _probe_fisher(lik, row, cols, rows, step, sd)
+    probe, probe_modes, n_probe = _probe_fisher(lik, rows, step, sd)
     lp, Vp = np.linalg.eigh(Fw + probe)
     null = Vp[:, lp < NULL_TOL * max(lp.max(), 1e-300)]
     names = tuple(lik.names[c] for c in cols)
@@ -417,14 +442,14 @@ def tests_identifiability(lik, point, *, point_label: str = "the given point",
         gw = sd * q.pop("gradient")
         alone = {t: _sd(Fw_t[i], gw) for i, t in enumerate(test_ids)}
         without = {t: _sd(Fw - Fw_t[i], gw) for i, t in enumerate(test_ids)}
-        sd_all, sd_data = _sd(Fw, gw), _sd_data(Fw, gw, null)
+        sd_all, sd_data = _sd(Fw, gw), _sd_data(Fw + kept, gw, null)
         sd_prior = float(np.linalg.norm(gw))
         quantities.append({**q, "sd_all": sd_all, "sd_prior": sd_prior, "sd_data": sd_data,
                            "sd_alone": alone, "sd_without": without,
                            "width_added": {t: without[t] / sd_all for t in test_ids},
                            "prior_dominated": bool(sd_data > PRIOR_DOMINATED * sd_prior), "sd_posterior": None})
     space = ", ".join(f"ln {n}" if lik.forms[c] == "loguniform" else n for n, c in zip(names, cols))
-    return TestsIdentifiability(
+    return ModesIdentifiability(
         specimen=str(lik.label), point=point_label, space=space, parameters=names, tests=tests, fisher=fisher,
         prior_sd=sd, eigenvalues=lam, rank=int(np.sum(lam >= 1.0)), unidentified=unident,
         n_structural=int(null.shape[1]), structural_parameters=structural_parameters, structural_text=text,

@@ -8,7 +8,7 @@ test by test), with coordinates ``<observable>_test``, ``_mode``, ``_strain`` (t
 ``<observable>_point``), so ``arviz.loo(idata, var_name="strain_f")`` is the per-observable LOO.  The
 posterior is one pooled chain (TMCMC's final population).  Root attributes: log-evidence, the collagen
 reading, the tier and why, the settings, and ``identifiability``: what the tests identify as JSON
-(:meth:`hbm.identifiability.modes.TestsIdentifiability.to_dict`, linearised at the highest-likelihood
+(:meth:`hbm.identifiability.modes.ModesIdentifiability.to_dict`, linearised at the highest-likelihood
 draw; absent when it was not computed).
 """
 
