@@ -21,9 +21,8 @@ Per quantity of the spec (its combinations and shape parameters; ln scale for th
 positive and unbounded) the linearised sd with all tests, with each test alone and with each left
 out; ``width_added`` = sd(all but the test) / sd(all).  A quantity whose data-only sd is above
 :data:`PRIOR_DOMINATED` × its prior sd is *prior-dominated* (the tests carry less than 4× the box's
-information along it).  ``sd_data`` is the data-only limit (the
-prior box's weight → 0 (the per-test scales keep their Gaussian prior), the structural directions
-projected out; inf when the tests do not inform it).
+information along it).  ``sd_data`` is the data-only limit: the box's weight → 0 (the per-test scales
+keep their Gaussian prior), the structural directions projected out; inf when the tests do not inform it.
 
 This module names no parameter: it reads names from the likelihood and the spec.
 """
@@ -41,8 +40,8 @@ from ..likelihood.modes import TEST_SCALE_SD
 from ..model.loadcases import LOAD_CASES, check_mode
 from ..model.spec import spec_of
 
-__all__ = ["ModesIdentifiability", "linearised_identifiability", "series_jacobians", "fit_point", "NULL_TOL", "PROBE_STRAINS",
-           "PRIOR_DOMINATED", "REL_STEP"]
+__all__ = ["ModesIdentifiability", "linearised_identifiability", "series_jacobians", "fit_point", "NULL_TOL",
+           "PROBE_STRAINS", "PRIOR_DOMINATED", "REL_STEP"]
 
 #: the finite-difference step, relative to each coordinate's prior box width in the sampling space
 REL_STEP = 1e-4
@@ -380,7 +379,7 @@ def _complement(N: np.ndarray, p: int) -> np.ndarray:
 
 
 def linearised_identifiability(lik, point, *, point_label: str = "the given point",
-                          rel_step: float = REL_STEP) -> ModesIdentifiability:
+                               rel_step: float = REL_STEP) -> ModesIdentifiability:
     """The linearised identifiability of ``lik``'s tests at ``point`` (module docstring).
 
     Parameters
@@ -432,8 +431,8 @@ def linearised_identifiability(lik, point, *, point_label: str = "the given poin
                for k in range(null.shape[1])]
     Q = _complement(null, p)
     lq, Vq = np.linalg.eigh(Q.T @ Fw @ Q)
-    unident += [{"information": float(max(lq[k], 0.0)), "structural": False, "loadings": _loadings(Q @ Vq[:, k], names)}
-                for k in np.flatnonzero(lq < 1.0)]
+    unident += [{"information": float(max(lq[k], 0.0)), "structural": False,
+                 "loadings": _loadings(Q @ Vq[:, k], names)} for k in np.flatnonzero(lq < 1.0)]
     share = np.sum(null ** 2, axis=1)
     structural_parameters = {names[i]: float(share[i]) for i in np.argsort(-share) if share[i] >= _SHARE_MIN}
     text = spec_of(lik.model).texts.get("modes_structural", "") if null.shape[1] else ""
