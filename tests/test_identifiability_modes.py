@@ -190,7 +190,7 @@ def test_fit_report_json_and_result_file(tmp_path):
     assert amp["sd_posterior"] == pytest.approx(v.std(), rel=1e-12)
     text = fit.report()
     assert "what the tests identify (linearised Fisher analysis at the highest-likelihood draw" in text
-    assert "posterior draws" in text and "x, 1 [uniaxial_c]" in text
+    assert "posterior draws" in text and "x, test 1 [uniaxial_c]" in text
     blob = json.loads(json.dumps(ident.to_dict()))
     assert blob["rank"] == ident.rank and blob["n_structural"] == 2
     write_modes_result(fit, tmp_path / "r.nc", {"samples": 50})

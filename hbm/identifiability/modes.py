@@ -144,7 +144,8 @@ class ModesIdentifiability:
     def report_lines(self) -> list[str]:
         """The report's section (what each number is, where it was linearised, in which space)."""
         p = len(self.parameters)
-        label = {t["id"]: f"{t['label'] if t['label'] is not None else t['id']} [{t['mode']}]" for t in self.tests}
+        label = {t["id"]: f"test {t['id']} [{t['mode']}]" for t in self.tests}
+        named = [f"{t['id']} = {t['label']}" for t in self.tests if t["label"] is not None and t["label"] != str(t["id"])]
         lines = [f"what the tests identify (linearised Fisher analysis at {self.point}; Jacobian in the sampling "
                  f"space: {self.space}; the prior box as a Gaussian of its own variance):",
                  f"  rank {self.rank} of {p}: directions where the tests carry at least the prior box's information"]
@@ -163,22 +164,24 @@ class ModesIdentifiability:
         names = [f"{q['scale']} {q['name']}" if q["scale"] == "ln" else q["name"] for q in self.quantities]
         lines.append("  sd of each quantity (ln = of its natural log; lin = linearised, prior box included; data = "
                      "the data-only limit; x = sd(all but the test) / sd(all), the width the test adds):")
-        lines.append("  " + " " * 30 + "".join(f"{n:>16s}" for n in names))
+        if named:
+            lines.append(f"  tests: {', '.join(named)}")
+        lines.append("  " + " " * 34 + "".join(f"{n:>16s}" for n in names))
 
         def row(title, values, fmt="{:.3g}"):
             cells = "".join(f"{'-' if v is None else fmt.format(v):>16s}" for v in values)
-            lines.append(f"  {title:<30s}{cells}")
+            lines.append(f"  {title:<34s}{cells}")
 
         row("lin, all tests", [q["sd_all"] for q in self.quantities])
         row("posterior draws", [q.get("sd_posterior") for q in self.quantities])
         row("prior box alone", [q["sd_prior"] for q in self.quantities])
         row("data only, all tests", [q["sd_data"] for q in self.quantities])
         for t in label:
-            row(f"lin, {label[t]} alone"[:30], [q["sd_alone"][t] for q in self.quantities])
+            row(f"lin, {label[t]} alone", [q["sd_alone"][t] for q in self.quantities])
         for t in label:
-            row(f"lin, without {label[t]}"[:30], [q["sd_without"][t] for q in self.quantities])
+            row(f"lin, without {label[t]}", [q["sd_without"][t] for q in self.quantities])
         for t in label:
-            row(f"x, {label[t]}"[:30], [q["width_added"][t] for q in self.quantities], "x{:.3g}")
+            row(f"x, {label[t]}", [q["width_added"][t] for q in self.quantities], "x{:.3g}")
         dom = [q["name"] for q in self.quantities if q["prior_dominated"]]
         lines.append(f"  prior-dominated (data-only sd > {PRIOR_DOMINATED:g} x the prior box's): "
                      f"{', '.join(dom) if dom else 'none'}")
