@@ -27,6 +27,7 @@ from ..likelihood.modes import ModesLikelihood, make_modes_likelihood
 from ..model import spyrou_model
 from ..model.spec import spec_of
 from ..runtime import seeds
+from ..runtime.files import retire_checkpoint
 from ..samplers.tmcmc import tmcmc
 
 __all__ = ["ModesFit", "fit_modes", "TIER_NOTE"]
@@ -143,7 +144,8 @@ def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int =
               bounds: Mapping[str, tuple[float, float]] | None = None, prior=None,
               max_evaluations: int | None = None, tmcmc_options: Mapping[str, Any] | None = None,
               progress: bool = True, out: str | Path | None = None,
-              config_extra: Mapping[str, Any] | None = None) -> ModesFit:
+              config_extra: Mapping[str, Any] | None = None,
+              checkpoint_dir: str | Path | None = None) -> ModesFit:
     """TMCMC posterior of a specimen's tests in their loading modes, with evidence and per-series checks.
 
     Parameters
@@ -172,6 +174,9 @@ def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int =
         Write the result netCDF (:func:`hbm.io.modes.write_modes_result`).
     config_extra : dict, optional
         Extra JSON-able entries of the stored configuration.
+    checkpoint_dir : path, optional
+        TMCMC checkpoint ``<dir>/<id>.npz``: an interrupted fit resumes from its last stage.  The caller keys
+        the folder by the fit's content (:func:`hbm.io.identity.fit_key`); the result file supersedes it.
 
     Returns
     -------
@@ -191,7 +196,11 @@ def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int =
     opts = dict(tmcmc_options or {})
     if max_evaluations is not None:
         opts["max_evaluations"] = int(max_evaluations)
-    tr = tmcmc(lik, lik.bounds, int(samples), seed=s_tm, progress=progress, **opts)
+    ckpt = None
+    if checkpoint_dir is not None:
+        ckpt = Path(checkpoint_dir) / f"{spec.id}.npz"
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+    tr = tmcmc(lik, lik.bounds, int(samples), seed=s_tm, progress=progress, checkpoint=ckpt, **opts)
     timings = {"tmcmc": time.perf_counter() - t0}
     if tr.budget_exhausted:
         warnings.warn(f"{spec.id}: the evaluation cap ({max_evaluations}) bound the TMCMC run: the last stage jumped "
@@ -219,6 +228,7 @@ def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int =
                   "fix": dict(fix or {}), "version": __version__, **dict(config_extra or {})}
         fit.path = write_modes_result(fit, out, config)
         timings["write"] = time.perf_counter() - t
+        retire_checkpoint(ckpt)
     timings["total"] = time.perf_counter() - t0
     fit.timings = timings
     return fit
