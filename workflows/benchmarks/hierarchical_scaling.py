@@ -143,7 +143,7 @@ def whole_layer(stage1: dict, names, bounds, pooled, transforms, seed: int, cfg:
         warnings.simplefilter("always")
         h = hierarchical(stage1, names, bounds, transforms=transforms, pooled=pooled,
                          n_samples=int(cfg.hier_samples), seed=seed, progress=False,
-                         sd_range=tuple(cfg.hier_sd_range), sampler=timed_sampler,
+                         sd_range=tuple(cfg.hier_sd_range or DEFAULT_SD_RANGE), sampler=timed_sampler,
                          tmcmc_options={"max_steps": int(cfg.hier_max_steps)})
     wall, cpu = time.perf_counter() - t, time.process_time() - c
     rows = np.array([k[0] for k in calls], float)
