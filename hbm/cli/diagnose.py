@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import warnings
 
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
@@ -11,7 +12,7 @@ from ..detective.calibration import CALIBRATION_CHOICES
 from ..detective.caveats import CORRELATED_CHOICES
 from ..detective.rules import CALIBRATION_REPLICATES
 from ..effects import applicable, resolve_effect
-from ..errors import SettingError
+from ..errors import HbmWarning, SettingError
 from ..likelihood.modes import is_multimode
 from ..model import spyrou_model
 from ..runtime.files import prepare_output_file
@@ -227,6 +228,9 @@ def run_diagnose(args) -> int:
     ds, kw = _prepare(args, [])
     if is_multimode(ds):  # tests in several loading modes: the detective across modes (hbm.detective.modes)
         return run_modes_diagnosis(args, ds, args.samples or DEFAULT_SAMPLES)
+    if args.out is not None or args.force:
+        warnings.warn(f"{ds.id}: --out/--force are for files with tests in several loading modes; an along-fibre "
+                      "diagnosis writes no result file (ignored)", HbmWarning, stacklevel=1)
     dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, calibration=args.calibration,
                   replicates=args.replicates, **kw)
     if args.plot:

@@ -54,7 +54,7 @@ from ..runtime import seeds
 
 __all__ = ["ModesDiagnosis", "diagnose_modes", "compare_readings", "held_out_prediction", "lateral_checks",
            "readings_differ", "READING_MIN_NATS", "READING_MIN_SE", "LATERAL_ALPHA", "BAND_ALPHA",
-           "TMCMC_BATCHES"]
+           "MAX_STEPS", "TMCMC_BATCHES"]
 
 #: the evidence margin (nats) and its size in combined SEs that name a reading
 READING_MIN_NATS = 3.0
@@ -63,8 +63,12 @@ READING_MIN_SE = 3.0
 LATERAL_ALPHA = 0.05
 #: a series "misses" when the binomial probability of as few points inside its 90 % band is below this
 BAND_ALPHA = 0.01
-#: likelihood batches (one per population) a TMCMC fit took on the shipped multi-mode examples (porcine
-#: ramps: 256-301 at N = 400; synthetic along + across + shear: 160-190 at N = 300): the estimate up front
+#: MH steps per TMCMC stage at most (unless ``tmcmc_options`` says otherwise): TMCMC's default cap (100)
+#: took ~1600 populations per fit of a 30-point synthetic specimen (114 s CPU per diagnosis of two readings)
+#: against ~160-300 with this cap (porcine ramps: log Z SE 0.3-0.6 at N = 400); a diagnosis runs 2-5 fits
+MAX_STEPS = 15
+#: likelihood batches (one per population) a TMCMC fit took at MAX_STEPS on the multi-mode examples (porcine
+#: ramps: 256-301 at N = 400; synthetic along + across + shear: 120-190): the estimate up front
 TMCMC_BATCHES = 300
 _LEVEL = 0.9
 
@@ -348,7 +352,8 @@ class ModesDiagnosis:
     def summary(self) -> str:
         """The text report."""
         lines = [f"{self.specimen_id}: diagnosis across loading modes ({', '.join(self.verdicts)}); TMCMC N = "
-                 f"{self.settings['samples']}, seed {self.settings['seed']}"]
+                 f"{self.settings['samples']}, at most {self.settings['tmcmc_options'].get('max_steps')} MH steps "
+                 f"per stage, seed {self.settings['seed']}"]
         lines.append("collagen reading (model form):")
         for r, f in self.fits.items():
             lines.append(f"  {r:<6s} log Z {f.log_evidence:.2f} +- {f.log_evidence_se:.2f} "
@@ -430,7 +435,8 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
         The base model (default :func:`hbm.spyrou_model` in the energy form); effects are refused
         (:class:`~hbm.likelihood.modes.ModesLikelihood`).
     samples, seed, fix, max_evaluations, tmcmc_options
-        As for :func:`hbm.fit.modes.fit_modes`, for every fit (seeds from the ``detective_modes`` stream).
+        As for :func:`hbm.fit.modes.fit_modes`, for every fit (seeds from the ``detective_modes`` stream);
+        ``tmcmc_options`` default ``{"max_steps": MAX_STEPS}``.
     leave_one_out : bool
         Run the leave-one-mode-out fits (≥ 2 modes).
     max_time : float, optional
@@ -487,8 +493,9 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
         f"{len(plan) * TMCMC_BATCHES * per_batch / 60:.1f} min CPU (one population of {samples} evaluations: "
         f"{per_batch:.2f} s; a fit takes ~{TMCMC_BATCHES} populations)")
     folder = None if out is None else Path(out)
+    tmcmc_options = {"max_steps": MAX_STEPS, **dict(tmcmc_options or {})}
     settings = {"samples": int(samples), "seed": int(seed), "fix": dict(fix or {}), "form": form,
-                "max_evaluations": max_evaluations, "tmcmc_options": dict(tmcmc_options or {}),
+                "max_evaluations": max_evaluations, "tmcmc_options": tmcmc_options,
                 "reading_rule": {"min_nats": READING_MIN_NATS, "min_se": READING_MIN_SE},
                 "lateral_alpha": LATERAL_ALPHA, "band_alpha": BAND_ALPHA}
     kw = dict(model=model, samples=samples, fix=fix, max_evaluations=max_evaluations, tmcmc_options=tmcmc_options,
