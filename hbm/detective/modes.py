@@ -44,7 +44,7 @@ import numpy as np
 from scipy import stats
 
 from ..data.specimen import Specimen, as_specimen
-from ..fit.modes import ModesFit, fit_modes
+from ..fit.modes import TIER_NOTE, ModesFit, fit_modes
 from ..likelihood.modes import ModesLikelihood, make_modes_likelihood
 from ..model import spyrou_model
 from ..model.energy3d import COLLAGEN_READINGS, DEFAULT_COLLAGEN3D
@@ -354,6 +354,7 @@ class ModesDiagnosis:
         lines = [f"{self.specimen_id}: diagnosis across loading modes ({', '.join(self.verdicts)}); TMCMC N = "
                  f"{self.settings['samples']}, at most {self.settings['tmcmc_options'].get('max_steps')} MH steps "
                  f"per stage, seed {self.settings['seed']}"]
+        lines.append(f"every fit: {TIER_NOTE}")
         lines.append("collagen reading (model form):")
         for r, f in self.fits.items():
             lines.append(f"  {r:<6s} log Z {f.log_evidence:.2f} +- {f.log_evidence_se:.2f} "
@@ -363,8 +364,10 @@ class ModesDiagnosis:
                          f"({', '.join(COLLAGEN_READINGS)}) are identical: one fit, nothing to tell apart")
         else:
             lines.append("  " + self.readings["message"])
-        lines.append(f"verdict per mode (joint fit, {self.reading} reading; a series misses when the chance of "
-                     f"as few points inside its 90 % band is < {BAND_ALPHA:g}):")
+        how = "named" if self.readings.get("named") else "higher evidence, not named"
+        lines.append(f"verdict per mode (joint fit and leave-one-mode-out fits in the {self.reading} reading, {how}; "
+                     f"a series misses when the chance of as few points inside its 90 % band is < {BAND_ALPHA:g}; "
+                     "held-out bands: the training posterior plus the joint fit's noise sd of the held-out kind):")
         for mode, sentences in self.verdicts.items():
             lines.append(f"  {mode}:")
             lines += [f"    {s}" for s in sentences]
