@@ -162,3 +162,15 @@ def test_cli_lateral_only_file_one_reading_and_output_rules(tmp_path, capsys):
     assert main(["diagnose", str(tmp_path / "m.csv"), "--out", str(tmp_path / "r2"), "--no-progress"]) == 2
     assert "hbm: error:" in capsys.readouterr().err
     assert not (tmp_path / "r2" / "diagnosis.json").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("truth", ["cone", "gst"])
+def test_reading_named_full_diagnosis(tmp_path, truth):
+    """The whole diagnosis (both readings, leave one mode out) of along + across + shear generated in each
+    reading: the generating one named, every test followed by the joint fit, a held-out check per mode."""
+    ind.synthetic_csv(tmp_path / "s.csv", 7, reading=truth)
+    d = diagnose_modes(load_specimen(tmp_path / "s.csv"), samples=300, seed=7)
+    assert d.readings["named"] == truth
+    assert set(d.held_out) == {"uniaxial_f", "uniaxial_c", "shear_fc"}
+    assert all("MISSED" not in s for v in d.verdicts.values() for s in v)
