@@ -500,8 +500,9 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
     # leave-one-out fits: the costlier reading's cost, by their share of the points
     share = {w: parts[f"without:{w}"].n_points / spec.n_points for k, w in plan if k == "without"}
     total = TMCMC_BATCHES * (sum(cost.values()) + max(cost.values()) * sum(share.values()))
-    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {w}' for k, w in plan)}); estimate ~{total / 60:.1f} min "
-        f"CPU (one population of {samples} evaluations at prior draws: "
+    # prior draws cost more than posterior ones (cone, porcine ramps: 3-4x): an upper bound
+    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {w}' for k, w in plan)}); estimate at most "
+        f"~{total / 60:.1f} min CPU (one population of {samples} evaluations at prior draws: "
         f"{', '.join(f'{r or AXIAL} {v:.2f} s' for r, v in cost.items())}; a fit takes "
         f"~{TMCMC_BATCHES} populations)")
     folder = None if out is None else Path(out)
