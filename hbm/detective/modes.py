@@ -363,12 +363,15 @@ class ModesDiagnosis:
         for r, f in self.fits.items():
             lines.append(f"  {r:<6s} log Z {f.log_evidence:.2f} +- {f.log_evidence_se:.2f} "
                          f"({f.n_evaluations} evaluations)")
-        if not self.readings["differ"]:
+        if self.reading == AXIAL:
+            lines.append("  the thesis form has its own (axial) reading only; --form energy compares cone and gst")
+        elif not self.readings["differ"]:
             lines.append("  every test is along the fibres (uniaxial_f), where the readings "
                          f"({', '.join(COLLAGEN_READINGS)}) are identical: one fit, nothing to tell apart")
         else:
             lines.append("  " + self.readings["message"])
-        how = "named" if self.readings.get("named") else "higher evidence, not named"
+        how = ("the only one fitted" if len(self.fits) == 1 else
+               "named" if self.readings.get("named") else "higher evidence, not named")
         lines.append(f"verdict per mode (joint fit and leave-one-mode-out fits in the {self.reading} reading, {how}; "
                      f"a series misses when the chance of as few points inside its 90 % band is < {BAND_ALPHA:g}; "
                      "held-out bands: the training posterior plus the joint fit's noise sd of the held-out kind):")
@@ -501,7 +504,7 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
     share = {w: parts[f"without:{w}"].n_points / spec.n_points for k, w in plan if k == "without"}
     total = TMCMC_BATCHES * (sum(cost.values()) + max(cost.values()) * sum(share.values()))
     # prior draws cost more than posterior ones (cone, porcine ramps: 3-4x): an upper bound
-    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {w}' for k, w in plan)}); estimate at most "
+    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {w or AXIAL}' for k, w in plan)}); estimate at most "
         f"~{total / 60:.1f} min CPU (one population of {samples} evaluations at prior draws: "
         f"{', '.join(f'{r or AXIAL} {v:.2f} s' for r, v in cost.items())}; a fit takes "
         f"~{TMCMC_BATCHES} populations)")
