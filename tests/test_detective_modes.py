@@ -174,3 +174,20 @@ def test_reading_named_full_diagnosis(tmp_path, truth):
     assert d.readings["named"] == truth
     assert set(d.held_out) == {"uniaxial_f", "uniaxial_c", "shear_fc"}
     assert all("MISSED" not in s for v in d.verdicts.values() for s in v)
+
+
+def test_cli_two_files_with_modes(tmp_path, capsys):
+    """`hbm diagnose along.csv:uniaxial_f across.csv:uniaxial_c`: the files are one specimen's tests, diagnosed
+    across modes (both readings, each direction held out once)."""
+    for name, mode, strains in (("along", "uniaxial_f", [0.05, 0.1, 0.15, 0.2, 0.25]),
+                                 ("across", "uniaxial_c", [0.04, 0.08, 0.12, 0.16, 0.2])):
+        s = [float(ind.predict(mode, e, ind.CALVO, "gst")["stress"]) for e in strains]
+        (tmp_path / f"{name}.csv").write_text(f"# id: {name}\nstrain,stress\n" +
+                                              "\n".join(f"{e!r},{v * (1 + 0.01 * (-1) ** k)!r}"
+                                                        for k, (e, v) in enumerate(zip(strains, s))) + "\n")
+    argv = ["diagnose", f"{tmp_path / 'along.csv'}:uniaxial_f", f"{tmp_path / 'across.csv'}:uniaxial_c", "--form",
+            "energy", "--samples", "100", "--out", str(tmp_path / "res"), "--no-progress", "--json"]
+    assert main(argv) == 0
+    body = json.loads(capsys.readouterr().out)
+    assert set(body["readings"]["fits"]) == {"cone", "gst"} and set(body["held_out"]) == {"uniaxial_f", "uniaxial_c"}
+    assert body["held_out"]["uniaxial_c"]["trained_on"] == ["uniaxial_f"]
