@@ -182,6 +182,9 @@ class Effect:
         Kinematics stage: the strain map does not depend on the stress (slack does, a
         compliant series element does not).  History/output stages: ``modify`` is a linear
         operator on the stress (quasi-linear viscoelasticity is, Mullins damage is not).
+    modes, per_observable, along_fibre_reason
+        Where the effect is defined beyond along-fibre tension (issue 35): :meth:`in_mode` answers per
+        (mode, observable) from them; :mod:`hbm.model.modes_effects` applies or refuses accordingly.
 
     The detective also needs a ``null`` on every parameter of a candidate effect: the
     candidate is screened and refitted starting from the base model with the effect at its
