@@ -178,3 +178,22 @@ def test_fit_with_qlv_writes_its_result(tmp_path, cross):
         fit = fit_modes(cross, model=ENERGY + make_effect("viscoelastic") + make_effect("offset"),
                         collagen3d="gst", samples=60, max_evaluations=400, progress=False, out=tmp_path / "q.nc")
     assert fit.path.exists() and "S0_2" in fit.names and np.isfinite(fit.log_likelihood).all()
+
+
+def test_cli_simulate_with_effects(tmp_path, cross, capsys):
+    theta = {**PRM, "G1": 0.6, "LOGTAU1": 1.0, "S0": 2e-3, "S0_2": -1e-3}
+    args = ["simulate", cross.source_file, "--form", "energy", "--collagen3d", "gst", "--effect", "viscoelastic",
+            "--effect", "offset", "--theta", ",".join(f"{k}={v!r}" for k, v in theta.items())]
+    assert main(args + ["--out", str(tmp_path / "s.csv")]) == 0
+    lines = [ln for ln in (tmp_path / "s.csv").read_text().splitlines() if not ln.startswith("#")]
+    col = lines[0].split(",").index("stress_2_model")
+    got = np.array([float(ln.split(",")[col] or "nan") for ln in lines[1:]])
+    want = simulate_tests(cross, theta, model=ENERGY + make_effect("viscoelastic") + make_effect("offset"),
+                          collagen3d="gst")["stress_2_model"]
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert np.isnan(got[: 2 * RAMP_T.size]).all() and np.isfinite(got[2 * RAMP_T.size:]).all()
+    capsys.readouterr()
+    damage = ",".join(f"{k}={v!r}" for k, v in {**PRM, "DMG": 0.1}.items())
+    assert main(args[:6] + ["--effect", "damage", "--theta", damage, "--out", str(tmp_path / "d.csv")]) == 2
+    assert not (tmp_path / "d.csv").exists()
+    assert capsys.readouterr().err.startswith("hbm: error: simulate: effect 'damage' is not defined in mode uniaxial_c")

@@ -111,8 +111,7 @@ class ModeEffects:
     def _ask(effect: Effect, case, obs: str) -> bool:
         answer = effect.in_mode(case.name, obs, case.observable(obs).is_stress)
         if answer not in ("acts", "passes"):
-            raise SettingError(f"effect {effect.name!r} is not defined in mode {case.name} ({obs}): {answer}; "
-                               f"fit it on uniaxial_f stress only, or leave it out")
+            raise SettingError(f"effect {effect.name!r} is not defined in mode {case.name} ({obs}): {answer}")
         if answer == "acts" and case.name != ALONG_FIBRE_MODE and effect.stage in ("kinematics", "elastic"):
             raise SettingError(f"effect {effect.name!r} ({effect.stage} stage) declares a 3-D scope, but hbm "
                                f"applies effects in mode {case.name} only at the history and output stages")
