@@ -7,13 +7,15 @@ every other (mode, observable) with its reason; ``"stress_observables"`` marks a
 defined on every stress observable (quasi-linear viscoelasticity, a load-cell offset).  Nothing here names
 an effect class: :class:`ModeEffects` asks each effect.
 
-Quasi-linear viscoelasticity in 3-D.  Applied to the elastic Kirchhoff stress tensor τ_e (J = 1, so τ = σ)
-with one scalar relaxation operator 𝒢 (the Prony hereditary integral of ``viscoelastic``), the pressure
-stays a Lagrange multiplier, σ = 𝒢⊛τ_e − p·I.  A traction-free face b then reads 𝒢⊛(τ_e,aa − τ_e,bb)
-… = 0 at every time; 𝒢 is invertible (G(0) = 1), so the lateral stretches satisfy the *elastic* traction-free
-condition at every instant: the kinematics -- lateral strains, uniaxial_c's free fibre stretch -- are those
-of the elastic solve, and every stress observable is 𝒢 applied to its own elastic history
-(σ_aa = 𝒢⊛(τ_e,aa − τ_e,bb); in simple shear σ_XY = 𝒢⊛τ_e,XY).  Along the fibres this is exactly what the
+Quasi-linear viscoelasticity in 3-D.  Applied to the elastic Kirchhoff stress tensor τ_e (J = 1) with one
+scalar relaxation operator 𝒢 (the Prony hereditary integral of ``viscoelastic``; the 1-D effect applies it
+to the Cauchy stress, which is the same thing at J = 1), the pressure stays a Lagrange multiplier:
+σ = 𝒢⊛τ_e − p·I.  Two traction-free faces b, b' give 𝒢⊛(τ_e,bb − τ_e,b'b') = 0 at every time, and 𝒢 is
+invertible (G(0) = 1), so τ_e,bb = τ_e,b'b': the free stretches satisfy the *elastic* condition at every
+instant.  The kinematics -- lateral strains, uniaxial_c's free fibre stretch -- are those of the elastic
+solve, and every stress observable is 𝒢 applied to its own elastic history (σ_aa = 𝒢⊛(τ_e,aa − τ_e,bb)
+with b the free face; in simple shear σ_XY = 𝒢⊛τ_e,XY, no pressure).  (Fung's variant on the second
+Piola-Kirchhoff stress would differ by the stretch history; hbm keeps the 1-D effect's convention.)  Along the fibres this is exactly what the
 1-D effect does to the Cauchy stress.  A history must therefore stay in one mode (one tensor component per
 observable): tests of different modes in one loading history (time continuing across them) are refused.
 
