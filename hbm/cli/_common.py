@@ -21,6 +21,8 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..data import Specimen, load_specimen
+from ..data.modes import combine_tests
+from ..model.loadcases import is_load_case
 from ..effects import resolve_effect
 from ..errors import DataError, HbmError, HbmWarning, OutputError, SettingError
 from ..io.identity import changed
@@ -294,22 +296,44 @@ def check_domain(model, specimen: Specimen) -> None:
             raise DataError(msg)
 
 
+def split_mode(spec: str) -> tuple[str, str | None]:
+    """``FILE:MODE`` -> (FILE, MODE) when MODE is a loading mode or alias (:data:`hbm.model.loadcases.LOAD_CASES`)
+    and ``spec`` itself is no existing path; anything else -> (spec, None) (a Windows drive, a colon in a name)."""
+    head, sep, tail = spec.rpartition(":")
+    if sep and head and not Path(spec).exists() and is_load_case(tail.strip()):
+        return head, tail.strip()
+    return spec, None
+
+
+def check_along_fibre(datasets: Mapping[str, Specimen], folder) -> None:
+    """Refuse specimens tested in other loading modes in a run (the run's fits and its population layer are
+    along-fibre; a run that would fail at that specimen after fitting the others is refused before any fit)."""
+    other = sorted(sid for sid, ds in datasets.items() if ds.key_extras())
+    if other:
+        raise DataError(f"--data {folder}: {', '.join(other)} hold(s) tests in other loading modes than uniaxial_f "
+                        "or series besides stress; hbm run fits along-fibre specimens and their population. Fit "
+                        "such a specimen with 'hbm fit FILE --form energy' (the joint fit across modes) and move it "
+                        "out of the run's folder")
+
+
 def load_specimen_arg(spec: str, sl0: float | None = None, model=None) -> Specimen:
-    """A SPECIMEN argument -> :class:`~hbm.data.Specimen`: a CSV path, or an id of ``data/specimens/<id>.csv``.
+    """A SPECIMEN argument -> :class:`~hbm.data.Specimen`: a CSV path, or an id of ``data/specimens/<id>.csv``,
+    optionally with ``:MODE``, the loading mode of every test of a file without a ``mode`` column.
 
     ``sl0``: reference sarcomere length (``--sl0``); ``model``: checked against the data's
     domain (:func:`check_domain`) before any computation.
     """
+    spec, mode = split_mode(spec)
     path = Path(spec)
     candidate = SPECIMEN_FOLDER / f"{spec}.csv"
     if not candidate.exists() and (SHIPPED_FOLDER / f"{spec}.csv").exists():
         candidate = SHIPPED_FOLDER / f"{spec}.csv"  # an id of a shipped specimen, from another folder
     if path.exists():
-        ds = load_specimen(path, sl0=sl0)
+        ds = load_specimen(path, sl0=sl0, mode=mode)
     elif path.suffix.lower() == ".csv" or len(path.parts) > 1:
         raise HbmError(f"specimen {spec!r}: no such file (expected a CSV path or a specimen id)")
     elif candidate.exists():
-        ds = load_specimen(candidate, sl0=sl0)
+        ds = load_specimen(candidate, sl0=sl0, mode=mode)
     else:
         ds = None
     if ds is not None:
@@ -318,6 +342,22 @@ def load_specimen_arg(spec: str, sl0: float | None = None, model=None) -> Specim
         return ds
     raise HbmError(f"specimen {spec!r}: no such file, and no {candidate} (expected a CSV path or a "
                    "specimen id)")
+
+
+def load_specimens_arg(specs: Sequence[str], sl0: float | None = None, model=None) -> Specimen:
+    """Several SPECIMEN arguments (``FILE[:MODE]``, one file per direction as labs share them) -> one specimen
+    whose tests are all the files' tests in order (:func:`hbm.data.modes.combine_tests`; id ``a+b``); one
+    argument -> :func:`load_specimen_arg`."""
+    parts = [load_specimen_arg(s, sl0, model) for s in specs]
+    if len(parts) == 1:
+        return parts[0]
+    ids = [p.id for p in parts]
+    if len(set(ids)) < len(ids):
+        raise HbmError(f"SPECIMEN: {', '.join(specs)} name the same specimen twice ({ids}); expected distinct files")
+    try:
+        return combine_tests([(p, None) for p in parts], "+".join(ids))
+    except DataError as exc:
+        raise DataError(f"SPECIMEN: {exc}") from None
 
 
 # ----------------------------------------------------------------------- memory estimates
@@ -401,5 +441,5 @@ __all__ = ["HbmArgumentParser", "MIN_SAMPLES", "SEED_LIMIT", "integer", "positiv
            "positive_float",
            "name_list", "fix_item", "bounds_item", "value_range", "Sweep", "sweep", "plot_path", "UniqueNames",
            "add_seed", "add_fix", "NOISE_CHOICES", "n_noise_parameters", "add_model_arguments", "check_names", "check_fix_bounds", "free_parameters",
-           "check_sweep", "build_model", "load_specimen_arg", "check_population_memory",
+           "check_sweep", "build_model", "load_specimen_arg", "load_specimens_arg", "split_mode", "check_population_memory",
            "check_sobol_memory", "check_replaceable", "print_json", "format_table", "format_bytes"]

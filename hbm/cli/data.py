@@ -13,7 +13,7 @@ from ..data import input_summary, load_specimen, provenance
 from ..data.artefacts import describe_artefacts
 from ..data.prepare import screen_dataset
 from ..errors import DataError, HbmError, SettingError
-from ._common import add_data_arguments, print_json
+from ._common import add_data_arguments, print_json, split_mode
 
 CHECK_DESCRIPTION = """\
 Validate specimen CSV files and print a summary table.
@@ -59,7 +59,9 @@ def register(subparsers) -> None:
     check = sub.add_parser("check", help="validate specimen CSV files and print a summary",
                            description=CHECK_DESCRIPTION,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
-    check.add_argument("paths", nargs="+", metavar="PATH", help="CSV file or folder of CSV files")
+    check.add_argument("paths", nargs="+", metavar="PATH",
+                       help="CSV file or folder of CSV files; PATH:MODE gives files without a mode column their "
+                            "loading mode (e.g. across.csv:uniaxial_c)")
     check.add_argument("--json", action="store_true",
                        help="print one JSON object: per specimen its series, tests by mode, conversion record and "
                             "flagged rows")
@@ -72,16 +74,19 @@ def _no_action(args: argparse.Namespace) -> int:
     raise SettingError("data: expected an action, e.g. 'hbm data check PATH...' (see hbm data --help)")
 
 
-def _files(paths: list[str], errors: list[str]) -> list[Path]:
-    files: list[Path] = []
-    for p in map(Path, paths):
+def _files(paths: list[str], errors: list[str]) -> list[tuple[Path, str | None]]:
+    """The CSV files of the PATH arguments, each with the mode given by ``FILE:MODE`` (or None)."""
+    files: list[tuple[Path, str | None]] = []
+    for text in paths:
+        text, mode = split_mode(text)
+        p = Path(text)
         if p.is_dir():
             found = sorted(p.glob("*.csv"))
             if not found:
                 errors.append(f"{p}: no *.csv files, expected at least one specimen file")
-            files.extend(found)
+            files.extend((f, mode) for f in found)
         elif p.exists():
-            files.append(p)
+            files.append((p, mode))
         else:
             errors.append(f"{p}: no such file or folder")
     return files
@@ -168,9 +173,9 @@ def run_check(args: argparse.Namespace) -> int:
     specimens: list[dict] = []
     ids: dict[str, str] = {}
     modes: list[str] = []
-    for f in _files(args.paths, errors):
+    for f, mode in _files(args.paths, errors):
         try:
-            ds = load_specimen(f, sl0=args.sl0)
+            ds = load_specimen(f, sl0=args.sl0, mode=mode)
         except HbmError as exc:
             errors.append(str(exc))
             continue

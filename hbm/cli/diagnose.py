@@ -17,7 +17,7 @@ from ..runtime.files import prepare_output_file
 from ..settings import FitSettings, add_arguments
 from ._common import (
     n_noise_parameters, add_data_arguments, add_fix, add_form_argument, check_fix_bounds, check_population_memory,
-    load_specimen_arg, name_list, integer, non_negative_int, plot_path, positive_float, print_json, workers)
+    load_specimens_arg, name_list, integer, non_negative_int, plot_path, positive_float, print_json, workers)
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
@@ -77,7 +77,9 @@ examples:
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("specimen", metavar="SPECIMEN", help="specimen CSV path or id in data/specimens/")
+    p.add_argument("specimen", metavar="SPECIMEN", nargs="+",
+                   help="specimen CSV file or id in data/specimens; FILE:MODE gives a file without a mode column its loading mode "
+                        "(e.g. along.csv:uniaxial_f across.csv:uniaxial_c); several files are one specimen's tests")
     p.add_argument("--model", type=name_list, default=["base"], metavar="base|EFFECT,...",
                    help="current model: 'base' (Spyrou) or base plus comma-separated effects (default base)")
     add_fix(p, "EOPT=0.12")
@@ -171,7 +173,7 @@ def _prepare(args, extra: list[str]):
         have.add(name)
         grown = grown.with_effects(effect)
     check_fix_bounds(model, dict(args.fix), {})
-    ds = load_specimen_arg(args.specimen, args.sl0, model)
+    ds = load_specimens_arg(args.specimen, args.sl0, model)
     samples = args.samples or DEFAULT_SAMPLES
     check_population_memory(f"--samples {samples}", samples, ds.n_points,
                             model.n_params + len(extra) + n_noise_parameters(args.noise))  # None: the largest model

@@ -20,14 +20,16 @@ from ..runtime.files import file_lock, prepare_output_dir, prepare_output_file, 
 from ..settings import FitSettings, add_arguments
 from ..likelihood.modes import is_multimode
 from ._common import n_noise_parameters
-from ._modes import add_modes_arguments, run_modes
+from ._modes import add_modes_arguments, check_modes_settings, modes_record, run_modes
 from ._common import (
     check_replaceable, add_model_arguments, build_model, build_prior, plot_path, print_json,
-    check_population_memory, check_sobol_memory, free_parameters, load_specimen_arg)
+    check_population_memory, check_sobol_memory, free_parameters, load_specimens_arg)
 
 #: the FitSettings that are options of ``hbm fit`` (fix, bounds and prior come with the model's options)
 FIT_OPTIONS = ("samples", "move", "noise", "sigma_bounds", "tier", "restarts", "sweep", "maxfevals", "max_evaluations",
                "sobol_n", "seed", "reduce", "artefacts")
+#: this command's defaults where they differ from FitSettings'
+FIT_DEFAULTS = {"maxfevals": 5000, "sobol_n": 0}
 
 DESCRIPTION = """\
 Fit one specimen: CMA-ES optima (restarts and an optional bound sweep), the TMCMC posterior of
@@ -42,15 +44,18 @@ examples:
   hbm fit calvo2010_rat1
   hbm fit data/specimens/hawkins1994_rat.csv --fix EOPT=0.192 --samples 4000 --out hawkins.nc --force
   hbm fit calvo2010_rat2 --move manifold --bounds VOLF=0.5:0.75 --sweep VOLF:0.05
+  hbm fit along.csv:uniaxial_f across.csv:uniaxial_c --form energy --collagen3d gst
 """
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("fit", help="posterior (TMCMC) + optima (CMA-ES) of one specimen -> netCDF",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("specimen", metavar="SPECIMEN", help="specimen CSV file or id in data/specimens")
+    p.add_argument("specimen", metavar="SPECIMEN", nargs="+",
+                   help="specimen CSV file or id in data/specimens; FILE:MODE gives a file without a mode column its loading mode "
+                        "(e.g. along.csv:uniaxial_f across.csv:uniaxial_c); several files are one specimen's tests")
     # the fit's settings, declared once in hbm.settings.FitSettings (flags, rules, choices from the registries)
-    add_arguments(p, FitSettings, FIT_OPTIONS, defaults={"maxfevals": 5000, "sobol_n": 0})
+    add_arguments(p, FitSettings, FIT_OPTIONS, defaults=FIT_DEFAULTS)
     add_model_arguments(p)
     p.add_argument("--out", metavar="FILE.nc", help="output file (default hbm-results/specimens/<id>.nc); a "
                    "result of other content there (another specimen, data, model or settings) is refused "
@@ -76,21 +81,22 @@ def run(args: argparse.Namespace) -> int:
     # the one settings record: it runs the fit and keys its result and checkpoint
     settings = FitSettings.from_args(args, fix=fix or None, bounds=None if prior is not None else (bounds or None),
                                      prior=prior)
-    data = load_specimen_arg(args.specimen, args.sl0, model)
-    if is_multimode(data):  # tests in several loading modes: the joint fit of hbm.fit.modes
-        out = Path(args.out) if args.out else specimen_path(DEFAULT_OUT, data.id)
-        prepare_output_file(out, "--out")
-        figure = None if args.no_plot else (args.plot or out.with_suffix(".png"))
-        return run_modes(args, model, fix, bounds, prior, settings, data, out, figure, _figure_modes)
-    # the record as fitted (a dense one reduced, artefact rows dropped on request): the figure and the
-    # quality lines compare the fit with it
-    data = prepare_record(data, reduce=settings.reduce or "auto", artefacts=settings.artefacts or "flag").data
-    points = data.n_points
-    check_population_memory(f"--samples {settings.samples}", settings.samples, points,
-                            model.n_params + n_noise_parameters(settings.noise))
-    if settings.sobol_n:
-        check_sobol_memory(f"--sobol-n {settings.sobol_n}", settings.sobol_n, len(free_parameters(model, fix)),
-                           model.n_params, points)
+    data = load_specimens_arg(args.specimen, args.sl0, model)
+    multimode = is_multimode(data)  # tests in several loading modes: the joint fit of hbm.fit.modes
+    extra = None
+    if multimode:
+        check_modes_settings(settings, FIT_DEFAULTS)
+        extra = modes_record(args)
+    else:
+        # the record as fitted (a dense one reduced, artefact rows dropped on request): the figure and the
+        # quality lines compare the fit with it
+        data = prepare_record(data, reduce=settings.reduce or "auto", artefacts=settings.artefacts or "flag").data
+        points = data.n_points
+        check_population_memory(f"--samples {settings.samples}", settings.samples, points,
+                                model.n_params + n_noise_parameters(settings.noise))
+        if settings.sobol_n:
+            check_sobol_memory(f"--sobol-n {settings.sobol_n}", settings.sobol_n, len(free_parameters(model, fix)),
+                               model.n_params, points)
     sid = data.id
     out = Path(args.out) if args.out else specimen_path(DEFAULT_OUT, sid)
     checked = prepare_output_file(out, "--out")
@@ -98,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     if figure is not None:
         prepare_output_file(figure, "--plot")
     # the content key of this fit (data, model, settings): keys its checkpoint and is stored with the result
-    key, parts = fit_key(data, model, settings)
+    key, parts = fit_key(data, model, settings, extra)
     with contextlib.ExitStack() as held:
         # the one writer rule: this fit's files are written (and their temp files swept) only
         # under their locks; a second writer of the same file is refused at once
@@ -120,8 +126,12 @@ def run(args: argparse.Namespace) -> int:
                 warnings.warn(f"--checkpoint-dir: {len(other)} checkpoint(s) of {sid} made with other data, model or "
                               f"settings set aside (not resumed): {', '.join(str(p) for p in other)}", HbmWarning,
                               stacklevel=1)
+        identity = {"settings_hash": key, "identity": parts}
+        if multimode:
+            return run_modes(args, model, fix, bounds, prior, settings, data, out, figure, _figure_modes,
+                             checkpoint_dir=ckdir, config_extra=identity)
         res = fit_specimen(data, model=model, settings=settings, checkpoint_dir=ckdir, out=out,
-                           progress=not args.no_progress, config_extra={"settings_hash": key, "identity": parts})
+                           progress=not args.no_progress, config_extra=identity)
         _figure(res, data, figure)
     return _print(args, res, figure)
 

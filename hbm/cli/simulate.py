@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..data import load_specimen
 from ..effects import resolve_effect
 from ..fit.simulate import simulate_tests, write_simulation
 from ..model import spyrou_model
 from ..model.energy3d import COLLAGEN_READINGS
-from ._common import add_data_arguments, add_form_argument, fix_item
+from ._common import add_data_arguments, add_form_argument, fix_item, load_specimen_arg
 
 DESCRIPTION = """\
 Predict every observable of every test of a specimen file with given parameters.
@@ -41,7 +40,8 @@ def register(subparsers) -> None:
     """Add ``simulate`` to the ``hbm`` parser."""
     p = subparsers.add_parser("simulate", help="predict every observable of every test (virtual experiments)",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("tests", metavar="TESTS.csv", help="specimen file with the tests (a 'mode' column per test)")
+    p.add_argument("tests", metavar="TESTS.csv", help="specimen file with the tests (a 'mode' column per test, or FILE:MODE for a "
+                   "file without one)")
     p.add_argument("--theta", type=theta_list, action="append", required=True, metavar="NAME=VALUE,...",
                    help="every model parameter, e.g. VOLF=0.9,EOPT=0.18,...; repeatable")
     add_form_argument(p)
@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     model = spyrou_model(form=args.form)
     if args.effect:
         model = model.with_effects(*[resolve_effect(e) for e in args.effect])
-    spec = load_specimen(args.tests, sl0=args.sl0)
+    spec = load_specimen_arg(args.tests, args.sl0)
     pred = simulate_tests(spec, theta, model=model, collagen3d=args.collagen3d)
     reading = args.collagen3d or ("cone" if args.form == "energy" else "axial")
     path = write_simulation(spec, pred, args.out, record={

@@ -16,7 +16,8 @@ from typing import Sequence
 import numpy as np
 
 
-from ..errors import DataError
+from ..errors import DataError, HbmError
+from ..model.loadcases import DEFAULT_LOAD_CASE, get_load_case
 
 
 from .columns import (
@@ -28,7 +29,7 @@ from .modes import MODE_COLUMNS, read_mode_columns
 from .specimen import Series, Specimen, Test
 
 
-def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
+def load_specimen(path: str | Path, *, sl0: float | None = None, mode: str | None = None) -> Specimen:
     """Read and validate one specimen CSV, converting units, stress measure and deformation.
 
     Parameters
@@ -39,6 +40,11 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
         Reference sarcomere length in µm for a ``sarcomere_length_um`` column
         (strain = SL/SL0 − 1), for files without ``# reference_sarcomere_length_um``.  If the
         file declares one too, both must be equal.  Ignored for other deformation columns.
+    mode : str, optional
+        The loading mode of every test of a file without a ``mode`` column (a name or alias of
+        :data:`hbm.model.loadcases.LOAD_CASES`; labs often share one file per direction).  It acts as if the
+        column were there, so nominal stress converts along that mode's axes.  ``uniaxial_f`` (the default)
+        loads the file exactly as without it.  A file with its own ``mode`` column refuses it.
 
     Returns
     -------
@@ -131,6 +137,9 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
     raw: dict[str, np.ndarray] = {}
     labels = None
     by_test = [role for role in cols.index if role in MODE_COLUMNS]  # tests as data (hbm.data.modes)
+    given = _given_mode(name, mode, cols)
+    if given is not None:
+        by_test.append("mode")
     for role, j in sorted(cols.index.items(), key=lambda kv: kv[1]):
         column = cols.names[role]
         if role in by_test:
@@ -159,7 +168,7 @@ def load_specimen(path: str | Path, *, sl0: float | None = None) -> Specimen:
     if by_test:
         _check_tests_and_time(name, data.get("time"), data.get("test"), linenos, labels)
         return _load_modes(name, path, cols, rows, linenos, raw, data, labels, unit, measure, attrs, meta_line,
-                           header_lineno, ref)
+                           header_lineno, ref, given)
     stress = raw["stress"]
     if unit not in (None, "MPa"):
         stress = stress / STRESS_UNITS[unit]
@@ -195,10 +204,29 @@ def _record_conversions(name, path, cols, attrs, meta_line, unit, measure, ref, 
     attrs["source_file"] = str(path)
 
 
+def _given_mode(name: str, mode: str | None, cols) -> str | None:
+    """The canonical mode given for a file without a ``mode`` column (None: none given, or uniaxial_f,
+    which is the file as it is)."""
+    if mode is None:
+        return None
+    try:
+        case = get_load_case(mode)
+    except HbmError as exc:
+        raise DataError(f"{name}: {exc}") from None
+    if "mode" in cols.index:
+        raise DataError(f"{name}: the file names its tests' modes in its column {cols.names['mode']!r}; a mode "
+                        f"given for the whole file ({mode!r}) would contradict it: drop one of them")
+    return None if case.name == DEFAULT_LOAD_CASE else case.name
+
+
 def _load_modes(name, path, cols, rows, linenos, raw, data, labels, unit, measure, attrs, meta_line, header_lineno,
-                ref) -> Specimen:
-    """The rest of :func:`load_specimen` for a file with per-test columns (:mod:`hbm.data.modes`)."""
+                ref, given=None) -> Specimen:
+    """The rest of :func:`load_specimen` for a file with per-test columns (:mod:`hbm.data.modes`);
+    ``given``: the mode of every test of a file without a mode column."""
     cells = {role: [r[j] for _, r in rows] for role, j in cols.index.items() if role in MODE_COLUMNS}
+    if given is not None:
+        cells["mode"] = [given] * len(rows)
+        cols.names.setdefault("mode", "mode")
     strain = data["strain"]
     got = read_mode_columns(name, cols.names, cells, linenos, strain, raw["stress"], data.get("test"), labels,
                             STRESS_UNITS.get(unit or "MPa", 1.0), measure, _number)

@@ -236,7 +236,8 @@ def combine_tests(parts, id: str):  # noqa: A002 - the specimen's field name
     Parameters
     ----------
     parts : sequence of (Specimen, mode)
-        Each specimen's tests all take ``mode`` (a name or alias); their test ids are renumbered in order
+        Each specimen's tests all take ``mode`` (a name or alias; None: each test keeps its own load case,
+        e.g. a file loaded with :func:`hbm.data.load_specimen`'s ``mode``); their test ids are renumbered in order
         (labels ``<specimen id>:<label or id>``), their time columns kept (each test its own history when a
         part has none).  The same result as concatenating the CSV files with a ``mode`` column.
     id : str
@@ -251,20 +252,21 @@ def combine_tests(parts, id: str):  # noqa: A002 - the specimen's field name
     DataError
         Parts with and without time, a series with different units, an unknown mode.
     """
-    strain, time, test, labels, cases, observed = [], [], [], [], [], {}
+    strain, time, test, labels, cases, observed, strain_2 = [], [], [], [], [], {}, []
     has_time = {p.time is not None for p, _ in parts}
     if len(has_time) > 1:
         raise DataError(f"{id}: some parts have a time column and some not; expected all or none")
     offset, n = 0, 0
     for spec, mode in parts:
         try:
-            case = get_load_case(mode)
+            case = None if mode is None else get_load_case(mode)
         except HbmError as exc:
             raise DataError(f"{id}: {spec.id}: {exc}") from None
         ids = spec.test if spec.test is not None else np.zeros(spec.n_points, np.int64)
         for t in spec.tests:
             labels.append(f"{spec.id}:{t.label if t.label is not None else t.id}")
-            cases.append(case.name)
+            cases.append(t.load_case if case is None else case.name)
+        strain_2.append(spec.strain_2 if spec.strain_2 is not None else np.full(spec.n_points, np.nan))
         order = {t.id: k for k, t in enumerate(spec.tests)}
         test.append(np.array([order[int(i)] for i in ids]) + offset)
         offset += len(spec.tests)
@@ -284,5 +286,6 @@ def combine_tests(parts, id: str):  # noqa: A002 - the specimen's field name
         series[k] = Series(k, v, unit, long_name)
     attrs = {"id": id, "test_labels": json.dumps(labels), "test_load_cases": json.dumps(cases),
              "combined_from": json.dumps([p.id for p, _ in parts])}
+    s2 = np.concatenate(strain_2)
     return Specimen(id, np.concatenate(strain), np.concatenate(time) if time else None, np.concatenate(test),
-                    series, attrs)
+                    series, attrs, strain_2=None if np.isnan(s2).all() else s2)

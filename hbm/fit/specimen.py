@@ -31,6 +31,7 @@ from ..data import as_specimen, input_line, input_summary
 from ..data.prepare import prepare_record
 from ..errors import HbmWarning
 from ..runtime import seeds
+from ..runtime.files import retire_checkpoint
 from ..io import SpecimenResult, json_default, write_specimen_result
 from ..likelihood.collapsed import choose_tier, fit_collapsed
 from ..likelihood.core import make_likelihood
@@ -482,12 +483,7 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
         res.timings = dict(timings)
         path = write_specimen_result(res, out)
         timings["write"] = time.perf_counter() - t
-        if ckpt is not None and ckpt.exists():
-            ckpt.unlink()  # the result file supersedes the checkpoint
-            try:
-                ckpt.parent.rmdir()  # only if empty
-            except OSError:
-                pass
+        retire_checkpoint(ckpt)
     timings["total"] = time.perf_counter() - t_start
     res.timings = dict(timings)
     return FitResult(result=res, path=path, likelihood=lik, tmcmc=tr, timings=timings)

@@ -106,9 +106,11 @@ def changed(stored: Mapping[str, str] | None, new: Mapping[str, str]) -> list[st
     return [k for k in new if stored.get(k) != new[k]] + [k for k in stored if k not in new]
 
 
-def fit_key(data, model, settings) -> tuple[str, dict[str, str]]:
+def fit_key(data, model, settings, extra: Mapping[str, Any] | None = None) -> tuple[str, dict[str, str]]:
     """The content key of a fit of ``data`` with ``model`` and ``settings`` (a
-    :class:`~hbm.settings.FitSettings`, whose :meth:`~hbm.settings.FitSettings.record` is hashed).
+    :class:`~hbm.settings.FitSettings`, whose :meth:`~hbm.settings.FitSettings.record` is hashed, with
+    ``extra``: settings of a fit path that FitSettings does not hold, e.g. the collagen reading of a fit
+    across loading modes).
 
     Returns
     -------
@@ -116,7 +118,8 @@ def fit_key(data, model, settings) -> tuple[str, dict[str, str]]:
     parts : dict
         Its components ``data``, ``model``, ``settings`` (for :func:`changed`).
     """
-    parts = {"data": data_key(data), "model": model_key(model), "settings": settings_key(settings.record())}
+    parts = {"data": data_key(data), "model": model_key(model),
+             "settings": settings_key(settings.record(**dict(extra or {})))}
     return content_key(parts), parts
 
 

@@ -21,7 +21,7 @@ from typing import Iterator
 from ..errors import OutputError, OutputLockedError
 from .memory import format_bytes
 
-__all__ = ["atomic_path", "atomic_write_text", "current_umask", "file_mode", "remove_stale_temps",
+__all__ = ["atomic_path", "atomic_write_text", "current_umask", "file_mode", "remove_stale_temps", "retire_checkpoint",
            "prepare_output_dir", "prepare_output_file", "output_lock", "file_lock", "file_lock_path", "LOCK_NAME",
            "write_error"]
 
@@ -112,6 +112,18 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` atomically (temp file + rename)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def retire_checkpoint(path: str | os.PathLike | None) -> None:
+    """Remove a fit's checkpoint file once its result is written (the result supersedes it), and its keyed
+    folder when that is then empty."""
+    if path is None or not Path(path).exists():
+        return
+    Path(path).unlink()
+    try:
+        Path(path).parent.rmdir()  # only if empty
+    except OSError:
+        pass
 
 
 def remove_stale_temps(folder: str | os.PathLike, *, recursive: bool = True, target: str | None = None) -> list[Path]:

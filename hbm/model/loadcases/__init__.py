@@ -36,7 +36,7 @@ from ...errors import HbmError
 from ..energy3d import Energy3D
 from ..spyrou import model_form
 from .base import LoadCase, Observable, PrescribedStretch, SimpleShear
-from .registry import ALIASES, DEFAULT_LOAD_CASE, LOAD_CASES, get_load_case, register_load_case
+from .registry import ALIASES, DEFAULT_LOAD_CASE, LOAD_CASES, get_load_case, is_load_case, register_load_case
 # the built-in modes register themselves on import, in the order of the table above
 from .uniaxial_f import UniaxialF
 from .uniaxial_c import UniaxialC
@@ -50,7 +50,7 @@ from .shear_cf import ShearCF
 from .shear_cn import ShearCN
 
 __all__ = ["LoadCase", "Observable", "PrescribedStretch", "SimpleShear", "ALIASES", "DEFAULT_LOAD_CASE",
-           "LOAD_CASES", "get_load_case", "register_load_case", "check_mode", "predict_observables",
+           "LOAD_CASES", "get_load_case", "is_load_case", "register_load_case", "check_mode", "predict_observables",
            "THESIS_FORM_REASON", "UniaxialF", "UniaxialC", "PlanarFHoldC", "PlanarCHoldF", "PlanarCHoldN",
            "BiaxialFC", "BiaxialCN", "ShearFC", "ShearCF", "ShearCN"]
 

@@ -26,6 +26,12 @@ def register_load_case(cls: type[LoadCase]) -> type[LoadCase]:
     return cls
 
 
+def is_load_case(text: str) -> bool:
+    """True when ``text`` is a registered mode name or alias."""
+    key = str(text).strip()
+    return ALIASES.get(key, key) in LOAD_CASES
+
+
 def get_load_case(name_or_alias) -> LoadCase:
     """The load case of a mode name, an alias or a :class:`LoadCase` (returned as is).
 
