@@ -22,6 +22,14 @@ from ..spec import register_energy
 from ..spyrou import FORMS, NeoHookeanMatrix, model_form
 from .axial import AxialCollagen
 from .base import DEFAULT_COLLAGEN3D, CollagenReading, Sym, get_collagen_reading, is_zero
+from .cone import ConeCollagen
+from .diagonal import CONE, GST, principal_diagonal
+from .gst import GstCollagen
+
+
+#: what the compiled kernel hard-codes: a subclass replacing one of these runs the numpy path
+_KERNEL_LAWS = ("shear_modulus", "_fibre_energy", "_fibre_force", "_fibre_stiffness", "principal_numpy")
+_KERNEL_READING_LAWS = ("rule", "principal", "_nodes", "segment_energy", "segment_force", "segment_stiffness")
 
 
 class Energy3D:
@@ -69,6 +77,19 @@ class Energy3D:
         else:
             self.collagen = get_collagen_reading(DEFAULT_COLLAGEN3D if collagen3d is None else collagen3d)
         self.collagen3d = self.collagen.name
+
+    @property
+    def kernel(self) -> int | None:
+        """The compiled diagonal kernel's reading code (:mod:`.diagonal`), or ``None`` where the numpy path
+        runs: another reading, or a subclass (of this class or of the reading) that replaces a law the
+        kernel hard-codes (the fibres', the matrix's, the segments' or the quadrature)."""
+        kind = type(self.collagen)
+        base = ConeCollagen if issubclass(kind, ConeCollagen) else GstCollagen if issubclass(kind, GstCollagen) else None
+        if base is None or any(getattr(type(self), m) is not getattr(Energy3D, m) for m in _KERNEL_LAWS):
+            return None
+        if any(getattr(kind, m) is not getattr(base, m) for m in _KERNEL_READING_LAWS):
+            return None
+        return CONE if base is ConeCollagen else GST
 
     @property
     def label(self) -> str:
@@ -163,7 +184,19 @@ class Energy3D:
             of a load case, is exact and free of that cancellation at small strains.
         c : tuple of tuples or None
             The symmetric tangent (MPa), ``None`` unless ``tangent``.
+
+        Notes
+        -----
+        The cone and gst readings of this class run the compiled kernel of :mod:`.diagonal`;
+        :meth:`principal_numpy` is the reference (and the path of every other reading or subclass).
         """
+        code = self.kernel
+        if code is not None:
+            return principal_diagonal(self, code, p, e, tangent)
+        return self.principal_numpy(p, e, tangent)
+
+    def principal_numpy(self, p: Mapping[str, np.ndarray], e: tuple, tangent: bool = False):
+        """:meth:`principal` by numpy over the reading's quadrature (the reference of the compiled kernel)."""
         e = tuple(np.asarray(ei, dtype=float) for ei in e)
         d = tuple(np.expm1(2.0 * ei) for ei in e)
         mu = self.shear_modulus(p)
