@@ -10,7 +10,7 @@ import pytest
 import independent3d as ind
 from hbm.errors import HbmError
 from hbm.model import spyrou_model
-from hbm.model.energy3d import ConeCollagen, ConeFamilies, Energy3D
+from hbm.model.energy3d import ConeCollagen, ConeFamilies, Energy3D, GstCollagen, diagonal
 from hbm.model.loadcases import predict_observables
 from hbm.model.loadcases import uniaxial_c as uc
 
@@ -192,7 +192,9 @@ def test_kernel_only_where_its_laws_hold():
         def segment_force(self, x, t1, t2):
             return 2.0 * super().segment_force(x, t1, t2)
 
-    assert Energy3D().kernel == 0 and Energy3D(collagen3d="gst").kernel == 1 and Counting().kernel == 0
+    assert ConeCollagen.kernel_code == diagonal.CONE and GstCollagen.kernel_code == diagonal.GST
+    assert Energy3D().kernel == diagonal.CONE and Energy3D(collagen3d="gst").kernel == diagonal.GST
+    assert Counting().kernel == diagonal.CONE
     for energy in (OtherFibres(), Energy3D(collagen3d=OtherSegments()), Energy3D(collagen3d=ConeFamilies(24)),
                    Energy3D(form="thesis")):
         assert energy.kernel is None

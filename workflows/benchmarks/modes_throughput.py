@@ -20,8 +20,8 @@ box, ``numpy.random.default_rng(seed)``); the energy evaluations per (particle �
 the agreement of every variant with ``before``: the largest relative difference of the predicted series
 (stresses; relative to each value) and of the log-likelihood; and the largest traction-free residual
 |τ_ff − τ_nn| / |σ_cc| at the lateral roots each variant returns, evaluated by the numpy energy (the
-solvers stop at 1e-12 of the load, or when the Newton step is below 4ε·(1 + |u|)).  Wall seconds are recorded too; on a shared
-machine they are not comparable (CPU is).
+solvers stop at 1e-12 of the load, or when the Newton step is below 4ε·(1 + |u|)).  Wall seconds are recorded
+too; on a shared machine they are not comparable (CPU is).
 
 usage::
 
@@ -149,7 +149,8 @@ class Worker:
 
 def baseline_tree(ref: str, dest: Path) -> str:
     """``hbm/`` of ``ref`` extracted into ``dest`` (no checkout, the repository is untouched); its full hash."""
-    full = subprocess.run(["git", "rev-parse", ref], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+    full = subprocess.run(["git", "rev-parse", ref], cwd=ROOT, capture_output=True, text=True,
+                          check=True).stdout.strip()
     archive = subprocess.run(["git", "archive", full, "hbm"], cwd=ROOT, capture_output=True, check=True).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
     return full
@@ -240,6 +241,13 @@ def main(argv=None) -> int:
                      f"{x['speedup_cpu']:.1f}× | {x['wall_s_median']:.4f} | "
                      f"{x['evals_per_particle_point_uniaxial_c']:.2f} | {x['series_rel']:.1e} | "
                      f"{x['loglik_rel']:.1e} | {x['root_residual_rel']:.1e} |")
+    lines += ["",
+              "`before` and `isotropic` run the same Newton iterates (isotropic start), so they differ by round-off; "
+              "both stop at |τ_ff − τ_nn| ≤ 1e-12·|σ_cc| or when the Newton step is below 4ε·(1 + |u|), which at "
+              "small strains (|u| ≪ 1) stops first and leaves the residual in the last column.  `after` starts from "
+              "the previous point's root and returns the Newton step past the stop (the exact root to round-off), "
+              "so its difference from `before` is `before`'s own stopping error.  Energy evaluations are counted "
+              "over all uniaxial_c points; the compiled solver solves each distinct strain of a test once."]
     text = "\n".join(lines) + "\n"
     (args.out / "modes_throughput.md").write_text(text)
     print(text)

@@ -6,7 +6,7 @@ call, and the lateral root of ``uniaxial_c`` calls it ~10 times per element.  :f
 evaluates the same formulas for one element in one pass over the quadrature nodes: the cone's exact
 taut-arc rule (:func:`hbm.model.energy3d.cone._rule_double`, slack nodes skipped since they add 0) or
 the gst's closed form, the neo-Hookean matrix and the fibres.  It is used only for the exact classes
-:class:`Energy3D` with :class:`ConeCollagen` or :class:`GstCollagen` (:attr:`Energy3D.kernel`); a
+:class:`Energy3D` with :class:`ConeCollagen` or :class:`GstCollagen` (their ``kernel_code``; :attr:`Energy3D.kernel`); a
 subclass with another fibre or segment law keeps the numpy path, which stays the reference
 (``tests/test_fast3d.py`` compares the two to ≤ 1e-12).
 """
@@ -20,7 +20,7 @@ from numba import njit
 
 from ..spyrou import _EXP_CLIP
 
-#: reading codes of the kernel
+#: reading codes of the kernel (``kernel_code`` of ConeCollagen and GstCollagen)
 CONE, GST = 0, 1
 _DEG = math.pi / 180.0
 

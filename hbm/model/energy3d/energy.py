@@ -22,9 +22,6 @@ from ..spec import register_energy
 from ..spyrou import FORMS, NeoHookeanMatrix, model_form
 from .axial import AxialCollagen
 from .base import DEFAULT_COLLAGEN3D, CollagenReading, Sym, get_collagen_reading, is_zero
-from .cone import ConeCollagen
-from .diagonal import CONE, GST, principal_diagonal
-from .gst import GstCollagen
 
 
 #: what the compiled kernel hard-codes: a subclass replacing one of these runs the numpy path
@@ -80,16 +77,19 @@ class Energy3D:
 
     @property
     def kernel(self) -> int | None:
-        """The compiled diagonal kernel's reading code (:mod:`.diagonal`), or ``None`` where the numpy path
-        runs: another reading, or a subclass (of this class or of the reading) that replaces a law the
-        kernel hard-codes (the fibres', the matrix's, the segments' or the quadrature)."""
+        """The compiled diagonal kernel's code for this reading (``kernel_code`` of its class, :mod:`.diagonal`),
+        or ``None`` where the numpy path runs: a reading without one, or a subclass (of this class or of the
+        reading) that replaces a law the kernel hard-codes (the fibres', the matrix's, the segments' or the
+        quadrature)."""
         kind = type(self.collagen)
-        base = ConeCollagen if issubclass(kind, ConeCollagen) else GstCollagen if issubclass(kind, GstCollagen) else None
-        if base is None or any(getattr(type(self), m) is not getattr(Energy3D, m) for m in _KERNEL_LAWS):
+        owner = next((c for c in kind.__mro__ if "kernel_code" in c.__dict__), None)
+        if owner is None or owner.kernel_code is None:
             return None
-        if any(getattr(kind, m) is not getattr(base, m) for m in _KERNEL_READING_LAWS):
+        if any(getattr(type(self), m) is not getattr(Energy3D, m) for m in _KERNEL_LAWS):
             return None
-        return CONE if base is ConeCollagen else GST
+        if any(getattr(kind, m) is not getattr(owner, m) for m in _KERNEL_READING_LAWS):
+            return None
+        return owner.kernel_code
 
     @property
     def label(self) -> str:
@@ -192,6 +192,7 @@ class Energy3D:
         """
         code = self.kernel
         if code is not None:
+            from .diagonal import principal_diagonal  # numba loads on first use, not with `hbm data check`
             return principal_diagonal(self, code, p, e, tangent)
         return self.principal_numpy(p, e, tangent)
 

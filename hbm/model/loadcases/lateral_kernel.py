@@ -18,7 +18,9 @@ import math
 import numpy as np
 from numba import njit
 
-from ..energy3d.diagonal import diagonal_point
+from ..energy3d.diagonal import diagonal_point, flat_parameters, nodes
+
+__all__ = ["lateral_rows", "flat_parameters", "nodes"]
 
 _EPS = np.finfo(float).eps
 

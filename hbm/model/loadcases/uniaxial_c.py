@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import HbmError
-from ..energy3d.diagonal import flat_parameters, nodes
 from .base import LoadCase, Observable, full_shape, lateral_strain
-from .lateral_kernel import lateral_rows
 from .registry import register_load_case
 
 #: Newton iterations before giving up (measured: at most 22 over the prior box, :func:`_lateral_root`)
@@ -155,6 +153,7 @@ def _lateral_root_compiled(energy, params, s, shape, warm: bool = WARM_START):
     evaluations : ndarray
         Energy evaluations per solved element (particles × distinct strains).
     """
+    from .lateral_kernel import flat_parameters, lateral_rows, nodes  # numba loads on first use
     ec_all = np.log1p(s)
     if all(np.ndim(v) == 0 or np.shape(v)[-1] == 1 for v in params.values()):
         ec, inverse = np.unique(ec_all, return_inverse=True)   # one parameter row per particle
