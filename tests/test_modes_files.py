@@ -105,3 +105,14 @@ def test_joint_fit_is_keyed_and_refuses_settings_it_ignores(tmp_path, capsys):
     assert "holds a result of along+across with other settings" in capsys.readouterr().err
     assert out.read_bytes() == before
     assert main(base + ["--collagen3d", "cone"]) == 0  # the default reading named: the same content
+
+
+def test_run_refuses_a_multimode_specimen_before_any_fit(tmp_path, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    _file(data / "along.csv", ALONG)
+    _file(data / "across.csv", ACROSS, mode="uniaxial_c")
+    out = tmp_path / "out"
+    assert main(["run", "--data", str(data), "--out", str(out), "--quick", "--no-hierarchical", "--no-progress"]) == 2
+    assert "across hold(s) tests in other loading modes" in capsys.readouterr().err
+    assert not out.exists()

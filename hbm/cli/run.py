@@ -18,7 +18,7 @@ from ..population import POOL_MODES
 from ..settings import RunSettings, add_arguments
 from ._common import n_noise_parameters
 from ._common import (
-    add_model_arguments, build_prior, check_domain, build_model, check_population_memory, check_sobol_memory,
+    add_model_arguments, build_prior, check_along_fibre, check_domain, build_model, check_population_memory, check_sobol_memory,
     free_parameters, name_list, non_negative_int, sample_size, workers)
 
 #: the RunSettings that are options of ``hbm run`` with their declared flags
@@ -167,6 +167,7 @@ def run(args: argparse.Namespace) -> int:
     datasets = load_specimens(args.data, sl0=args.sl0)  # a bad or missing data folder fails before any fit
     for ds in datasets.values():
         check_domain(model, ds)
+    check_along_fibre(datasets, args.data)
     if not args.no_hierarchical:  # groups matter to the hierarchical layer only
         specimen_groups(datasets, args.group_by)  # every specimen has its group, two groups at least
     cfg = RunSettings.from_args(

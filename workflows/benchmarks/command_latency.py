@@ -22,6 +22,9 @@ Run from the repository root, with the baseline in a detached worktree::
 
 The benchmark folder is ``$HBM_BENCH_DIR`` (default ``../shared/bench`` next to the repository).
 Results: ``results/benchmarks/command_latency.{json,md}`` (``--out DIR`` to change), naming both commits.
+The interpreter running the script runs the commands: its environment matters (a development install with the
+test extras has pint, which xarray imports when it builds an index: ~0.35 s more per netCDF-writing command), so
+the report records it.  A user's environment is ``python -m venv V && V/bin/pip install .`` without extras.
 """
 
 from __future__ import annotations
@@ -58,6 +61,15 @@ def commit_of(tree: Path) -> str:
         return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown (not a git checkout)"
+
+
+def environment() -> str:
+    """The interpreter and which optional packages that change import time it can import."""
+    import importlib.util
+
+    extras = [m for m in ("pint", "pint_xarray", "cf_xarray", "felupe", "hypothesis", "pytest")
+              if importlib.util.find_spec(m) is not None]
+    return f"{sys.executable} (Python {sys.version.split()[0]}); test extras importable: {', '.join(extras) or 'none'}"
 
 
 def argv_of(command: str, bench: Path, work: Path) -> list[str]:
@@ -123,7 +135,7 @@ def markdown(meta: dict, stats: dict) -> str:
     lines = [f"# Command latency (issue 38 item 3): `{meta['this']}` against `{meta['baseline']}`", "",
              f"Measured {meta['date']} with `workflows/benchmarks/command_latency.py`, {meta['repeats']} repeats "
              f"interleaved, each a fresh `python -m hbm` process; OMP_NUM_THREADS={meta['omp']}; "
-             f"{meta['cpus']} CPUs.", "",
+             f"{meta['cpus']} CPUs.", "", f"Environment: {meta.get('environment', 'not recorded')}.", "",
              f"1-minute load average before the runs: median {meta['load_median']}, max {meta['load_max']} -- "
              + ("a quiet machine." if meta["quiet"] else
                 f"**not quiet** (above {meta['quiet_load']}): the wall seconds were taken under load and are "
@@ -170,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     meta = {"this": commit_of(ROOT), "baseline": commit_of(trees["baseline"]), "repeats": args.repeats,
             "date": time.strftime("%Y-%m-%d %H:%M"), "omp": os.environ.get("OMP_NUM_THREADS", "unset"),
             "cpus": os.cpu_count(), "load_median": round(statistics.median(loads), 2), "load_max": max(loads),
-            "quiet_load": args.quiet_load, "quiet": max(loads) <= args.quiet_load, "targets": TARGETS}
+            "quiet_load": args.quiet_load, "quiet": max(loads) <= args.quiet_load, "targets": TARGETS,
+            "environment": environment()}
     stats = summarise(rows, list(trees))
     out.mkdir(parents=True, exist_ok=True)
     (out / "command_latency.json").write_text(json.dumps({"meta": meta, "summary": stats, "rows": rows}, indent=1)
