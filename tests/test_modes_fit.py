@@ -137,6 +137,7 @@ def test_cli_fit_writes_one_variable_per_observable(tmp_path, capsys):
     assert "hbm: warning: synthetic_modes_5: the evaluation cap (3000) bound the TMCMC run" in err
     assert "tier: full tier" in text and "collagen3d=gst" in text
     assert "test 1 [uniaxial_c] strain_f: 2 points" in text and "test 2 [shear_fc] stress: 2 points" in text
+    assert "what the tests identify (linearised Fisher analysis at the highest-likelihood draw" in text
     assert out.with_suffix(".png").exists()
     idata = az.from_netcdf(out)
     assert set(idata.observed_data.data_vars) == {"stress", "strain_f"}
@@ -144,3 +145,4 @@ def test_cli_fit_writes_one_variable_per_observable(tmp_path, capsys):
     assert idata.log_likelihood["strain_f"].shape == (1, 100, 2)
     assert list(idata.observed_data["stress_mode"].values) == ["uniaxial_f"] * 3 + ["uniaxial_c"] * 2 + ["shear_fc"] * 2
     assert json.loads(idata.attrs["config"])["collagen3d"] == "gst"
+    assert json.loads(idata.attrs["identifiability"])["n_structural"] == 2

@@ -70,7 +70,8 @@ def run_modes(args: argparse.Namespace, model, fix, bounds, prior, settings, dat
         print_json({"specimen": data.id, "tier": "full", "collagen3d": fit.likelihood.energy.collagen3d,
                     "log_evidence": fit.log_evidence, "log_evidence_se": fit.log_evidence_se,
                     "n_evaluations": fit.n_evaluations, "tests": fit.quality(),
-                    "posterior_mean": dict(zip(fit.names, map(float, fit.samples.mean(axis=0))))})
+                    "posterior_mean": dict(zip(fit.names, map(float, fit.samples.mean(axis=0)))),
+                    "identifiability": None if fit.identifiability is None else fit.identifiability.to_dict()})
         return 0
     print(fit.report())
     print("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in fit.timings.items()))

@@ -3,8 +3,9 @@
 :func:`fit_modes` samples the joint likelihood of :mod:`hbm.likelihood.modes` with TMCMC (full tier: the
 amplitude collapse is exact only along the fibres, see the likelihood's docstring), then evaluates every
 series at the posterior: pointwise log-likelihood, a posterior-predictive replicate per draw and the fit
-quality per test.  :func:`hbm.io.modes.write_modes_result` stores one observed variable per measured
-observable.  Seeds come from the seed table (:mod:`hbm.runtime.seeds`): the TMCMC and predictive phases.
+quality per test, and what the tests identify (:mod:`hbm.identifiability.modes`: a Fisher analysis at
+the highest-likelihood draw).  :func:`hbm.io.modes.write_modes_result` stores one observed variable per
+measured observable.  Seeds come from the seed table (:mod:`hbm.runtime.seeds`): the TMCMC and predictive phases.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import numpy as np
 
 from .._version import __version__
 from ..data.specimen import as_specimen
-from ..errors import HbmWarning
+from ..errors import HbmError, HbmWarning
+from ..identifiability.modes import ModesIdentifiability, fit_point, linearised_identifiability
 from ..io.modes import write_modes_result
 from ..likelihood.modes import ModesLikelihood, make_modes_likelihood
 from ..model import spyrou_model
@@ -59,6 +61,8 @@ class ModesFit:
     seeds : dict
     timings : dict
     path : Path or None
+    identifiability : ModesIdentifiability or None
+        What the tests identify, linearised at the highest-likelihood draw (None when not computed).
     """
 
     likelihood: ModesLikelihood
@@ -74,6 +78,7 @@ class ModesFit:
     seeds: dict
     timings: dict = field(default_factory=dict)
     path: Path | None = None
+    identifiability: ModesIdentifiability | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -129,6 +134,8 @@ class ModesFit:
             name = q["label"] if q["label"] is not None else q["test"]
             lines.append(f"  test {name} [{q['mode']}] {q['observable']}: {q['points']} points, rmse "
                          f"{q['rmse']:.3g} {q['unit']} (rel {q['rmse_rel']:.3f}), cov90 {q['coverage90']:.2f}")
+        if self.identifiability is not None:
+            lines += self.identifiability.report_lines()
         return "\n".join(lines)
 
 
@@ -211,6 +218,9 @@ def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int =
     fit = ModesFit(lik, lik.to_natural(y), np.asarray(tr.log_likelihood, float), float(tr.log_evidence),
                    float(tr.log_evidence_se), pred, replicates, pointwise, int(tr.n_evaluations), list(tr.stages),
                    {"tmcmc": s_tm, "predictive": s_pred})
+    t = time.perf_counter()
+    fit.identifiability = _identifiability(fit)
+    timings["identifiability"] = time.perf_counter() - t
     if out is not None:
         t = time.perf_counter()
         config = {"samples": int(samples), "seed": int(seed), "collagen3d": lik.energy.collagen3d,
@@ -222,3 +232,18 @@ def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int =
     timings["total"] = time.perf_counter() - t0
     fit.timings = timings
     return fit
+
+
+def _identifiability(fit: ModesFit) -> ModesIdentifiability | None:
+    """The Fisher analysis of the fit's tests at its highest-likelihood draw, compared with the posterior;
+    None (with a warning) when a model solve fails at the point (the rest of the fit stands)."""
+    lik = fit.likelihood
+    row, where = fit_point(lik, fit.samples, fit.log_likelihood)
+    try:
+        ident = linearised_identifiability(lik, row, point_label=where)
+    except HbmError as e:
+        warnings.warn(f"{lik.label}: what the tests identify was not computed ({e})", HbmWarning, stacklevel=3)
+        return None
+    cols = {n: fit.samples[:, j] for j, n in enumerate(lik.names)}
+    ident.compare_posterior({**cols, **fit.combinations()})
+    return ident

@@ -7,7 +7,9 @@ test by test), with coordinates ``<observable>_test``, ``_mode``, ``_strain`` (t
 ``log_likelihood`` and ``posterior_predictive`` groups hold the same variables over (chain, draw,
 ``<observable>_point``), so ``arviz.loo(idata, var_name="strain_f")`` is the per-observable LOO.  The
 posterior is one pooled chain (TMCMC's final population).  Root attributes: log-evidence, the collagen
-reading, the tier and why, the settings.
+reading, the tier and why, the settings, and ``identifiability``: what the tests identify as JSON
+(:meth:`hbm.identifiability.modes.ModesIdentifiability.to_dict`, linearised at the highest-likelihood
+draw; absent when it was not computed).
 """
 
 from __future__ import annotations
@@ -70,6 +72,9 @@ def write_modes_result(fit, path: str | os.PathLike, config: Mapping[str, Any]) 
              "collagen3d": lik.energy.collagen3d, "energy": lik.energy.label, "n_evaluations": fit.n_evaluations,
              "noise_kinds": _dumps(list(lik.kinds)), "config": _dumps(dict(config)),
              "load_cases": _dumps([t.load_case for t in spec.tests])}
+    ident = getattr(fit, "identifiability", None)
+    if ident is not None:
+        attrs["identifiability"] = _dumps(ident.to_dict())
     tree = xr.DataTree.from_dict({
         "/": xr.Dataset(attrs=attrs),
         G_POSTERIOR: post, G_STATS: stats, G_OBS: xr.Dataset(obs),

@@ -566,6 +566,12 @@ SPEC = ModelSpec(
                             "near-linear range (small T2·(λH − 1) over the tested strains) only (1−c)·T1·T2 is "
                             "learnt and (1−c)·T1 trades off against T2: see each specimen's identified "
                             "combinations above."),
+           # why hbm.identifiability.modes finds null directions in every set of homogeneous tests
+           "modes_structural": ("This is structural, not a matter of which tests were run: under the Voigt mixture "
+                                "(one F for both phases) the volume fraction VOLF enters the energy only through the "
+                                "phase amplitudes VOLF·P1 and (1−VOLF)·T1 and the mixed shear modulus "
+                                "VOLF·GF + (1−VOLF)·GM, so no homogeneous test in any loading mode separates VOLF "
+                                "from P1 and T1, or GF from GM."),
            "transforms": ("log for positive moduli spanning decades, logit on the prior box for bounded quantities, "
                           "identity (truncated to the box) for THETA whose posteriors pile up at 60°")})
 
