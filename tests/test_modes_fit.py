@@ -90,8 +90,9 @@ def test_refusals(small):
         make_modes_likelihood(spyrou_model(), small)
     with pytest.raises(HbmError, match="collagen3d"):
         make_modes_likelihood(ENERGY, small, collagen3d="helix")
-    with pytest.raises(HbmError, match="beyond the base"):
-        make_modes_likelihood(ENERGY.with_effects(make_effect("offset")), small)
+    with pytest.raises(HbmError, match=r"effect 'slack' is not defined in mode uniaxial_c \(stress\): it is "
+                                       "written on the 1-D along-fibre strain path"):
+        make_modes_likelihood(ENERGY.with_effects(make_effect("slack")), small)
     with pytest.raises(HbmError, match="this likelihood fits along-fibre stress only; fit the file with 'hbm fit'"):
         make_likelihood(ENERGY, small)  # never fitted as if every test were along the fibres
     assert is_multimode(small)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import warnings
 
 from ..data import input_line, input_summary
 from ..detective import diagnose, extend
@@ -11,13 +12,15 @@ from ..detective.calibration import CALIBRATION_CHOICES
 from ..detective.caveats import CORRELATED_CHOICES
 from ..detective.rules import CALIBRATION_REPLICATES
 from ..effects import applicable, resolve_effect
-from ..errors import SettingError
+from ..errors import HbmWarning, SettingError
+from ..likelihood.modes import is_multimode
 from ..model import spyrou_model
 from ..runtime.files import prepare_output_file
 from ..settings import FitSettings, add_arguments
 from ._common import (
     n_noise_parameters, add_data_arguments, add_fix, add_form_argument, check_fix_bounds, check_population_memory,
     load_specimens_arg, name_list, integer, non_negative_int, plot_path, positive_float, print_json, workers)
+from ._diagnose_modes import add_modes_diagnose_arguments, run_modes_diagnosis
 
 #: --samples default of diagnose/extend (hbm.diagnose's n_samples default)
 DEFAULT_SAMPLES = 800
@@ -63,6 +66,13 @@ examples:
   hbm diagnose spec.csv --model offset --fix EOPT=0.12 --plot diagnosis.png
   hbm diagnose spec.csv --power          # what this protocol and noise could reveal
   hbm diagnose spec.csv --noise iid      # force white noise
+
+A file with tests in several loading modes (a `mode` column; or lateral strains) is diagnosed across
+modes instead (hbm.detective.modes): the joint fit in each collagen reading (cone, gst) with the
+reading named by evidence (>= 3 nats and >= 3 SE), leave-one-mode-out predictions, lateral strains
+of along-fibre tests against lambda^-1/2 (compressibility, transverse isotropy) and a verdict per
+mode; the fits and diagnosis.json/.txt go to --out (default hbm-results/diagnoses/<id>):
+  hbm diagnose porcine_ramps.csv --form energy --samples 400
 """
 
 EXTEND_DESCRIPTION = """\
@@ -132,6 +142,7 @@ def register(subparsers) -> None:
     p.add_argument("--replicates", type=integer(40, "an integer >= 40"), default=CALIBRATION_REPLICATES, metavar="N",
                    help=f"null replicates per round of the calibration (default {CALIBRATION_REPLICATES}; "
                         "a p-value's resolution is 1/(N+1))")
+    add_modes_diagnose_arguments(p)
     p.set_defaults(func=run_diagnose)
 
     q = subparsers.add_parser("extend", help="add effects one at a time and show the error fall",
@@ -217,6 +228,11 @@ def run_diagnose(args) -> int:
     """Check everything, then diagnose and print (or plot) the verdict."""
     candidates = _candidates(args)
     ds, kw = _prepare(args, [])
+    if is_multimode(ds):  # tests in several loading modes: the detective across modes (hbm.detective.modes)
+        return run_modes_diagnosis(args, ds, args.samples or DEFAULT_SAMPLES)
+    if args.out is not None or args.force:
+        warnings.warn(f"{ds.id}: --out/--force are for files with tests in several loading modes; an along-fibre "
+                      "diagnosis writes no result file (ignored)", HbmWarning, stacklevel=1)
     dg = diagnose(ds, candidates=candidates, top=args.top, power=args.power, calibration=args.calibration,
                   replicates=args.replicates, **kw)
     if args.plot:

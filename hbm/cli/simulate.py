@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from ..effects import resolve_effect
 from ..fit.simulate import simulate_tests, write_simulation
 from ..model import spyrou_model
 from ..model.energy3d import COLLAGEN_READINGS
@@ -18,6 +19,8 @@ Each test is solved in its mode (the file's 'mode' column; uniaxial_f without it
 strain, Cauchy stress in MPa, as loaded) plus <observable>_model columns (stress_model,
 stress_2_model, strain_f_model ...; empty where a row's mode does not define the observable).
 The thesis form is defined along the fibres only: other modes need --form energy.
+--effect adds effects where they are defined in 3-D (viscoelastic relaxes every stress observable along
+its own history, an offset per stress observable: S0, S0_2); others only along the fibres.
 Cells of the measured columns may be empty: a file without measurements is a protocol.
 """
 
@@ -42,6 +45,10 @@ def register(subparsers) -> None:
     p.add_argument("--theta", type=theta_list, action="append", required=True, metavar="NAME=VALUE,...",
                    help="every model parameter, e.g. VOLF=0.9,EOPT=0.18,...; repeatable")
     add_form_argument(p)
+    p.add_argument("--effect", action="append", default=[], metavar="ID",
+                   help="add an effect (library id or file.py:Class; repeatable); it acts per test where it is "
+                        "defined in 3-D (viscoelastic: every stress observable's history; offset: S0, S0_2 ...) "
+                        "and is refused elsewhere")
     p.add_argument("--collagen3d", choices=sorted(COLLAGEN_READINGS), default=None,
                    help="3-D reading of the collagen (energy form): default cone")
     p.add_argument("--out", required=True, metavar="OUT.csv", help="output CSV (written atomically)")
@@ -55,12 +62,14 @@ def run(args: argparse.Namespace) -> int:
     for part in args.theta:
         theta.update(part)
     model = spyrou_model(form=args.form)
+    if args.effect:
+        model = model.with_effects(*[resolve_effect(e) for e in args.effect])
     spec = load_specimen_arg(args.tests, args.sl0)
     pred = simulate_tests(spec, theta, model=model, collagen3d=args.collagen3d)
     reading = args.collagen3d or ("cone" if args.form == "energy" else "axial")
     path = write_simulation(spec, pred, args.out, record={
         "simulated_model": f"{model.name}, collagen3d={reading}",
-        "simulated_theta": json.dumps({n: theta[n] for n in model.parameter_names})})
+        "simulated_theta": json.dumps(theta)})  # every name checked against the model by simulate_tests
     modes = ", ".join(dict.fromkeys(t.load_case for t in spec.tests))
     print(f"{path}: {spec.n_points} rows, {len(spec.tests)} test(s) ({modes}); columns "
           f"{', '.join(pred)} (Cauchy stress in MPa, engineering strain; {model.name}, collagen3d={reading})")

@@ -21,6 +21,10 @@ id                            stage        parameters (null)
 ``damage``                    history      DMG (0)           — needs load-unload-reload
 ============================  ===========  ==========================================
 
+In the loading modes of issue 35 (:mod:`hbm.model.modes_effects`) ``viscoelastic*`` relax every stress
+observable along its own history and ``offset`` adds one zero per stress observable (``S0``, ``S0_2``); the
+others know only the along-fibre path and are refused elsewhere (``Effect.in_mode`` gives the reason).
+
 ``make_effect(id, **kwargs)`` builds a library effect, ``load_effect("path.py:ClassName")`` a
 user's effect from their own file, ``resolve_effect(spec)`` either.  ``placements(effect)``
 lists the other placements of an effect (``prestress`` is ``offset`` carried by the tissue,

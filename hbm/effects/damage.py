@@ -38,6 +38,8 @@ class Damage(Effect):
     strength = "DMG"
     description = "Mullins-type softening below the previous maximum (load-unload-reload)"
     reference = "Ogden RW, Roxburgh DG (1999) Proc R Soc Lond A 455:2861-2877"
+    along_fibre_reason = ("its softening is driven by the running maximum of the along-fibre stress; a 3-D "
+                          "damage variable (which energy, which components soften) is not modelled")
 
     def experiment(self, f):
         if f["reload_beyond"]:

@@ -34,6 +34,9 @@ class Offset(Effect):
     reference = "Van Loocke M, Lyons CG, Simms CK (2006) J Biomech 39:2999-3009"
     experiment = offset_experiment
     linear_parameters = ("S0",)  # a constant column added after the history stage
+    # one load-cell zero per measured force: S0 on `stress`, S0_2 on `stress_2` (hbm.model.modes_effects)
+    modes = "stress_observables"
+    per_observable = True
 
     def modify(self, state, p, stress):
         return stress + p["S0"]

@@ -38,6 +38,9 @@ class Prestress(Effect):
     reference = "Van Loocke M, Lyons CG, Simms CK (2006) J Biomech 39:2999-3009"
     experiment = offset_experiment
     linear_parameters = ("S0",)  # a constant column, filtered by a history effect after it
+    along_fibre_reason = ("a stress carried by the tissue is a stress tensor whose components and convection "
+                          "under other deformations hbm does not model; a load-cell zero is 'offset', defined "
+                          "per stress observable")
 
     def stress(self, state, p):
         s0 = p["S0"]

@@ -50,6 +50,9 @@ class Viscoelastic(Effect):
     description = "quasi-linear viscoelasticity (Fung), Prony series, along each loading history"
     reference = "Fung YC (1981) Biomechanics: Mechanical Properties of Living Tissues, Springer"
     preserves_linearity = True  # a linear operator on the elastic stress: it filters each column
+    # in every mode: the operator on the Kirchhoff stress tensor (J = 1) acts on each stress observable's own
+    # history, and the traction-free conditions keep their elastic kinematics (hbm.model.modes_effects)
+    modes = "stress_observables"
     #: index of the first Prony term (G1, LOGTAU1 ...); a further relaxation time (hbm.effects.relaxation) counts on
     first = 1
     parameters = (Parameter("G1", 0.0, 0.9, "-", "relaxing fraction of the Prony term 1", null=0.0),

@@ -20,7 +20,7 @@ from ..errors import SettingError
 from ..model.core import Model
 from ..model.energy3d import energy_from_model
 from ..model.loadcases import check_mode, get_load_case
-from ..model.spec import spec_of
+from ..model.modes_effects import ModeEffects
 
 __all__ = ["simulate_tests", "write_simulation", "MODEL_SUFFIX"]
 
@@ -55,7 +55,9 @@ def simulate_tests(data, theta: Mapping[str, float], *, model: Model, collagen3d
     theta : mapping
         A value for every model parameter (natural units).
     model : Model
-        The base model (:func:`hbm.spyrou_model`); the thesis form only where every test is ``uniaxial_f``.
+        The base model (:func:`hbm.spyrou_model`), possibly with effects (they act per test where they are
+        defined in 3-D, :mod:`hbm.model.modes_effects`); the thesis form only where every test is
+        ``uniaxial_f``.
     collagen3d : {"cone", "gst"}, optional
         The collagen's 3-D reading (default cone; not with the thesis form).
 
@@ -68,23 +70,28 @@ def simulate_tests(data, theta: Mapping[str, float], *, model: Model, collagen3d
     ------
     HbmError
         A missing or out-of-box parameter, the thesis form outside ``uniaxial_f`` (with the reason), an
-        unknown reading, effects beyond the base model -- all before any computation.
+        unknown reading, an effect in a mode where it is not defined -- all before any computation.
     """
     spec = as_specimen(data)
     energy = energy_from_model(model, collagen3d)
-    if list(model.parameter_names) != [q.name for q in spec_of(model).parameters]:
-        raise SettingError("simulate: effects beyond the base model know only the along-fibre path; simulate "
-                           "takes the base model")
-    row = _theta_row(model, theta)
     for t in spec.tests:
         check_mode(energy, t.load_case)
+    tests = [(t, get_load_case(t.load_case)) for t in spec.tests]
+    try:  # effects beyond the base act per test where they are defined in 3-D; refused elsewhere
+        effects = ModeEffects(model, spec.loading, tests, [(t, o) for t, c in tests for o in c.observable_names])
+    except SettingError as exc:
+        raise SettingError(f"simulate: {exc}") from None
+    model = effects.model
+    row = _theta_row(model, theta)
     p = model._params(row)
-    out: dict[str, np.ndarray] = {}
-    for t in spec.tests:
-        case = get_load_case(t.load_case)
+    preds = {}
+    for t, case in tests:
         s2 = None if spec.strain_2 is None or "strain_2" not in case.inputs else spec.strain_2[t.rows]
-        pred = case.solve(energy, p, spec.strain[t.rows], s2)
-        for name, v in pred.items():
+        preds[t.id] = case.solve(energy, p, spec.strain[t.rows], s2)
+    effects.apply(row[None, :], preds)
+    out: dict[str, np.ndarray] = {}
+    for t, _ in tests:
+        for name, v in preds[t.id].items():
             col = out.setdefault(name + MODEL_SUFFIX, np.full(spec.n_points, np.nan))
             col[t.rows] = np.reshape(v, -1)
     return out

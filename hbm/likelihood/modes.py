@@ -18,6 +18,11 @@ prior (the truncated mass, 6e-5, is neglected).
 Only the full tier exists here: ``uniaxial_c`` is not linear in the amplitudes (its free lateral
 stretch depends on them), and the prescribed-F modes' collapse is not implemented; the fit states it.
 The thesis form is refused in every mode but ``uniaxial_f`` (:func:`hbm.model.loadcases.check_mode`).
+
+Effects beyond the base model act per test where they are defined in 3-D (:mod:`hbm.model.modes_effects`):
+quasi-linear viscoelasticity on each predicted stress observable's own history (``stress``, ``stress_2``;
+strains are kinematic and stay elastic), an offset per stress observable (``S0``, ``S0_2``); an effect that
+knows only the along-fibre path is refused in every other mode, with its reason.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from ..errors import DataError, HbmError, SettingError
 from ..model.core import Model
 from ..model.energy3d import energy_from_model
 from ..model.loadcases import LoadCase, check_mode, get_load_case
-from ..model.spec import spec_of
+from ..model.modes_effects import ModeEffects
 from .core import free_index
 from .prior import Prior, load_prior
 
@@ -130,12 +135,7 @@ class ModesLikelihood:
                  fix: Mapping[str, float] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
                  prior: Prior | str | Mapping | None = None, test_scale: bool = False) -> None:
         spec = as_specimen(data)
-        self.model, self.data, self.label = model, spec, spec.id
-        base = [q.name for q in spec_of(model).parameters]
-        if list(model.parameter_names) != base:
-            extra = [n for n in model.parameter_names if n not in base]
-            raise SettingError(f"{spec.id}: the model's effects beyond the base ({', '.join(extra) or model.name}) "
-                               "know only the along-fibre path; a fit across loading modes takes the base model")
+        self.data, self.label = spec, spec.id
         self.energy = energy_from_model(model, collagen3d)
         self.cases: dict[int, LoadCase] = {}
         for t in spec.tests:
@@ -144,6 +144,12 @@ class ModesLikelihood:
         self.series = _series(spec)
         if not self.series:
             raise DataError(f"{spec.id}: no measured value in any test; nothing to fit")
+        try:  # effects beyond the base act per test where they are defined in 3-D; refused elsewhere
+            self.effects = ModeEffects(model, spec.loading, [(t, self.cases[t.id]) for t in spec.tests],
+                                       [(s.test, s.observable) for s in self.series])
+        except SettingError as exc:
+            raise SettingError(f"{spec.id}: {exc}") from None
+        self.model = model = self.effects.model
         self.kinds = tuple(dict.fromkeys(s.kind for s in self.series))
         self.n_points = int(sum(s.rows.size for s in self.series))
         self.test_scale = bool(test_scale)
@@ -265,6 +271,7 @@ class ModesLikelihood:
         for t in spec.tests:
             s2 = None if spec.strain_2 is None or "strain_2" not in self.cases[t.id].inputs else spec.strain_2[t.rows]
             out[t.id] = self.cases[t.id].solve(self.energy, p, spec.strain[t.rows], s2)
+        self.effects.apply(rows, out)
         return out
 
     def predict_series(self, theta) -> list[np.ndarray]:
@@ -373,8 +380,9 @@ def make_modes_likelihood(model: Model, data, *, collagen3d: str | None = None,
     Raises
     ------
     HbmError
-        The thesis form outside ``uniaxial_f`` (with the reason), an unknown mode or reading, effects
-        beyond the base model, bad ``fix``/``bounds``/``prior``.
+        The thesis form outside ``uniaxial_f`` (with the reason), an unknown mode or reading, an effect
+        in a mode where it is not defined (:class:`hbm.model.modes_effects.ModeEffects`), bad
+        ``fix``/``bounds``/``prior``.
     """
     return ModesLikelihood(model, data, collagen3d=collagen3d, fix=fix, bounds=bounds, prior=prior,
                            test_scale=test_scale)

@@ -182,6 +182,9 @@ class Effect:
         Kinematics stage: the strain map does not depend on the stress (slack does, a
         compliant series element does not).  History/output stages: ``modify`` is a linear
         operator on the stress (quasi-linear viscoelasticity is, Mullins damage is not).
+    modes, per_observable, along_fibre_reason
+        Where the effect is defined beyond along-fibre tension (issue 35): :meth:`in_mode` answers per
+        (mode, observable) from them; :mod:`hbm.model.modes_effects` applies or refuses accordingly.
 
     The detective also needs a ``null`` on every parameter of a candidate effect: the
     candidate is screened and refitted starting from the base model with the effect at its
@@ -210,6 +213,17 @@ class Effect:
     placement_of: str | None = None
     linear_parameters: tuple[str, ...] = ()
     preserves_linearity: bool = False
+    #: where the effect is defined beyond the 1-D along-fibre path (issue 35; :mod:`hbm.model.modes_effects`):
+    #: ``"along_fibre"`` -- only uniaxial_f's ``stress``, refused in every other (mode, observable) with
+    #: :attr:`along_fibre_reason`; ``"stress_observables"`` -- a history/output operator on every stress
+    #: observable of every mode (strains, being kinematic, pass untouched)
+    modes: str = "along_fibre"
+    #: ``modes == "stress_observables"``: the parameters repeat per stress observable beyond ``stress``
+    #: (``S0`` -> ``S0_2`` for ``stress_2``: one load-cell zero per measured force)
+    per_observable: bool = False
+    #: why an ``"along_fibre"`` effect has no 3-D form (quoted when it is refused in another mode)
+    along_fibre_reason: str = ("it is written on the 1-D along-fibre strain path and hbm has no 3-D form of it "
+                               "(no stress tensor, no lateral kinematics)")
 
     # -- hooks (override the one of your stage) ---------------------------------------
     def strain(self, state: State, p: Mapping[str, np.ndarray],
@@ -266,6 +280,19 @@ class Effect:
         claiming the file already contains one."""
         return ([f"an experiment that isolates {self.name!r} (hbm knows no protocol for this effect; "
                  "describe one in its experiment() method)"], [])
+
+    def in_mode(self, mode: str, observable: str, is_stress: bool) -> str:
+        """How the effect takes part in the prediction of ``observable`` in loading mode ``mode``.
+
+        Returns ``"acts"`` (it transforms that prediction), ``"passes"`` (defined there, leaves it as it is:
+        a stress operator on a kinematic strain) or, where the effect is not defined, the reason (a
+        sentence; the caller refuses the pair with it).  The default follows :attr:`modes`; override it
+        for another scope."""
+        if self.modes == "stress_observables":
+            return "acts" if is_stress else "passes"
+        if mode == "uniaxial_f" and observable == "stress":
+            return "acts"
+        return self.along_fibre_reason
 
     # -- conveniences -------------------------------------------------------------------
     @property

@@ -32,6 +32,9 @@ stream                     spawn key                 draws
 ``organ_new_specimen``     ``(20000, 2)``            organ bands: population-predictive draws
 ``detective``              ``(30000,)``              hbm.diagnose/extend: child j = 0 base fit,
                                                      1 + k greedy round k, 90 removal, 91 power
+``detective_modes`` j      ``(30001, j)``            hbm.detective.modes: j = k the joint fit in
+                                                     collagen reading k, 100 + m the fit without
+                                                     mode m, 200 + m mode m's held-out replicates
 ``calibration`` k          ``(60000, k)``            hbm.diagnose: the null replicates of greedy round
                                                      k (the fitted model's own noise on the file's
                                                      design, :mod:`hbm.detective.calibration`)
@@ -89,6 +92,7 @@ STREAMS: dict[str, Callable[..., tuple[int, ...]]] = {
     "organ_updated": lambda k: (_ORGAN, 1, int(k)),
     "organ_new_specimen": lambda: (_ORGAN, 2),
     "detective": lambda: (_DETECTIVE,),
+    "detective_modes": lambda j: (_DETECTIVE + 1, int(j)),
     "grouped": lambda: (_GROUPED,),
     "prior": lambda: (_PRIOR,),
     "calibration": lambda k: (_CALIBRATION, int(k)),

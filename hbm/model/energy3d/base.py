@@ -119,10 +119,14 @@ class CollagenReading:
         The value of the ``collagen3d`` option.
     description : str
         One line for tables and ``--help``.
+    kernel_code : int or None
+        The reading's code in the compiled diagonal kernel (:mod:`.diagonal`); ``None``: the numpy path.
     """
 
     name: str = ""
     description: str = ""
+    #: the code of this reading in the compiled diagonal kernel (:mod:`.diagonal`), None: numpy only
+    kernel_code: int | None = None
 
     def energy(self, p: Mapping[str, np.ndarray], D: Sym) -> np.ndarray:
         """W_coll (MPa) at D = C − I."""

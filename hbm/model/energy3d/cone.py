@@ -175,6 +175,7 @@ class ConeCollagen(DirectionalCollagen):
 
     name = "cone"
     description = "affine helix segments on a cone around the fibre, averaged exactly over the azimuth"
+    kernel_code = 0     # hbm.model.energy3d.diagonal.CONE
 
     def __init__(self, n_nodes: int = GAUSS_NODES) -> None:
         self.n_nodes = int(n_nodes)

@@ -24,6 +24,11 @@ from .axial import AxialCollagen
 from .base import DEFAULT_COLLAGEN3D, CollagenReading, Sym, get_collagen_reading, is_zero
 
 
+#: what the compiled kernel hard-codes: a subclass replacing one of these runs the numpy path
+_KERNEL_LAWS = ("shear_modulus", "_fibre_energy", "_fibre_force", "_fibre_stiffness", "principal_numpy")
+_KERNEL_READING_LAWS = ("rule", "principal", "_nodes", "segment_energy", "segment_force", "segment_stiffness")
+
+
 class Energy3D:
     """The base model's strain energy with one collagen reading: W, S, principal τ and its tangent.
 
@@ -69,6 +74,22 @@ class Energy3D:
         else:
             self.collagen = get_collagen_reading(DEFAULT_COLLAGEN3D if collagen3d is None else collagen3d)
         self.collagen3d = self.collagen.name
+
+    @property
+    def kernel(self) -> int | None:
+        """The compiled diagonal kernel's code for this reading (``kernel_code`` of its class, :mod:`.diagonal`),
+        or ``None`` where the numpy path runs: a reading without one, or a subclass (of this class or of the
+        reading) that replaces a law the kernel hard-codes (the fibres', the matrix's, the segments' or the
+        quadrature)."""
+        kind = type(self.collagen)
+        owner = next((c for c in kind.__mro__ if "kernel_code" in c.__dict__), None)
+        if owner is None or owner.kernel_code is None:
+            return None
+        if any(getattr(type(self), m) is not getattr(Energy3D, m) for m in _KERNEL_LAWS):
+            return None
+        if any(getattr(kind, m) is not getattr(owner, m) for m in _KERNEL_READING_LAWS):
+            return None
+        return owner.kernel_code
 
     @property
     def label(self) -> str:
@@ -163,7 +184,20 @@ class Energy3D:
             of a load case, is exact and free of that cancellation at small strains.
         c : tuple of tuples or None
             The symmetric tangent (MPa), ``None`` unless ``tangent``.
+
+        Notes
+        -----
+        The cone and gst readings of this class run the compiled kernel of :mod:`.diagonal`;
+        :meth:`principal_numpy` is the reference (and the path of every other reading or subclass).
         """
+        code = self.kernel
+        if code is not None:
+            from .diagonal import principal_diagonal  # numba loads on first use, not with `hbm data check`
+            return principal_diagonal(self, code, p, e, tangent)
+        return self.principal_numpy(p, e, tangent)
+
+    def principal_numpy(self, p: Mapping[str, np.ndarray], e: tuple, tangent: bool = False):
+        """:meth:`principal` by numpy over the reading's quadrature (the reference of the compiled kernel)."""
         e = tuple(np.asarray(ei, dtype=float) for ei in e)
         d = tuple(np.expm1(2.0 * ei) for ei in e)
         mu = self.shear_modulus(p)

@@ -19,6 +19,7 @@ class GstCollagen(DirectionalCollagen):
 
     name = "gst"
     description = "one averaged helix stretch, lambda_H^2 = H:C (generalised structure tensor)"
+    kernel_code = 1     # hbm.model.energy3d.diagonal.GST
 
     def rule(self, D, theta_deg, need="tangent"):
         c2 = np.cos(np.deg2rad(theta_deg)) ** 2
