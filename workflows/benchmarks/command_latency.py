@@ -69,7 +69,8 @@ def environment() -> str:
 
     extras = [m for m in ("pint", "pint_xarray", "cf_xarray", "felupe", "hypothesis", "pytest")
               if importlib.util.find_spec(m) is not None]
-    return f"{sys.executable} (Python {sys.version.split()[0]}); test extras importable: {', '.join(extras) or 'none'}"
+    kind = "a virtual environment" if sys.prefix != sys.base_prefix else "the base interpreter"
+    return f"Python {sys.version.split()[0]} in {kind}; test extras importable: {', '.join(extras) or 'none'}"
 
 
 def argv_of(command: str, bench: Path, work: Path) -> list[str]:
