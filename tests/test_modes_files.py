@@ -116,3 +116,17 @@ def test_run_refuses_a_multimode_specimen_before_any_fit(tmp_path, capsys):
     assert main(["run", "--data", str(data), "--out", str(out), "--quick", "--no-hierarchical", "--no-progress"]) == 2
     assert "across hold(s) tests in other loading modes" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_run_workflow_refuses_a_multimode_specimen_before_any_fit(tmp_path):
+    from hbm.settings import RunSettings
+    from hbm.workflow.run import run_workflow
+
+    data = tmp_path / "data"
+    data.mkdir()
+    _file(data / "along.csv", ALONG)
+    _file(data / "across.csv", ACROSS, mode="uniaxial_c")
+    out = tmp_path / "out"
+    with pytest.raises(DataError, match="across hold\\(s\\) tests in other loading modes"):
+        run_workflow(RunSettings(data=str(data), out=str(out), hierarchical=False))
+    assert not out.exists()

@@ -305,17 +305,6 @@ def split_mode(spec: str) -> tuple[str, str | None]:
     return spec, None
 
 
-def check_along_fibre(datasets: Mapping[str, Specimen], folder) -> None:
-    """Refuse specimens tested in other loading modes in a run (the run's fits and its population layer are
-    along-fibre; a run that would fail at that specimen after fitting the others is refused before any fit)."""
-    other = sorted(sid for sid, ds in datasets.items() if ds.key_extras())
-    if other:
-        raise DataError(f"--data {folder}: {', '.join(other)} hold(s) tests in other loading modes than uniaxial_f "
-                        "or series besides stress; hbm run fits along-fibre specimens and their population. Fit "
-                        "such a specimen with 'hbm fit FILE --form energy' (the joint fit across modes) and move it "
-                        "out of the run's folder")
-
-
 def load_specimen_arg(spec: str, sl0: float | None = None, model=None) -> Specimen:
     """A SPECIMEN argument -> :class:`~hbm.data.Specimen`: a CSV path, or an id of ``data/specimens/<id>.csv``,
     optionally with ``:MODE``, the loading mode of every test of a file without a ``mode`` column.

@@ -9,6 +9,7 @@ from pathlib import Path
 import sys
 
 from ..data import load_specimens, specimen_groups
+from ..data.modes import check_along_fibre
 from ..errors import SettingError
 from ..workflow.organ import organ_report_hook
 from ..runtime.files import output_lock, prepare_output_dir, remove_stale_temps
@@ -18,7 +19,7 @@ from ..population import POOL_MODES
 from ..settings import RunSettings, add_arguments
 from ._common import n_noise_parameters
 from ._common import (
-    add_model_arguments, build_prior, check_along_fibre, check_domain, build_model, check_population_memory, check_sobol_memory,
+    add_model_arguments, build_prior, check_domain, build_model, check_population_memory, check_sobol_memory,
     free_parameters, name_list, non_negative_int, sample_size, workers)
 
 #: the RunSettings that are options of ``hbm run`` with their declared flags

@@ -29,7 +29,8 @@ from ..errors import DataError, HbmError
 from .specimen import Series, Specimen
 from ..model.loadcases import ALIASES, DEFAULT_LOAD_CASE, LoadCase, get_load_case
 
-__all__ = ["MODE_COLUMNS", "SERIES_COLUMNS", "mode_column", "ModeColumns", "read_mode_columns", "combine_tests"]
+__all__ = ["MODE_COLUMNS", "SERIES_COLUMNS", "mode_column", "ModeColumns", "read_mode_columns", "combine_tests",
+           "check_along_fibre"]
 
 #: per-row observed series of the vocabulary -> (unit of the loaded data, long name)
 SERIES_COLUMNS: dict[str, tuple[str, str]] = {
@@ -228,6 +229,18 @@ def read_mode_columns(name: str, columns: Mapping[str, str], cells: Mapping[str,
             if "stress_2" in series and "stress_2" in case.observable_names:
                 series["stress_2"][a:b] = series["stress_2"][a:b] * case.load_stretch("stress_2", s, s2)
     return ModeColumns(tuple(modes), stress, series, strain_2, tuple(measures))
+
+
+def check_along_fibre(datasets: Mapping[str, Specimen], folder) -> None:
+    """Refuse specimens tested in other loading modes in a run of ``folder`` (``hbm run``: its fits and its
+    population layer are along-fibre; a run that would fail at that specimen after fitting the others is
+    refused before any fit)."""
+    other = sorted(sid for sid, ds in datasets.items() if ds.key_extras())
+    if other:
+        raise DataError(f"--data {folder}: {', '.join(other)} hold(s) tests in other loading modes than uniaxial_f "
+                        "or series besides stress; hbm run fits along-fibre specimens and their population. Fit "
+                        "such a specimen with 'hbm fit FILE --form energy' (the joint fit across modes) and move it "
+                        "out of the run's folder")
 
 
 def combine_tests(parts, id: str):  # noqa: A002 - the specimen's field name

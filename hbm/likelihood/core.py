@@ -62,6 +62,29 @@ def observed_stress(specimen: Specimen) -> np.ndarray:
 
 
 
+def exp_columns(theta, mask: np.ndarray) -> np.ndarray:
+    """Working rows -> natural units: exp of the log-uniform columns ``mask`` (any shape, last axis the
+    parameters); ``theta`` itself when no column is log-uniform."""
+    theta = np.asarray(theta, dtype=float)
+    if not mask.any():
+        return theta
+    out = theta.copy()
+    with np.errstate(over="ignore"):
+        out[..., mask] = np.exp(theta[..., mask])
+    return out
+
+
+def log_columns(theta, mask: np.ndarray) -> np.ndarray:
+    """Natural rows -> working coordinates: the inverse of :func:`exp_columns`."""
+    theta = np.asarray(theta, dtype=float)
+    if not mask.any():
+        return theta
+    out = theta.copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out[..., mask] = np.log(theta[..., mask])
+    return out
+
+
 def free_index(names: Sequence[str], name: str) -> int:
     """Column of free parameter ``name`` among ``names`` (one error text for every likelihood)."""
     try:
@@ -233,23 +256,11 @@ class Likelihood:
         Any shape whose last axis has length ``d``; the identity (same values) without
         loguniform parameters.
         """
-        theta = np.asarray(theta, dtype=float)
-        if not self._any_log:
-            return theta
-        out = theta.copy()
-        with np.errstate(over="ignore"):
-            out[..., self._log] = np.exp(theta[..., self._log])
-        return out
+        return exp_columns(theta, self._log)
 
     def from_natural(self, theta) -> np.ndarray:
         """Natural-unit rows -> working coordinates (log of loguniform columns); inverse of :meth:`to_natural`."""
-        theta = np.asarray(theta, dtype=float)
-        if not self._any_log:
-            return theta
-        out = theta.copy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out[..., self._log] = np.log(theta[..., self._log])
-        return out
+        return log_columns(theta, self._log)
 
     def _model_rows(self, nat: np.ndarray) -> np.ndarray:
         out = np.empty((nat.shape[0], self.model.n_params))

@@ -39,7 +39,7 @@ from ..model.core import Model
 from ..model.energy3d import energy_from_model
 from ..model.loadcases import LoadCase, check_mode, get_load_case
 from ..model.modes_effects import ModeEffects
-from .core import free_index
+from .core import exp_columns, free_index, log_columns
 from .prior import Prior, load_prior
 
 __all__ = ["ModeSeries", "ModesLikelihood", "make_modes_likelihood", "is_multimode", "TEST_SCALE_SD",
@@ -221,19 +221,11 @@ class ModesLikelihood:
 
     def to_natural(self, theta) -> np.ndarray:
         """Working rows -> natural units (exp of the log-uniform columns)."""
-        theta = np.asarray(theta, dtype=float)
-        out = theta.copy()
-        with np.errstate(over="ignore"):
-            out[..., self._log] = np.exp(theta[..., self._log])
-        return out
+        return exp_columns(theta, self._log)
 
     def from_natural(self, theta) -> np.ndarray:
         """Natural rows -> working coordinates (inverse of :meth:`to_natural`)."""
-        theta = np.asarray(theta, dtype=float)
-        out = theta.copy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out[..., self._log] = np.log(theta[..., self._log])
-        return out
+        return log_columns(theta, self._log)
 
     def _as2d(self, theta) -> np.ndarray:
         theta = np.atleast_2d(np.asarray(theta, dtype=float))

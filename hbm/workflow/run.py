@@ -38,6 +38,7 @@ from .. import io, plots  # plots.population/.specimen (matplotlib) load when fi
 from ..runtime.blas import single_thread_env
 from .._version import __version__
 from ..data import GROUP_KEY, load_specimens, specimen_groups
+from ..data.modes import check_along_fibre
 from ..errors import DataError
 from ..fit.specimen import fit_specimen
 from ..model import spyrou_model
@@ -149,8 +150,9 @@ def run_workflow(config: RunConfig | None = None, *, client=None, model=None,
                          model.spec.manifold.sweep_width if swept is not None else 0.07)
     t_all = time.perf_counter()
     out = Path(cfg.out)
-    (out / "specimens").mkdir(parents=True, exist_ok=True)
     datasets = load_specimens(cfg.data, sl0=cfg.sl0)
+    check_along_fibre(datasets, cfg.data)  # checked by the CLI already; here for the Python entry
+    (out / "specimens").mkdir(parents=True, exist_ok=True)
     if cfg.hierarchical:  # a specimen without its group fails before any fit
         specimen_groups(datasets, cfg.group_by)
     ids = sorted(datasets)
