@@ -216,3 +216,16 @@ def test_rhat_ess_agree_with_arviz():
     rh, ess = rhat_ess(x)
     assert rh == pytest.approx(float(az.rhat(x, method="z_scale")), abs=1e-10)
     assert ess == pytest.approx(float(az.ess(x, method="bulk")), rel=0.05)
+
+
+def test_average_ranks_equal_scipys_rankdata_with_ties():
+    """R-hat's ranks (numpy only, so `hbm summary` skips scipy.stats) against scipy.stats.rankdata: equal,
+    bit for bit, with and without ties and for a 2-D input ranked as one sample."""
+    from scipy.stats import rankdata
+
+    from hbm.samplers.convergence import average_ranks
+
+    rng = np.random.default_rng(11)
+    for x in (rng.standard_normal((4, 50)), rng.integers(0, 6, size=(3, 40)).astype(float),
+              np.round(rng.standard_normal(200), 1), np.zeros(5), np.array([2.0])):
+        assert np.array_equal(average_ranks(x), rankdata(x, axis=None))

@@ -60,6 +60,17 @@ def test_data_check_loads_neither_samplers_nor_detective():
     assert not loaded & set(HEAVY), loaded
 
 
+def test_summary_loads_neither_the_optimiser_nor_the_samplers_statistics(tmp_path):
+    """``hbm summary`` reads a stored fit: no cma, scipy.stats (about 0.4 s of it: R-hat ranks with numpy),
+    matplotlib or the detective."""
+    from test_export import _result
+
+    fit = _result(tmp_path, name="summary_probe")
+    loaded = _loaded_after(f"from hbm.cli import main\nassert main(['summary', {str(fit)!r}]) == 0")
+    assert "xarray" in loaded  # the probe saw the command read the file
+    assert not loaded & {"cma", "scipy.stats", "matplotlib", "hbm.detective", "hbm.samplers.hierarchical"}, loaded
+
+
 def test_fit_parser_loads_no_plotting_or_detective():
     """Building ``hbm fit``'s options (as ``hbm fit --help`` does) needs neither matplotlib nor the detective."""
     loaded = _loaded_after("import hbm.cli\nhbm.cli.build_parser(['fit', '--help'])")

@@ -7,9 +7,23 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.special import ndtri
-from scipy.stats import rankdata
 
-__all__ = ["rhat_ess"]
+__all__ = ["rhat_ess", "average_ranks"]
+
+
+def average_ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks 1..n of the flattened ``x``, ties given their average rank (``scipy.stats.rankdata``'s
+    default, computed by the same formula); numpy only, so a fit does not import ``scipy.stats``
+    (about 0.3 s of every ``hbm fit``)."""
+    flat = np.ravel(x)
+    order = np.argsort(flat, kind="mergesort")
+    s = flat[order]
+    first = np.r_[True, s[1:] != s[:-1]]
+    dense = np.cumsum(first)
+    count = np.r_[np.nonzero(first)[0], first.size]
+    ranks = np.empty(flat.size, dtype=float)
+    ranks[order] = 0.5 * (count[dense] + count[dense - 1] + 1)
+    return ranks
 
 
 def rhat_ess(x: np.ndarray) -> tuple[float, float]:
@@ -25,7 +39,7 @@ def rhat_ess(x: np.ndarray) -> tuple[float, float]:
     if half < 2:
         return float("nan"), float("nan")
     x = np.concatenate([x[:, :half], x[:, n - half:]], axis=0)
-    r = rankdata(x, axis=None).reshape(x.shape)
+    r = average_ranks(x).reshape(x.shape)
     z = ndtri((r - 0.375) / (x.size + 0.25))
     M, N = z.shape
     w = z.var(axis=1, ddof=1).mean()
