@@ -178,6 +178,32 @@ def test_decision_physical_effect_that_fits_better_wins_an_evidence_tie_with_a_c
     assert decide([phys], [ctrl], [], OK_NOISE, "iid", _data()).verdict == "unexplained"
 
 
+def test_calibrated_decision_reads_a_kept_placement_under_its_own_name():
+    """The validation's offset + QLV case (seed 17, offset+qlv_0), replayed: with viscoelastic in the model
+    the offset refit keeps its ``prestress`` placement, so the calibration screened it as ``prestress``; the
+    candidate (Δlog Z 41.1, beating the generic bump's 24.1 and fitting better) is named -- it read as
+    "unexplained" while its statistic was looked up as ``offset``."""
+    from hbm.detective.calibration import Calibration
+
+    def stat(kind, observed, p_family):
+        return {"kind": kind, "observed": observed, "p": p_family / 8, "p_family": p_family, "critical": 10.0,
+                "unit": "nats"}
+
+    cal = Calibration(replicates=400, alpha=0.05, p_family=0.02, window_thresholds={}, null="the fitted model",
+                      stats={"prestress": stat("candidate", 62.0, 0.02),
+                             "local_misfit": {**stat("control", 61.7, 0.02), "region": ("strain", 0.0, 0.083),
+                                              "shape": "Gaussian stress bump in strain", "detail": ""}})
+    phys = _cand("offset", 41.1, 66.8)
+    phys.effect_instance, phys.placements = make_effect("prestress"), {"offset": "prestress"}
+    ctrl = _cand("local_misfit", 24.1, 64.5, physical=False, region=("strain", 0.0, 0.17))
+    v = decide([phys], [ctrl], [], OK_NOISE, "iid", _data(), cal)
+    assert v.verdict == "effect" and v.selected == ["offset"], v.message
+    assert "likelihood gain 62.0 nats at the screen's optimum" in v.message and "placed as prestress" in v.message
+    # not significant under its own name: not named on the calibrated rule
+    cal.stats["prestress"]["p_family"] = 0.3
+    assert decide([phys], [ctrl], [], OK_NOISE, "iid", _data(), cal).verdict == "unexplained"
+
+
 def _scripted_rounds(script):
     """A run_round for detective._greedy that plays back (verdict, selected) per round, optionally
     with the round's evidence: (log Z, max log L) of its model and of each refitted control."""

@@ -103,6 +103,14 @@ def calibrated_signs(cal, windows: list[dict], base_noise: str, controls: Sequen
     return out
 
 
+def stat_name(c: CandidateResult) -> str:
+    """The name under which the calibration holds ``c``'s statistic: that of the effect the refit kept
+    (a placement, e.g. an offset kept as a ``prestress``, is calibrated under its own name), else
+    ``c.effect``."""
+    inst = getattr(c, "effect_instance", None)
+    return inst.name if inst is not None else c.effect
+
+
 def named_strongly(c: CandidateResult | None, cal=None) -> bool:
     """Is physical candidate ``c``'s gain enough to name it?  Calibrated: its likelihood gain is
     beyond its null at the family-wise level and its evidence gain is positive; fixed rule: its
@@ -110,7 +118,7 @@ def named_strongly(c: CandidateResult | None, cal=None) -> bool:
     if c is None:
         return False
     if cal is not None:
-        return bool(cal.significant(c.effect) and gain(c) > 0)
+        return bool(cal.significant(stat_name(c)) and gain(c) > 0)
     return bool(gain(c) > DELTA_LOGZ_MIN)
 
 
@@ -168,9 +176,9 @@ def decide(results: list[CandidateResult], controls: list[CandidateResult], wind
 def _effect(best: CandidateResult, cal=None) -> Verdict:
     iv = "; ".join(f"{k} ∈ [{v[0]:.3g}, {v[1]:.3g}] (null {v[2]:.3g})" for k, v in best.intervals.items()
                    if k in primary_parameters(best.effect_instance))
-    strength = "" if cal is None or best.effect not in cal.stats else (
-        f"likelihood gain {cal.stats[best.effect]['observed']:.1f} nats at the screen's optimum, "
-        f"{cal.strength(best.effect)}; ")
+    k = stat_name(best)
+    strength = "" if cal is None or k not in cal.stats else (
+        f"likelihood gain {cal.stats[k]['observed']:.1f} nats at the screen's optimum, {cal.strength(k)}; ")
     return Verdict("effect", [best.effect], [], "",
                    f"missing effect: {best.effect}{placement_words(best)} (Δlog Z = {best.delta_log_evidence:.1f} ± "
                    f"{best.delta_log_evidence_se:.1f}, {strength}RMSE {best.rmse_before:.3g} → "
@@ -290,7 +298,8 @@ def shape_preferred(controls: list[CandidateResult], windows: list[dict], data, 
     ctrls = sorted([c for c in controls if c.refit], key=lambda c: -gain(c))
     ctrl = ctrls[0] if ctrls else None
     signs = [f"AR(1) noise rejected: {reason}"]
-    if ctrl is not None and cal is not None and ctrl.effect in cal.stats:
-        signs.append(f"under white noise {ctrl.effect} gains {cal.stats[ctrl.effect]['observed']:.1f} nats at its "
-                     f"optimum ({cal.strength(ctrl.effect)}; not significant alone at family-wise {cal.alpha:.0%})")
+    if ctrl is not None and cal is not None and stat_name(ctrl) in cal.stats:
+        k = stat_name(ctrl)
+        signs.append(f"under white noise {ctrl.effect} gains {cal.stats[k]['observed']:.1f} nats at its "
+                     f"optimum ({cal.strength(k)}; not significant alone at family-wise {cal.alpha:.0%})")
     return _unexplained(ctrl, windows, data, None, signs, cal)
