@@ -136,3 +136,28 @@ def test_thesis_sweep_volf_0_01_full_box(lik):
     objs = np.array([o["objective"] for o in res.optima])
     assert np.ptp(objs) < 0.05
     assert res.best["objective"] <= _truth_objective(lik) + 1e-6
+
+
+def test_the_bound_shortcut_runs_cma_bit_for_bit():
+    """The fast path of the box transformation (a solution inside its identity part returned as is) gives
+    cma's own runs, bit for bit: the same CMA-ES run with cma's BoundTransform (the independent truth)
+    and with ours, on a function whose optimum sits on a box face (so both branches are taken)."""
+    import cma
+
+    from hbm.fit.optimization import _bound_transform
+
+    def run(handler):
+        es = cma.CMAEvolutionStrategy([0.3, 0.6, 0.5, 0.9], 0.3, {"bounds": [0.0, 1.0], "seed": 5, "verbose": -9,
+                                                                   "BoundaryHandler": handler, "maxfevals": 3000})
+        trace = []
+        while not es.stop():
+            X = es.ask()
+            fx = [float(np.sum((np.asarray(x) - np.array([0.2, 1.0, 0.97, 0.0])) ** 2)) for x in X]
+            es.tell(X, fx)
+            trace.append(np.array(X))
+        return np.concatenate(trace), np.asarray(es.result.xbest), es.result.evaluations
+
+    ours, theirs = run(_bound_transform()), run(cma.BoundTransform)
+    assert np.array_equal(ours[0], theirs[0]) and np.array_equal(ours[1], theirs[1]) and ours[2] == theirs[2]
+    inside = np.all((ours[0] >= 0.05) & (ours[0] <= 0.95), axis=1)
+    assert 0 < inside.sum() < len(inside)  # both the shortcut and cma's own branches were used
