@@ -11,9 +11,12 @@ checkout's own code runs), interleaved per repeat so both checkouts see the same
 
 After one untimed warm-up round (numba compiles into a fresh checkout's cache once), wall seconds
 (median, min and max over ``--repeats``, at least 5) and CPU seconds of the child process
-(user + system, ``resource.getrusage``) -- use the CPU column when the machine is shared.  The 1-minute
-load average is sampled before every run; the report says "quiet" only if it stayed below
-``--quiet-load`` (default 0.5), otherwise which wall numbers were taken under load.
+(user + system, ``resource.getrusage``) -- use the CPU column when the machine is shared.  Whether the
+machine was quiet is measured, not guessed from the load average (which counts this benchmark's own previous
+command): the busy CPU seconds of the whole machine during each run (``/proc/stat``) minus the command's own
+CPU seconds are what other processes used; the report says "quiet" only if that stayed below
+``--quiet-share`` (default 5 %) of one CPU in every run, otherwise which wall numbers were taken beside other
+work.  The 1-minute load average is recorded too.
 
 Run from the repository root, with the baseline in a detached worktree::
 
@@ -83,19 +86,36 @@ def argv_of(command: str, bench: Path, work: Path) -> list[str]:
     return ["summary", str(work / "hbm-results" / "specimens" / Path(BENCH_FILE).with_suffix(".nc"))]
 
 
+def machine_busy_seconds() -> float | None:
+    """CPU seconds the whole machine has spent busy since boot (``/proc/stat``; None where there is none)."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()[1:]
+    except OSError:
+        return None
+    ticks = [int(v) for v in fields]
+    idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0)  # idle + iowait
+    # guest time is already counted in user/nice
+    return (sum(ticks[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
 def timed(tree: Path, argv: list[str], cwd: Path) -> dict:
-    """One fresh ``python -m hbm ARGV`` of ``tree``: wall and CPU seconds, exit status, load before."""
+    """One fresh ``python -m hbm ARGV`` of ``tree``: wall and CPU seconds, exit status, the load before, and
+    the share of one CPU that other processes used meanwhile."""
     env = {**os.environ, "PYTHONPATH": str(tree), "HBM_DEBUG": ""}
     load = os.getloadavg()[0]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    busy0 = machine_busy_seconds()
     t0 = time.perf_counter()
     res = subprocess.run([sys.executable, "-m", "hbm", *argv], cwd=cwd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    busy1 = machine_busy_seconds()
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if res.returncode != 0:
         raise SystemExit(f"{tree}: hbm {' '.join(argv)} failed ({res.returncode}): {res.stderr.strip()[-500:]}")
-    return {"wall": round(wall, 3), "cpu": round(cpu, 3), "load1": round(load, 2)}
+    others = None if busy0 is None else max(0.0, (busy1 - busy0) - cpu) / wall
+    return {"wall": round(wall, 3), "cpu": round(cpu, 3), "load1": round(load, 2),
+            "others": None if others is None else round(others, 3)}
 
 
 def run(trees: dict[str, Path], bench: Path, repeats: int) -> list[dict]:
@@ -113,7 +133,7 @@ def run(trees: dict[str, Path], bench: Path, repeats: int) -> list[dict]:
                         continue
                     rows.append({"tree": name, "command": command, "repeat": rep, **row})
                     print(f"{rep} {command:10s} {name:8s} wall {row['wall']:6.2f} s  cpu {row['cpu']:6.2f} s  "
-                          f"load {row['load1']}", file=sys.stderr)
+                          f"load {row['load1']}  others {row['others']}", file=sys.stderr)
         finally:
             for work in works.values():
                 shutil.rmtree(work, ignore_errors=True)
@@ -132,15 +152,26 @@ def summarise(rows: list[dict], trees: list[str]) -> dict:
     return out
 
 
+def _quiet_words(meta: dict) -> str:
+    load = f"1-minute load average before the runs: median {meta['load_median']}, max {meta['load_max']}"
+    if meta.get("others_max") is None:   # records of the load-average era
+        return load + " -- " + ("a quiet machine." if meta["quiet"] else
+                                f"**not quiet** (above {meta['quiet_load']}): the wall seconds were taken under "
+                                "load and are longer than on a quiet machine; compare the CPU seconds, and "
+                                "re-measure wall time quietly.")
+    share = (f"CPU used by other processes during the runs: {meta['others_mean']:.1%} of one CPU on average "
+             f"(weighted by wall time), at most {meta['others_max']:.1%} in a run of 1 s or more")
+    return share + " -- " + ("a quiet machine" if meta["quiet"] else
+                             f"**not quiet** (above {meta['quiet_share']:.0%}): wall seconds taken beside other work; "
+                             "compare the CPU seconds") + f" ({load}, this benchmark's own commands included)."
+
+
 def markdown(meta: dict, stats: dict) -> str:
     lines = [f"# Command latency (issue 38 item 3): `{meta['this']}` against `{meta['baseline']}`", "",
              f"Measured {meta['date']} with `workflows/benchmarks/command_latency.py`, {meta['repeats']} repeats "
              f"interleaved, each a fresh `python -m hbm` process; OMP_NUM_THREADS={meta['omp']}; "
              f"{meta['cpus']} CPUs.", "", f"Environment: {meta.get('environment', 'not recorded')}.", "",
-             f"1-minute load average before the runs: median {meta['load_median']}, max {meta['load_max']} -- "
-             + ("a quiet machine." if meta["quiet"] else
-                f"**not quiet** (above {meta['quiet_load']}): the wall seconds were taken under load and are "
-                "longer than on a quiet machine; compare the CPU seconds, and re-measure wall time quietly."), "",
+             _quiet_words(meta), "",
              "| command | baseline wall s (median, min–max) | this wall s (median, min–max) | baseline CPU s | "
              "this CPU s | target (quiet wall) |", "|---|---|---|---|---|---|"]
     for command in COMMANDS:
@@ -162,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--baseline", required=True, metavar="DIR", help="checkout of the code to compare with")
     ap.add_argument("--repeats", type=int, default=5, help="runs per command and checkout (at least 5)")
-    ap.add_argument("--quiet-load", type=float, default=0.5, help="largest 1-minute load average called quiet")
+    ap.add_argument("--quiet-share", type=float, default=0.05,
+                    help="largest share of one CPU other processes may use during a run called quiet")
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmarks"), metavar="DIR")
     ap.add_argument("--table-only", action="store_true",
                     help="rewrite command_latency.md from the command_latency.json in --out (no runs)")
@@ -180,10 +212,18 @@ def main(argv: list[str] | None = None) -> int:
     trees = {"baseline": Path(args.baseline).resolve(), "this": ROOT}
     rows = run(trees, bench, args.repeats)
     loads = [r["load1"] for r in rows]
+    # other processes' share of one CPU, weighted by each run's wall time (a 0.04 s run sees the
+    # 10 ms clock ticks of /proc/stat as shares of 25 %), and its largest value over runs of >= 1 s
+    timed_rows = [r for r in rows if r.get("others") is not None]
+    others = [r["others"] for r in timed_rows if r["wall"] >= 1.0]
+    others_mean = (sum(r["others"] * r["wall"] for r in timed_rows) / sum(r["wall"] for r in timed_rows)
+                   if timed_rows else None)
     meta = {"this": commit_of(ROOT), "baseline": commit_of(trees["baseline"]), "repeats": args.repeats,
             "date": time.strftime("%Y-%m-%d %H:%M"), "omp": os.environ.get("OMP_NUM_THREADS", "unset"),
             "cpus": os.cpu_count(), "load_median": round(statistics.median(loads), 2), "load_max": max(loads),
-            "quiet_load": args.quiet_load, "quiet": max(loads) <= args.quiet_load, "targets": TARGETS,
+            "others_mean": None if others_mean is None else round(others_mean, 4),
+            "others_max": max(others) if others else None, "quiet_share": args.quiet_share,
+            "quiet": bool(others) and max(others) <= args.quiet_share, "targets": TARGETS,
             "environment": environment()}
     stats = summarise(rows, list(trees))
     out.mkdir(parents=True, exist_ok=True)
