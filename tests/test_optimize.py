@@ -138,10 +138,11 @@ def test_thesis_sweep_volf_0_01_full_box(lik):
     assert res.best["objective"] <= _truth_objective(lik) + 1e-6
 
 
-def test_the_bound_shortcut_runs_cma_bit_for_bit():
-    """The fast path of the box transformation (a solution inside its identity part returned as is) gives
-    cma's own runs, bit for bit: the same CMA-ES run with cma's BoundTransform (the independent truth)
-    and with ours, on a function whose optimum sits on a box face (so both branches are taken)."""
+def test_the_bound_transformation_is_cmas_bit_for_bit():
+    """Our per-coordinate box transformation against cma's own (the independent truth): the same CMA-ES run
+    with cma's BoundTransform and with ours, every solution equal, on a function whose optimum sits on box
+    faces (so the identity part and the quadratic margins are both used); and single vectors -- near, on and
+    far outside the box (cma's periodic shift), NaN, a box that is not the unit box, in place or copied."""
     import cma
 
     from hbm.fit.optimization import _bound_transform
@@ -159,5 +160,15 @@ def test_the_bound_shortcut_runs_cma_bit_for_bit():
 
     ours, theirs = run(_bound_transform()), run(cma.BoundTransform)
     assert np.array_equal(ours[0], theirs[0]) and np.array_equal(ours[1], theirs[1]) and ours[2] == theirs[2]
-    inside = np.all((ours[0] >= 0.05) & (ours[0] <= 0.95), axis=1)
-    assert 0 < inside.sum() < len(inside)  # both the shortcut and cma's own branches were used
+    inside = np.all((ours[0] > 0.05) & (ours[0] < 0.95), axis=1)
+    assert 0 < inside.sum() < len(inside)
+    rng = np.random.default_rng(4)
+    for bounds in ([0.0, 1.0], [[0.0, -3.0, 2.0], [1.0, 5.0, 2.5]]):
+        fast, slow = _bound_transform()(bounds).bounds_tf, cma.BoundTransform(bounds).bounds_tf
+        xs = [0.5 + rng.standard_normal(3) * rng.choice([0.1, 0.4, 1.0, 5.0, 50.0]) for _ in range(3000)]
+        xs += [np.full(3, v) for v in (np.nan, 0.05, 0.95, -0.05, 1.05, -1e9)]
+        for x in xs:
+            assert np.array_equal(fast(x.copy()), slow(x.copy()), equal_nan=True)
+            a, b = x.copy(), x.copy()
+            fast(a, False), slow(b, False)
+            assert np.array_equal(a, b, equal_nan=True)
