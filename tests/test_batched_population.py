@@ -227,5 +227,6 @@ def test_average_ranks_equal_scipys_rankdata_with_ties():
 
     rng = np.random.default_rng(11)
     for x in (rng.standard_normal((4, 50)), rng.integers(0, 6, size=(3, 40)).astype(float),
-              np.round(rng.standard_normal(200), 1), np.zeros(5), np.array([2.0])):
-        assert np.array_equal(average_ranks(x), rankdata(x, axis=None))
+              np.round(rng.standard_normal(200), 1), np.zeros(5), np.array([2.0]),
+              np.array([1.0, np.inf, -np.inf, 1.0]), np.array([0.5, np.nan, 0.2])):
+        assert np.array_equal(average_ranks(x), rankdata(x, axis=None), equal_nan=True)

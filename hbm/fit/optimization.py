@@ -13,6 +13,7 @@ previous window's optimum), which traces the model's manifold (the Spyrou base: 
 
 from __future__ import annotations
 
+import functools
 import time as _time
 from dataclasses import dataclass, field
 from typing import Any
@@ -100,6 +101,7 @@ def _objective_fn(lik: Likelihood, objective: str):
     return f, k
 
 
+@functools.lru_cache(maxsize=1)   # one class, made when cma is first used
 def _bound_transform():
     """cma's ``BoundTransform`` with its box transformation computed per coordinate in Python floats.
 
