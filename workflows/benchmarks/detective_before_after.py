@@ -75,6 +75,9 @@ def main(argv=None) -> int:
                     help="run only these groups, in this order (seeds as in the enumeration of --groups)")
     ap.add_argument("--module", default="detective_validation",
                     help="the cases' module in the --after checkout's workflows/ (e.g. calibration_validation)")
+    ap.add_argument("--own-cases", action="store_true",
+                    help="each checkout generates the cases with its own workflows/ module (for a baseline that "
+                         "cannot import the --after module's helpers; check first that both generate the same data)")
     ap.add_argument("--json", required=True)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(Path(args.after).resolve() / "workflows"))
@@ -88,7 +91,8 @@ def main(argv=None) -> int:
     for kind, what in todo:
         for lab in ("before", "after"):
             tree = getattr(args, lab)
-            r = case_row(tree, args.groups, what, args.module, args.after) if kind == "case" else file_row(tree, what)
+            cases = tree if args.own_cases else args.after
+            r = case_row(tree, args.groups, what, args.module, cases) if kind == "case" else file_row(tree, what)
             if r is None:
                 print(f"{lab} {what}: failed", flush=True)
                 continue
