@@ -15,8 +15,9 @@ After one untimed warm-up round (numba compiles into a fresh checkout's cache on
 machine was quiet is measured, not guessed from the load average (which counts this benchmark's own previous
 command): the busy CPU seconds of the whole machine during each run (``/proc/stat``) minus the command's own
 CPU seconds are what other processes used; the report says "quiet" only if that stayed below
-``--quiet-share`` (default 5 %) of one CPU in every run, otherwise which wall numbers were taken beside other
-work.  The 1-minute load average is recorded too.
+``--quiet-share`` (default 5 %) of one CPU in every run of 1 s or more (a 0.04 s run sees the 10 ms ticks of
+``/proc/stat`` as shares of 25 %; the report gives the wall-time weighted mean over all runs too), otherwise
+which wall numbers were taken beside other work.  The 1-minute load average is recorded too.
 
 Run from the repository root, with the baseline in a detached worktree::
 
