@@ -518,6 +518,49 @@ def test_auto_pool_picks_the_informative_parameters():
     few = auto_pool(samples, names, bounds, transforms, candidates=["b", "d"])
     assert few.pooled == ["d"] and "pooled anyway" in few.reasons["d"]["reason"]
     assert auto_pool(samples, names, bounds, transforms, candidates=["b", "d"], min_pooled=0).pooled == []
+    # a cap on the informed specimens needed (the joint sampler's rule): d, informed in two of six, is pooled
+    # when two suffice, and the reason says how many were needed
+    capped = auto_pool(samples, names, bounds, transforms, candidates=names[:4], max_needed=2)
+    assert capped.pooled == ["a", "c", "d"] and "(need 2)" in capped.reasons["d"]["reason"]
+    assert auto_pool(samples, names, bounds, transforms, candidates=names[:4], max_needed=10).pooled == ["a", "c"]
+
+
+def test_the_joint_sampler_pools_what_ten_specimens_inform():
+    """The layout of a layer (``--pool combinations``, the default): the joint sampler pools a shape parameter
+    that JOINT_POOL_INFORMED specimens inform, the reuse layer one that half of them inform.  24 specimens with
+    EOPT informed in 11 (fewer than 12): pooled for the joint sampler only; informed in 9: by neither."""
+    from types import SimpleNamespace
+
+    from hbm.model import spyrou_model
+    from hbm.population import PopulationConfig
+    from hbm.population.pooling import JOINT_POOL_INFORMED, CombinationPooling, joint_needed, pack_results
+
+    model = spyrou_model()
+    names = list(model.parameter_names)
+    lo, hi = model.bounds[names.index("EOPT")]
+
+    def specimens(n_informed: int) -> dict:
+        out = {}
+        for k in range(24):
+            rng = np.random.default_rng(100 + k)
+            th = rng.uniform(model.bounds[:, 0], model.bounds[:, 1], (600, len(names)))
+            t2lo, t2hi = model.bounds[names.index("T2")]   # T2 informed everywhere (auto-pool's min_pooled met)
+            th[:, names.index("T2")] = rng.normal(t2lo + 0.3 * (t2hi - t2lo), 0.01 * (t2hi - t2lo), 600)
+            if k < n_informed:
+                th[:, names.index("EOPT")] = rng.normal(lo + 0.4 * (hi - lo), 0.01 * (hi - lo), 600)
+            out[f"s{k:02d}"] = SimpleNamespace(names=names, bounds=model.bounds.copy(), samples=th, log_evidence=0.0,
+                                               log_evidence_se=0.01, specimen_id=f"s{k:02d}")
+        return out
+
+    assert JOINT_POOL_INFORMED == 10 and joint_needed(True) == 10 and joint_needed(False) is None
+    cfg = PopulationConfig(progress=False)
+    for n_informed, joint_pools in ((11, True), (9, False)):
+        data = pack_results(specimens(n_informed), model, cfg)
+        for joint in (False, True):
+            layout = CombinationPooling().layout(data, cfg, joint=joint)
+            assert ("EOPT" in layout.pooled) == (joint and joint_pools), (n_informed, joint, layout.pooled)
+            need = 10 if joint else 12
+            assert f"in {n_informed}/24 specimens (need {need})" in layout.attrs["pool_reasons"]["EOPT"]
 
 
 def test_kernel_widened_ratios_match_scipy_for_mixed_covariance():

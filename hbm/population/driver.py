@@ -64,9 +64,10 @@ def run_population(results: Mapping[str, io.SpecimenResult], datasets: Mapping |
         datasets = {sid: d if d is None else as_specimen(d) for sid, d in datasets.items()}
     data = pack_results(results, model, cfg)
     strategy = pooling_strategy(cfg.pooled, data)
-    layout = strategy.layout(data, cfg)
+    joint = joint_applies(cfg, datasets, results)
+    layout = strategy.layout(data, cfg, joint=joint)
     out = None if out is None else Path(out)
-    if joint_applies(cfg, datasets, results):
+    if joint:
         draws = sample_layer(cfg, data.results, datasets, model, layout, strategy, client)
         new, new_names, new_attrs = strategy.new_specimen(draws, cfg)
         return _write_joint(cfg, draws, out, data.names, new, new_names, {**layout.attrs, **new_attrs},

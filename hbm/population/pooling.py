@@ -142,6 +142,20 @@ class Layout:
         return dataclasses.replace(self, log_prior=self.prior(), prior=None)
 
 
+#: the joint sampler pools a parameter that at least this many specimens inform, whatever fraction of the
+#: specimens that is (auto-pool's half otherwise).  The half was made for the reuse layer, whose importance
+#: weights collapse on columns the data leave at their prior; the joint sampler evaluates every specimen's
+#: likelihood.  Ten informed values estimate a spread to ~24 % (1/sqrt(2·9)); at 96 synthetic specimens whose
+#: EOPT varies (informed in 24), pooling it brought the generator's coverage from 6/10 to 12/12
+#: (results/benchmarks/population_layer.md).  Up to 20 specimens the half is at most ten: nothing changes there.
+JOINT_POOL_INFORMED = 10
+
+
+def joint_needed(joint: bool) -> int | None:
+    """auto-pool's ``max_needed`` for the layer that will run (None: the reuse layer's half)."""
+    return JOINT_POOL_INFORMED if joint else None
+
+
 def pooling_strategy(pooled, data: Stage1Data):
     """The strategy of ``PopulationConfig.pooled``: "auto" (default: "combinations" when the model has a
     mixture and its parameters (:func:`combination_needs`) are free, otherwise "informed"),
@@ -182,10 +196,11 @@ class ParameterPooling:
     def __init__(self, mode) -> None:
         self.mode = mode
 
-    def layout(self, data: Stage1Data, cfg: PopulationConfig) -> Layout:
+    def layout(self, data: Stage1Data, cfg: PopulationConfig, joint: bool = False) -> Layout:
         mode, model_names, pool_reasons = self.mode, list(data.model_names), None
-        if mode == POOL_INFORMED:  # parameters informed in at least half of the specimens
-            choice = auto_pool(data.samples(), data.names, data.bounds, data.transforms, candidates=model_names)
+        if mode == POOL_INFORMED:  # informed in half of the specimens (joint sampler: in ten at most)
+            choice = auto_pool(data.samples(), data.names, data.bounds, data.transforms, candidates=model_names,
+                               max_needed=joint_needed(joint))
             pool_reasons = {k: v["reason"] for k, v in choice.reasons.items()}
             model_names = choice.pooled
             _log(f"pooled (informed): {', '.join(model_names)}", cfg.progress)
@@ -294,7 +309,7 @@ class CombinationPooling:
 
     mode = POOL_COMBINATIONS
 
-    def layout(self, data: Stage1Data, cfg: PopulationConfig) -> Layout:
+    def layout(self, data: Stage1Data, cfg: PopulationConfig, joint: bool = False) -> Layout:
         names, bounds, model_names, spec = data.names, np.asarray(data.bounds, float), data.model_names, data.spec
         if spec is None or spec.mixture is None:
             raise HbmError("--pool combinations needs a model whose spec declares a mixture of its combinations; "
@@ -304,7 +319,8 @@ class CombinationPooling:
         if missing:
             raise HbmError(f"--pool combinations needs free parameters {', '.join(missing)} (fixed or absent); "
                            f"use --pool informed")
-        choice = auto_pool(data.samples(), names, bounds, data.transforms, candidates=model_names)
+        choice = auto_pool(data.samples(), names, bounds, data.transforms, candidates=model_names,
+                           max_needed=joint_needed(joint))
         self.extra = extra = [n for n in model_names if n in spec.shape_parameters
                               and (n not in spec.pooled_when_informed or n in choice.pooled)]
         # φ of every stage-1 row; its prior density only when the reuse layer asks (the joint sampler does not)

@@ -97,6 +97,7 @@ def auto_pool(
     max_sd_ratio: float = 2.0 / 3.0,
     min_fraction: float = 0.5,
     min_pooled: int = 1,
+    max_needed: int | None = None,
 ) -> PoolChoice:
     """Choose the parameters worth pooling: those the stage-1 data inform in most specimens.
 
@@ -129,6 +130,11 @@ def auto_pool(
         Posterior/prior sd ratio below which a specimen counts as informed.
     min_fraction : float
         Fraction of specimens that must be informed.
+    max_needed : int, optional
+        At most this many informed specimens are needed, whatever ``min_fraction`` of them that is (None:
+        no cap).  For a sampler that evaluates every specimen's likelihood (no importance weights to collapse),
+        enough informed specimens estimate a population's spread however many others the data leave at their
+        prior.
     min_pooled : int
         If fewer candidates pass, the best-informed ones (most informed specimens, then the
         smallest median ratio) are added up to this number, with a reason saying so, so that a
@@ -162,6 +168,8 @@ def auto_pool(
     informative = ratios < max_sd_ratio
     n_spec = ratios.shape[0]
     need = int(np.ceil(min_fraction * n_spec - 1e-9))
+    if max_needed is not None:
+        need = min(need, int(max_needed))
     pooled, reasons = [], {}
     for k, c in enumerate(candidates):
         n_inf = int(informative[:, k].sum())
