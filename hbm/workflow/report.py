@@ -262,7 +262,8 @@ def _population(wres, base: Path) -> str:
         # why each parameter is (not) pooled: a population over parameters the curves do not
         # inform makes the reused-sample importance weights degenerate
         txt.append("\nPooled parameters (`--pool informed`: posterior sd in the transformed space below 2/3 "
-                   "of the prior's in at least half of the specimens; the others keep their own prior):\n")
+                   "of the prior's in at least half of the specimens, in ten at most with the joint sampler; the others "
+                   "keep their own prior):\n")
         txt.extend(f"- {v}" if str(v).startswith(f"{k}:") else f"- {k}: {v}" for k, v in reasons.items())
     pop = quantity_samples(h.pooled_names, h.new_specimen, spec) if h.new_specimen is not None else {}
     if pop:
