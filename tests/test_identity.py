@@ -86,7 +86,7 @@ def _run(folder, capsys, **kw):
     return wres, capsys.readouterr().err
 
 
-def test_reuse_only_what_did_not_change(folder, capsys):
+def test_reuse_only_what_did_not_change(folder, capsys, monkeypatch):
     w1, _ = _run(folder, capsys)
     assert w1.skipped == []
     h1 = (folder / "out" / "hierarchical.nc").read_bytes()
@@ -97,6 +97,16 @@ def test_reuse_only_what_did_not_change(folder, capsys):
     assert sorted(w2.skipped) == ["s1", "s2"]
     assert "hierarchical layer: reused" in err
     assert (folder / "out" / "hierarchical.nc").read_bytes() == h1
+
+    # the same specimens and settings under another built-in rule of the layer (here the joint sampler's
+    # pooling count): the layer is computed again, the specimens are reused
+    import hbm.workflow.run as run_module
+    rules = run_module.layer_rules()
+    monkeypatch.setattr(run_module, "layer_rules",
+                        lambda: {**rules, "joint_pool_informed": rules["joint_pool_informed"] + 1})
+    w_rule, err = _run(folder, capsys)
+    assert sorted(w_rule.skipped) == ["s1", "s2"] and "hierarchical layer: reused" not in err
+    monkeypatch.undo()
 
     # one stress value edited: that specimen refits ("data changed"), the other is reused
     csv = folder / "data" / "s1.csv"

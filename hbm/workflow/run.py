@@ -44,7 +44,7 @@ from ..fit.specimen import fit_specimen
 from ..model import spyrou_model
 from ..model.spec import sweep_parameter
 from ..runtime.parallel import dask_client, map_specimens, spawn_specimen_seeds
-from ..population import run_population
+from ..population import layer_rules, run_population
 from ..settings import DEFAULT_OUT, FitRecord, FitSettings, PopulationSettings, RunSettings
 from .report import write_report
 from ..runtime.files import atomic_write_text, file_lock
@@ -250,7 +250,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
         pop_cfg = _with_groups(cfg.population_settings(), cfg, {sid: datasets[sid] for sid in results})
         hkey = identity.content_key({
             "specimens": identity.settings_key({sid: _stored_hash(paths[sid]) for sid in sorted(results)}),
-            "population": identity.settings_key(pop_cfg.record()),
+            "population": identity.settings_key(pop_cfg.record()), "rules": layer_rules(),
             "model": identity.model_key(model), "version": __version__})
         stored = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
         if stored is not None and stored.attrs.get("content_key") == hkey:
