@@ -86,8 +86,7 @@ def register(subparsers) -> None:
                         "log G, log VOLF*P1, log (1-VOLF)*T1 with T2, THETA (and EOPT when informed); "
                         "'informed' = the model parameters whose posterior sd (transformed space) is below 2/3 "
                         "of the prior's in at least half of the specimens (the joint sampler: in ten at most); 'all' = every "
-                        "model parameter; or a "
-                        "list of parameters. 'auto' (default): combinations for the base model with VOLF, P1, "
+                        "model parameter; or a list of parameters. 'auto' (default): combinations for the base model with VOLF, P1, "
                         "T1, GF, GM, T2, THETA free, informed otherwise")
     p.add_argument("--hier-estimator", choices=("raw", "kernel"), default="raw",
                    help="estimator of p(d_i|psi): raw importance ratios (default, unbiased) or kernel-smoothed "

@@ -263,11 +263,6 @@ box = _common_sigma_box(datasets)
 cache.mkdir(parents=True, exist_ok=True)
 results = {sid: ps._stage1(sid, datasets[sid], model, box, cache, from_run) for sid in sorted(datasets)}
 extra = json.loads(sys.argv[8]) if len(sys.argv) > 8 else {}
-if len(sys.argv) > 9 and sys.argv[9]:
-    # an experiment, not a setting of hbm: auto-pool's "informed in at least this fraction of the specimens"
-    import functools
-    import hbm.population.pooling as _pooling
-    _pooling.auto_pool = functools.partial(_pooling.auto_pool, min_fraction=float(sys.argv[9]))
 cfg = RunSettings(data=str(data), out=str(out), progress=False, **extra).population_settings()
 with dask_client(workers) as client:
     t, c = time.perf_counter(), time.process_time()
@@ -291,12 +286,12 @@ def layer(a) -> int:
         env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
         t = time.perf_counter()
         p = subprocess.run([sys.executable, "-c", _LAYER, str(ROOT), str(a.size), str(w), str(out), str(data),
-                            str(cache), str(from_run or ""), json.dumps(settings), str(a.pool_min_fraction or "")],
-                           capture_output=True, text=True, env=env, cwd=str(ROOT))
+                            str(cache), str(from_run or ""), json.dumps(settings)], capture_output=True, text=True,
+                           env=env, cwd=str(ROOT))
         if p.returncode != 0:
             raise SystemExit(f"layer failed:\n{p.stderr[-3000:]}")
         rec = layer_record(out, data, run_json=False)
-        rec.update(workers=w, settings=settings, pool_min_fraction=a.pool_min_fraction, process_wall_s=time.perf_counter() - t, load=os.getloadavg(),
+        rec.update(workers=w, settings=settings, process_wall_s=time.perf_counter() - t, load=os.getloadavg(),
                    **json.loads(p.stdout.strip().splitlines()[-1]))
         files[w] = io.read_hierarchical(out / "hierarchical.nc")
         rows.append(rec)
@@ -342,9 +337,6 @@ def main(argv=None) -> int:
         p.add_argument("--repeats", type=int, default=2)
         p.add_argument("--sd-range", default=None, help="layer: the hyperprior's sd range as LO,HI (fractions of "
                        "mu's range; default the run's)")
-        p.add_argument("--pool-min-fraction", type=float, default=None,
-                       help="layer, experiment: auto-pool a parameter informed in at least this fraction of the "
-                            "specimens (hbm's own: 0.5), e.g. 0.2 pools EOPT at 96 specimens")
         p.add_argument("--tag", default="", help="layer: suffix of the output folder and of the record's key")
     a = ap.parse_args(argv)
     return {"make": make, "run": run, "dask": dask, "layer": layer}[a.cmd](a)
