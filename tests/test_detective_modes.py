@@ -130,7 +130,7 @@ def test_leave_one_mode_out_equals_hand_computation(small_gst):
         assert f"fitted on the {', '.join(h['trained_on'])} tests" in h["message"]
 
 
-def test_reading_named_on_a_clear_case(small_gst, tmp_path):
+def test_reading_named_on_a_clear_case(tmp_path):
     """Along + across + shear generated in the gst reading: gst named by evidence (the 20-seed rate in both
     readings is workflows/benchmarks/modes_reading.py)."""
     ind.synthetic_csv(tmp_path / "s.csv", 0, reading="gst")
@@ -191,3 +191,28 @@ def test_cli_two_files_with_modes(tmp_path, capsys):
     body = json.loads(capsys.readouterr().out)
     assert set(body["readings"]["fits"]) == {"cone", "gst"} and set(body["held_out"]) == {"uniaxial_f", "uniaxial_c"}
     assert body["held_out"]["uniaxial_c"]["trained_on"] == ["uniaxial_f"]
+
+
+def test_a_mode_whose_tests_need_parameters_the_others_lack_gets_no_held_out_fit(tmp_path):
+    """An offset per stress observable (S0, S0_2) on along-fibre tension + equibiaxial tests: only the biaxial
+    tests measure stress_2, so the other mode cannot determine S0_2 -- that mode gets no leave-one-out fit
+    (said up front and in the diagnosis), instead of a traceback after the fits."""
+    from hbm.effects import make_effect
+    from hbm.model import spyrou_model
+
+    rng = np.random.default_rng(5)
+    lines = ["# id: offset_two_modes", "strain,stress,stress_2,test,mode"]
+    for k, mode in enumerate(("uniaxial_f", "biaxial_fc")):
+        for e in (0.04, 0.08, 0.12, 0.16):
+            p = ind.predict(mode, e, ind.CALVO, "cone")
+            s2 = "" if "stress_2" not in p else repr(float(p["stress_2"]) * (1 + 0.02 * rng.standard_normal()))
+            lines.append(f"{e!r},{float(p['stress']) * (1 + 0.02 * rng.standard_normal())!r},{s2},{k},{mode}")
+    (tmp_path / "o.csv").write_text("\n".join(lines) + "\n")
+    said = []
+    model = spyrou_model(form="energy").with_effects(make_effect("offset"))
+    d = diagnose_modes(load_specimen(tmp_path / "o.csv"), model=model, samples=100, seed=2, tmcmc_options=FAST,
+                       log=said.append)
+    assert any("no leave-one-out fit for biaxial_fc (its tests need S0_2" in s for s in said), said
+    assert d.held_out["biaxial_fc"]["fit"] is None and "not predicted" in d.held_out["biaxial_fc"]["message"]
+    assert d.held_out["uniaxial_f"]["fit"] is not None      # predicted from the biaxial tests as before
+    assert d.to_dict()["held_out"]["biaxial_fc"]["fit"] is None and d.n_evaluations > 0

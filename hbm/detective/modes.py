@@ -8,7 +8,9 @@ along-fibre stress: :func:`hbm.likelihood.modes.is_multimode`) and runs:
    every reading of :data:`hbm.model.energy3d.COLLAGEN_READINGS`, each with its log-evidence and SE.  The
    best is *named* when it beats the next by ``Δ ≥ READING_MIN_NATS`` nats **and** ``Δ ≥ READING_MIN_SE``
    combined standard errors (√(SE₁² + SE₂²)): 3 nats is a Bayes factor of 20 ("strong" on the Kass–Raftery
-   scale, 2·ln B > 6), and the SE condition keeps TMCMC's own evidence scatter from naming a reading.
+   scale, 2·ln B > 6), and the SE condition guards against TMCMC's evidence scatter -- on the reported SEs, which
+   under-state the seed-to-seed scatter (about 2.5×, ``rules.TMCMC_SE_FACTOR``), so it is the weaker guard: in
+   the benchmark below the 3 nats bound, and the rate of wrongly named readings is measured there, not derived.
    ``workflows/benchmarks/modes_reading.py`` measures the rule on generated data.  When every test is
    ``uniaxial_f`` the readings are identical (DESIGN.md §8: they differ only off the fibre axis): one fit,
    and the report says so.
@@ -351,7 +353,7 @@ class ModesDiagnosis:
     def n_evaluations(self) -> int:
         """Log-likelihood evaluations over every fit."""
         return int(sum(f.n_evaluations for f in self.fits.values()) +
-                   sum(h["fit"].n_evaluations for h in self.held_out.values()))
+                   sum(h["fit"].n_evaluations for h in self.held_out.values() if h["fit"] is not None))
 
     def summary(self) -> str:
         """The text report."""
@@ -397,7 +399,8 @@ class ModesDiagnosis:
         return {"specimen": self.specimen_id, "settings": self.settings, "reading": self.reading,
                 "readings": {**self.readings, "fits": {r: fit_dict(f) for r, f in self.fits.items()}},
                 "held_out": {m: {"trained_on": h["trained_on"], "message": h["message"], "series": h["series"],
-                                 "fit": fit_dict(h["fit"])} for m, h in self.held_out.items()},
+                                 "fit": None if h["fit"] is None else fit_dict(h["fit"])}
+                             for m, h in self.held_out.items()},
                 "lateral": self.lateral, "verdicts": self.verdicts, "stopped": self.stopped,
                 "n_evaluations": self.n_evaluations, "cpu_s": self.cpu_s, "wall_s": self.wall_s,
                 "paths": {k: str(v) for k, v in self.paths.items()}}
@@ -416,7 +419,9 @@ def _verdicts(spec: Specimen, fit: ModesFit, held_out: dict, lateral: list) -> d
         if not h["series"]:
             continue
         ok = all(_followed(r["points"], r["inside90"])[0] for r in h["series"])
-        out[mode].append(h["message"] + (": the other modes predict this one" if ok else
+        # inside the band is all that was checked: a band the other modes leave wide holds any data
+        out[mode].append(h["message"] + (": inside the other modes' 90 % predictive band (how far they "
+                                         "determine it: the ratios and rmse above, not the band)" if ok else
                                          ": the other modes do not determine this one (its tests are needed)"))
     for r in lateral:
         if r["flagged"]:
@@ -442,8 +447,10 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
     ----------
     data : Specimen or xarray.Dataset
     model : Model, optional
-        The base model (default :func:`hbm.spyrou_model` in the energy form); effects are refused
-        (:class:`~hbm.likelihood.modes.ModesLikelihood`).
+        The base model (default :func:`hbm.spyrou_model` in the energy form); its effects act per test where
+        they are defined in 3-D (:class:`~hbm.model.modes_effects.ModeEffects`), the others are refused.  A mode
+        whose tests need parameters the other modes lack (an offset of a series only it measures) gets no
+        leave-one-out fit, and the diagnosis says so.
     samples, seed, fix, max_evaluations, tmcmc_options
         As for :func:`hbm.fit.modes.fit_modes`, for every fit (seeds from the ``detective_modes`` stream);
         ``tmcmc_options`` default ``{"max_steps": MAX_STEPS}``.
@@ -466,7 +473,8 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
     Raises
     ------
     HbmError
-        Every refusal of the joint likelihoods (thesis form off the fibre axis, effects, unknown ``fix``),
+        Every refusal of the joint likelihoods (thesis form off the fibre axis, an effect not defined in a
+        mode, unknown ``fix``),
         before any fit.
     """
     t0, c0 = time.perf_counter(), time.process_time()
@@ -490,8 +498,20 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
             parts[f"without:{what}"] = spec.select(keep)
             parts[f"only:{what}"] = spec.select(~keep)
     liks = {r: make_modes_likelihood(model, spec, collagen3d=r, fix=fix) for r in readings}
-    for sub in parts.values():
-        make_modes_likelihood(model, sub, collagen3d=readings[0], fix=fix)
+    part_liks = {key: make_modes_likelihood(model, sub, collagen3d=readings[0], fix=fix) for key, sub in parts.items()}
+    # a mode whose tests need parameters the others lack (an effect's per-observable offset of a series only
+    # that mode measures) cannot be predicted from them: no leave-one-out fit for it, said up front
+    unpredictable = {}
+    for kind, what in plan:
+        if kind == "without":
+            missing = [n for n in part_liks[f"only:{what}"].model_names
+                       if n not in part_liks[f"without:{what}"].model_names]
+            if missing:
+                unpredictable[what] = missing
+    if unpredictable:
+        plan = [p for p in plan if not (p[0] == "without" and p[1] in unpredictable)]
+        say("no leave-one-out fit for " + "; ".join(f"{m} (its tests need {', '.join(n)}, which the other modes "
+                                                    "do not determine)" for m, n in unpredictable.items()))
     cost = {}
     for r, lk in liks.items():  # CPU s of one population, warm (the first call builds caches)
         probe = lk.bounds[:, 0] + (lk.bounds[:, 1] - lk.bounds[:, 0]) * np.random.default_rng(0).random(
@@ -503,8 +523,9 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
     # leave-one-out fits: the costlier reading's cost, by their share of the points
     share = {w: parts[f"without:{w}"].n_points / spec.n_points for k, w in plan if k == "without"}
     total = TMCMC_BATCHES * (sum(cost.values()) + max(cost.values()) * sum(share.values()))
-    # prior draws cost more than posterior ones (cone, porcine ramps: 3-4x): an upper bound
-    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {w or AXIAL}' for k, w in plan)}); estimate at most "
+    # prior draws cost more than posterior ones (cone, porcine ramps: 3-4x); the populations per fit vary
+    # (TMCMC_BATCHES is typical, not a bound), so this is an estimate, not a limit
+    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {w or AXIAL}' for k, w in plan)}); estimate about "
         f"~{total / 60:.1f} min CPU (one population of {samples} evaluations at prior draws: "
         f"{', '.join(f'{r or AXIAL} {v:.2f} s' for r, v in cost.items())}; a fit takes "
         f"~{TMCMC_BATCHES} populations)")
@@ -563,6 +584,10 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
         rows = held_out_prediction(f, hl, sigma, _seed(seed, 200 + m))
         held[mode] = {"trained_on": trained_on, "fit": f, "series": rows,
                       "message": _held_sentence(mode, trained_on, rows)}
+    for mode, missing in unpredictable.items():
+        held[mode] = {"trained_on": [x for x in modes if x != mode], "fit": None, "series": [],
+                      "message": f"{mode} not predicted from the other modes: its tests need {', '.join(missing)}, "
+                                 "which they do not determine"}
     lateral = lateral_checks(spec)
     diag = ModesDiagnosis(spec.id, fits, cmp, reading, held, lateral, _verdicts(spec, best, held, lateral),
                           settings, stopped, time.process_time() - c0, time.perf_counter() - t0, paths)

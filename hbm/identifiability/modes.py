@@ -161,7 +161,10 @@ class ModesIdentifiability:
                 load = " ".join(f"{v:+.2f}·{k}" for k, v in u["loadings"].items())
                 lines.append(f"  unidentified by these tests (information {u['information']:.2g} x the prior's; "
                              f"whitened direction, structural part removed): {load}")
-        names = [f"{q['scale']} {q['name']}" if q["scale"] == "ln" else q["name"] for q in self.quantities]
+        # a linear quantity's sd is in its own unit; a log one's is a relative spread (no unit)
+        names = [f"ln {q['name']}" if q["scale"] == "ln" else
+                 (f"{q['name']} [{q['unit']}]" if q.get("unit") not in (None, "", "1", "-") else q["name"])
+                 for q in self.quantities]
         lines.append("  sd of each quantity (ln = of its natural log; lin = linearised, prior box included; data = "
                      "the data-only limit; x = sd(all but the test) / sd(all), the width the test adds):")
         if named:
@@ -219,11 +222,12 @@ def fit_point(lik, samples: np.ndarray, log_likelihood: np.ndarray) -> tuple[np.
         Sampling coordinates.
     description : str
     """
-    y = lik.from_natural(np.asarray(samples, float))
-    row = y[int(np.argmax(log_likelihood))].copy()
+    samples = np.asarray(samples, float)
+    nat = samples[int(np.argmax(log_likelihood))].copy()
     k = slice(lik.n_model, lik.n_model + len(lik.kinds))
-    row[k] = np.log(lik.to_natural(y)[:, k]).mean(axis=0)
-    return row, "the highest-likelihood draw (noise sds at the geometric posterior mean)"
+    # in natural units, then to the sampling coordinates (log or linear, as the prior declares the noise sds)
+    nat[k] = np.exp(np.log(samples[:, k]).mean(axis=0))
+    return lik.from_natural(nat[None, :])[0], "the highest-likelihood draw (noise sds at the geometric posterior mean)"
 
 
 def _perturbed(lik) -> np.ndarray:

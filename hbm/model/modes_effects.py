@@ -88,7 +88,7 @@ class ModeEffects:
     """
 
     def __init__(self, model: Model, loading: Loading, tests, pairs: Iterable) -> None:
-        self.base_model, self.loading = model, loading
+        self.loading = loading
         self.tests = tuple(tests)
         self.effects = added_effects(model)
         pairs = list(pairs)
@@ -100,7 +100,7 @@ class ModeEffects:
                 self._acts.setdefault((e.name, case.name), {})[obs] = self._ask(e, case, obs)
         self._stress = tuple(dict.fromkeys(o.name for _, c in self.tests for o in c.observables if o.is_stress))
         self.model = self._with_copies(model)
-        self._check_histories(pairs)
+        self._check_histories()
         # the 1-D path of kinematic/elastic along-fibre effects (uniaxial_f's stress only, the pairs say so)
         pre = [e for e in model.effects if e.stage in ("kinematics", "elastic")]
         self._pre1d = (Model(pre, parameters=self.model.parameters, name=model.name, spec=model.spec)
@@ -130,7 +130,7 @@ class ModeEffects:
             return model
         return Model(model.effects, parameters=model.parameters + tuple(extra), name=model.name, spec=model.spec)
 
-    def _check_histories(self, pairs) -> None:
+    def _check_histories(self) -> None:
         if not any(e.stage == "history" for e in self.effects):
             return
         hist = self.loading.history
