@@ -14,7 +14,7 @@ from ..data.reduction import bin_counts
 from ..effects import REGISTRY, family, load_effect, make_effect
 from ..errors import HbmError, HbmWarning
 from ..model.core import Effect, Loading, Model
-from ..model.spec import spec_of
+from ..model.modes_effects import added_effects as model_added_effects
 from ..model.spyrou import spyrou_model
 from ..data.plausibility import describe, implausible, suggest_unit
 from .rules import FEW_POINTS, MIN_POINTS
@@ -149,5 +149,5 @@ def resolve_candidates(candidates, model: Model) -> list[Effect]:
 
 
 def added_effects(model: Model) -> list[str]:
-    """Effects of ``model`` beyond the Spyrou base (what reports call the model)."""
-    return [n for n in model.effect_names if n not in spec_of(model).effects]
+    """Names of the effects of ``model`` beyond the Spyrou base (what reports call the model)."""
+    return [e.name for e in model_added_effects(model)]
