@@ -156,6 +156,40 @@ def test_draws_do_not_depend_on_where_the_shards_run():
     assert np.array_equal(local.evaluations, remote.evaluations)
 
 
+
+def test_chains_extend_until_converged_and_stop_at_the_cap():
+    """Chains not converged at the planned length go on half of it at a time: the extended run is bitwise the
+    run planned at that length from the start (the same rounds), the checks are recorded, and the cap holds."""
+    planned, _ = _run(True, n_burn=20, n_keep=16, thin=2)
+    extended_to = []
+
+    def conv(rhat, ess):
+        extended_to.append(1)
+        return len(extended_to) >= 3   # the third check (8 -> 12 -> 16 draws) says converged
+
+    ext, _ = _run(True, n_burn=20, n_keep=8, thin=2, converged=conv, max_keep=40)
+    assert ext.x.shape == planned.x.shape and np.array_equal(ext.x, planned.x) and np.array_equal(ext.y, planned.y)
+    assert np.array_equal(ext.evaluations, planned.evaluations)
+    assert [c[0] for c in ext.options["convergence_checks"]] == [8, 12, 16]
+    assert ext.options["n_keep"] == 16 and ext.options["n_keep_planned"] == 8
+    capped, _ = _run(True, n_burn=20, n_keep=8, thin=2, converged=lambda r, e: False, max_keep=14)
+    assert capped.x.shape[1] == 14 and [c[0] for c in capped.options["convergence_checks"]] == [8, 12, 14]
+    once, _ = _run(True, n_burn=20, n_keep=8, thin=2, converged=lambda r, e: True, max_keep=40)
+    short, _ = _run(True, n_burn=20, n_keep=8, thin=2)
+    assert np.array_equal(once.x, short.x) and len(once.options["convergence_checks"]) == 1
+    assert once.rhat == short.rhat   # the check's diagnostics are the result's
+
+
+def test_the_layer_convergence_rule():
+    from hbm.population.layer import ESS_TARGET, RHAT_SPECIMEN, RHAT_TARGET, converged
+    ok = {"hyper:a": 1.0, "0:1": 1.0}, {"hyper:a": ESS_TARGET, "0:1": 10.0}
+    assert converged(*ok)
+    assert not converged({**ok[0], "hyper:a": RHAT_TARGET + 1e-3}, ok[1])
+    assert not converged(ok[0], {**ok[1], "hyper:a": ESS_TARGET - 1})
+    assert not converged({**ok[0], "0:1": RHAT_SPECIMEN + 1e-3}, ok[1])
+    assert converged({**ok[0], "0:1": float("nan")}, ok[1])    # a constant column
+
+
 def test_bad_input():
     with pytest.raises(HbmError, match="n_keep"):
         _run(False, n_burn=0, n_keep=2, thin=1)

@@ -135,6 +135,19 @@ def schedule(cfg: PopulationConfig) -> tuple[int, int, int, int]:
     return chains, int(cfg.layer_burn), keep, int(cfg.layer_thin)
 
 
+def converged(rhat: Mapping[str, float], ess: Mapping[str, float]) -> bool:
+    """Whether the joint sampler's diagnostics meet the layer's targets: every hyper-parameter (``hyper:``
+    keys) R-hat <= :data:`RHAT_TARGET` and bulk ESS >= :data:`ESS_TARGET`, every specimen column R-hat <=
+    :data:`RHAT_SPECIMEN` (a NaN -- a constant column -- does not count against)."""
+    for key, r in rhat.items():
+        if key.startswith("hyper:"):
+            if r > RHAT_TARGET or ess[key] < ESS_TARGET:
+                return False
+        elif r > RHAT_SPECIMEN:
+            return False
+    return True
+
+
 def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, model, layout, strategy,
                  client=None) -> LayerDraws:
     """The joint posterior of the population and the specimens (module docstring).
@@ -195,7 +208,8 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
     res = batched_gibbs(one_population(hm, S), shards, x0, features=features, valid=valid,
                         constraints=shards[0].batch.amplitude_constraints, amp_cols=amp, amp_pool=amp_pool,
                         box=coords.box, seed=root, n_burn=burn, n_keep=keep, thin=thin, client=client if use_dask else None,
-                        log=(lambda m: _log(m, cfg.progress)))
+                        log=(lambda m: _log(m, cfg.progress)), converged=converged,
+                        max_keep=int(math.floor(keep * float(cfg.layer_extend))))
     cpu = time.process_time() - c0 + float(res.timings.get("shard_cpu", 0.0))  # + the workers' CPU
     x = res.x.reshape(-1, res.x.shape[-1])
     raw = hm.expand(x)
@@ -262,13 +276,18 @@ def _report(info: dict, names_y, cfg: PopulationConfig) -> list[str]:
     _log(f"population layer: {info['evaluations']:,} model evaluations, {info['wall_s']:.1f} s; max R-hat "
          f"{info['rhat_hyper_max']:.3f} (hyper-parameters), {info['rhat_specimen_max']:.3f} (specimens), "
          f"min bulk ESS {info['ess_hyper_min']:.0f} (hyper-parameters)", cfg.progress)
+    extended = info.get("n_keep", 0) > info.get("n_keep_planned", info.get("n_keep", 0))
+    if extended:
+        _log(f"population layer: chains extended from {info['n_keep_planned']} to {info['n_keep']} draws per chain "
+             f"to converge (at most {info['max_keep']})", cfg.progress)
     bad = [k for k, v in info["hyper"].items() if v["rhat"] > RHAT_TARGET or v["ess"] < ESS_TARGET]
     if bad or info["rhat_specimen_max"] > RHAT_SPECIMEN:
         what = ", ".join(f"{k} (R-hat {info['hyper'][k]['rhat']:.3f}, ESS {info['hyper'][k]['ess']:.0f})" for k in bad)
         if info["rhat_specimen_max"] > RHAT_SPECIMEN:
             what += ("; " if what else "") + f"{info['rhat_specimen_worst']} (R-hat {info['rhat_specimen_max']:.3f})"
-        msg = (f"population layer not converged: {what}; longer chains help (--hier-samples "
-               f"{2 * info['chains'] * info['n_keep']} doubles the kept draws)")
+        msg = (f"population layer not converged: {what}"
+               + (f" after extending its chains to {info['n_keep']} draws each" if extended else "")
+               + f"; longer chains help (--hier-samples {2 * info['chains'] * info['n_keep']} doubles the kept draws)")
         _log(f"WARNING: {msg}", True)
         out = [msg]
     else:

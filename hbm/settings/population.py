@@ -7,7 +7,7 @@ from typing import Any, ClassVar, Mapping
 
 from ..errors import SettingError
 from .fields import Settings, record, setting
-from .rules import NON_NEGATIVE_INT, POSITIVE_INT, SEED, ChoiceRule, IntRule
+from .rules import NON_NEGATIVE_INT, POSITIVE_INT, SEED, ChoiceRule, IntRule, RealRule
 
 __all__ = ["PopulationSettings", "DEFAULT_SD_RANGE", "JOINT_SD_RANGE",
            "POOL_COMBINATIONS", "POOL_INFORMED", "POOL_MODES"]
@@ -83,6 +83,10 @@ class PopulationSettings(Settings):
     layer_chains, layer_burn, layer_keep, layer_thin : int
         The joint sampler's chains, burn-in rounds, kept draws per chain (at least ``samples`` in all)
         and rounds per kept draw.
+    layer_extend : float
+        Chains not converged after ``layer_keep`` draws (the layer's R-hat and ESS targets) go on, half of
+        ``layer_keep`` at a time, until they are or they hold ``layer_extend`` times the planned draws;
+        1: never extend.
     """
 
     #: settings that left the layer (issue 25: reference rows and the second pass, superseded by the
@@ -121,6 +125,10 @@ class PopulationSettings(Settings):
     layer_burn: int = setting(300, rule=NON_NEGATIVE_INT, help="burn-in rounds of the joint sampler")
     layer_keep: int = setting(3000, rule=IntRule(4), help="kept draws per chain of the joint sampler")
     layer_thin: int = setting(2, rule=POSITIVE_INT, help="rounds per kept draw of the joint sampler")
+    # chains that have not converged at the planned length go on, half of it at a time, up to this many times
+    # the planned kept draws (results/benchmarks/population_layer.md: the 96-specimen population's EOPT)
+    layer_extend: float = setting(3.0, rule=RealRule(1.0), help="the joint sampler's chains go on until converged, "
+                                                                 "up to this many times the planned draws (1: never)")
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -126,5 +126,5 @@ class RunSettings(FitSettings):
                                   stage1_samples=self.samples, noise=self.noise, fix=self.fix, bounds=self.bounds,
                                   retries=self.retries, progress=self.progress, exact=self.hier_exact,
                                   # a smoke run: the joint sampler's chains shorter too
-                                  **({"layer_burn": 100, "layer_keep": 50} if self.quick else {}))
+                                  **({"layer_burn": 100, "layer_keep": 50, "layer_extend": 1.0} if self.quick else {}))
 

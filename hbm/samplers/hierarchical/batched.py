@@ -556,12 +556,25 @@ class _Master:
                 for s in shards]
 
 
+def _diagnostics(names: Sequence[str], kept_x: np.ndarray, kept_y: np.ndarray) -> tuple[dict, dict]:
+    """Rank-normalised split R-hat and bulk ESS of every hyper-parameter (``hyper:<name>``) and every
+    specimen column (``<specimen>:<column>``) of the kept draws."""
+    rhat, ess = {}, {}
+    for j, name in enumerate(names):
+        rhat[f"hyper:{name}"], ess[f"hyper:{name}"] = rhat_ess(kept_x[:, :, j])
+    for s in range(kept_y.shape[2]):
+        for col in range(kept_y.shape[3]):
+            rhat[f"{s}:{col}"], ess[f"{s}:{col}"] = rhat_ess(kept_y[:, :, s, col])
+    return rhat, ess
+
+
 def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray, *, features: Callable,
                   valid: Callable, constraints, amp_cols, amp_pool, box: np.ndarray,
                   seed: np.random.SeedSequence,
                   n_burn: int = 300, n_keep: int = 250, thin: int = 4, psi_steps: int = 3, pop_rounds: int = 2,
                   adapt_every: int = 20, client=None, log: Callable[[str], None] | None = None,
-                  shard_options: dict | None = None) -> BatchedResult:
+                  shard_options: dict | None = None, converged: Callable[[dict, dict], bool] | None = None,
+                  max_keep: int | None = None) -> BatchedResult:
     """Sample the joint posterior of the population and the specimens (module docstring).
 
     Parameters
@@ -589,6 +602,13 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
         Progress lines (an estimate after the first rounds, then about every 10 s).
     shard_options : dict, optional
         Keyword arguments of :class:`~.shards.ShardState`.
+    converged : callable (rhat, ess) -> bool, optional
+        Whether the kept draws' diagnostics (the ``rhat``/``ess`` dicts of :class:`BatchedResult`) are good
+        enough.  When they are not after ``n_keep`` draws per chain, the chains go on, ``n_keep // 2`` kept
+        draws at a time, until they are or ``max_keep`` draws per chain are kept.  The decision reads the
+        chains alone, so the draws stay the same on any number of workers.
+    max_keep : int, optional
+        Most kept draws per chain when extending (default ``n_keep``: never extend).
 
     Returns
     -------
@@ -612,15 +632,21 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
     k = amp_cols.size
     quad = (np.zeros((S, C)), np.zeros((S, C, k, k)), np.zeros((S, C, k))) if k else None
     evals = np.zeros(S, np.int64)
-    n_rounds = int(n_burn) + int(n_keep) * int(thin)
-    kept_x = np.empty((C, int(n_keep), x0.shape[1]))
-    kept_y = np.empty((C, int(n_keep), S, dy))
+    n_keep, n_keep0 = int(n_keep), int(n_keep)
+    max_keep = n_keep if converged is None or max_keep is None else max(int(max_keep), n_keep)
+    n_rounds = int(n_burn) + n_keep * int(thin)
+    kept_x = np.empty((C, n_keep, x0.shape[1]))
+    kept_y = np.empty((C, n_keep, S, dy))
+    checks: list = []  # (kept draws per chain, max hyper R-hat, min hyper ESS) at every convergence check
+    rhat = ess = None
     acc_shard: dict = {}
     master.set_population()
     inputs = None
     nc_accept = None
     t_start, t_last = time.perf_counter(), time.perf_counter()
-    for r in range(n_rounds):
+    r = -1
+    while r + 1 < n_rounds:
+        r += 1
         burning = r < n_burn
         # the shards refit their proposals to their own burn-in draws at a third and two thirds of burn-in
         inputs = master.inputs(shards, burning, r, refit=r + 1 in (n_burn // 3, 2 * n_burn // 3), nc_accept=nc_accept)
@@ -664,20 +690,35 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
             per = (now - t_start) / (r - 1)
             left = per * (n_rounds - r - 1)
             if r == 11:
+                most = n_burn + max_keep * thin
                 log(f"population sampler: {S} specimens x {C} chains, {n_rounds} rounds "
                     f"({n_burn} burn-in), about {int(evals.sum() / (r + 1) * n_rounds):,} model evaluations; "
-                    f"estimated {left:.0f} s")
+                    f"estimated {left:.0f} s" + (f" (up to {most} rounds, {per * (most - r - 1):.0f} s, if the chains "
+                                                   f"need extending to converge)" if most > n_rounds else ""))
             else:
                 log(f"population sampler: round {r + 1}/{n_rounds}, {left:.0f} s left")
             t_last = now
+        if r + 1 == n_rounds and max_keep > n_keep0:
+            # a convergence check: go on, half the planned draws at a time, while the chains say so
+            rhat, ess = _diagnostics(hyper.names, kept_x, kept_y)
+            hyper_r = [v for key, v in rhat.items() if key.startswith("hyper:")]
+            hyper_e = [v for key, v in ess.items() if key.startswith("hyper:")]
+            checks.append((n_keep, float(np.nanmax(hyper_r)), float(np.nanmin(hyper_e))))
+            if n_keep < max_keep and not converged(rhat, ess):
+                add = min(max(n_keep0 // 2, 1), max_keep - n_keep)
+                if log is not None:
+                    log(f"population sampler: not converged after {n_keep} draws per chain (max R-hat "
+                        f"{checks[-1][1]:.3f}, min bulk ESS {checks[-1][2]:.0f}, hyper-parameters): {add} more per "
+                        f"chain (at most {max_keep})")
+                kept_x = np.concatenate([kept_x, np.empty((C, add) + kept_x.shape[2:])], axis=1)
+                kept_y = np.concatenate([kept_y, np.empty((C, add) + kept_y.shape[2:])], axis=1)
+                n_keep += add
+                n_rounds += add * int(thin)
+                rhat = ess = None
     shard_cpu = ex.cpu() if client is not None else 0.0
     t1 = time.perf_counter()
-    rhat, ess = {}, {}
-    for j, name in enumerate(hyper.names):
-        rhat[f"hyper:{name}"], ess[f"hyper:{name}"] = rhat_ess(kept_x[:, :, j])
-    for s in range(S):
-        for col in range(dy):
-            rhat[f"{s}:{col}"], ess[f"{s}:{col}"] = rhat_ess(kept_y[:, :, s, col])
+    if rhat is None:
+        rhat, ess = _diagnostics(hyper.names, kept_x, kept_y)
     t2 = time.perf_counter()
     acceptance = {name: float(a[0] / max(a[1], 1)) for name, a in master.accepted.items()}
     acceptance.update({name: float(a[:, 0].sum() / max(a[:, 1].sum(), 1)) for name, a in acc_shard.items()})
@@ -687,5 +728,7 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
                          timings={"sampling": t1 - t0, "diagnostics": t2 - t1, "total": t2 - t0,
                                   "shard_cpu": shard_cpu if client is not None else 0.0},
                          options={"n_chains": C, "n_burn": int(n_burn), "n_keep": int(n_keep), "thin": int(thin),
+                                  "n_keep_planned": n_keep0, "max_keep": int(max_keep),
+                                  "convergence_checks": [list(c) for c in checks],
                                   "psi_steps": int(psi_steps), "pop_rounds": int(pop_rounds),
                                   "shards": len(shards), "workers": "dask" if client is not None else "in-process"})
