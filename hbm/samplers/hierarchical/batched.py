@@ -52,9 +52,6 @@ from ..convergence import rhat_ess
 from .model import HierarchicalModel
 from .shards import TARGET_ACCEPT, RoundInput, ShardState, partial_map, partial_weights
 
-#: least share of the non-centred proposals of a nonlinear pooled column (:meth:`_Master.scales`)
-NC_FLOOR = 0.1
-
 __all__ = ["HyperLevel", "one_population", "ShardSpec", "BatchedResult", "PooledFeatures", "batched_gibbs"]
 
 
@@ -268,10 +265,6 @@ class _Master:
         self.nc_other = [kp for kp in range(self.m.d) if kp not in list(self.amp_pool)
                          and len(hyper.nc_coords(kp)) == 2] if features.diagonal else []
         self.nc_scale = None
-        # the share of the rounds' non-centred proposals each nonlinear column gets (:meth:`scales`)
-        self.stage1_var: dict | None = None
-        self.nc_share: np.ndarray | None = None
-        self.nc_credit = np.zeros(len(self.nc_other))
         # one population without full covariance or fixed hyper-parameters and a log-uniform sd prior: its
         # columns move one by one (:meth:`psi_column_moves`)
         d = self.m.d
@@ -335,13 +328,6 @@ class _Master:
         self.nc_scale = {kp: np.std(self.x[:, self.h.nc_coords(kp)], axis=0) + 1e-9 for kp in kps}
         # the population spread that sets how far each specimen follows a non-centred move
         self.nc_ref = {kp: float(np.median(self.nat[..., self.m.d + kp])) for kp in kps}
-        if self.nc_other and self.stage1_var is not None:
-            # a column the data leave free in many specimens needs the non-centred move (its population's
-            # spread and the specimens' values form a funnel); one they pin mixes by the centred moves: the
-            # proposals go to the columns in proportion to the specimens' mean partial weight (floor NC_FLOOR)
-            w = np.array([np.mean(partial_weights(1.0 / self.stage1_var[kp], self.nc_ref[kp])) for kp in self.nc_other])
-            share = np.maximum(w, NC_FLOOR)
-            self.nc_share = share / share.sum()
 
     def _tally(self, name, acc) -> None:
         a = self.accepted.setdefault(name, np.zeros(2))
@@ -482,13 +468,7 @@ class _Master:
         its population before and after per specimen (S, C); None when there is none."""
         if not self.nc_other or self.nc_scale is None:
             return None
-        if self.nc_share is None:
-            kp = self.nc_other[r % len(self.nc_other)]
-        else:  # a deterministic schedule with the columns' shares (smooth weighted round robin)
-            self.nc_credit += self.nc_share
-            i = int(np.argmax(self.nc_credit))
-            self.nc_credit[i] -= 1.0
-            kp = self.nc_other[i]
+        kp = self.nc_other[r % len(self.nc_other)]
         d = self.m.d
         xp, inside, coef, cc, nat, corr = self._column_proposal(kp, self.nco_step)
         g = self.groups
@@ -646,13 +626,6 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
     ex = _Shards(shards, features, amp_pool, client, **dict(shard_options or {}))
     master = _Master(hyper, x0, features, valid, constraints, amp_cols, amp_pool, np.asarray(box, float), seed,
                      psi_steps, pop_rounds, n_particles=int(dict(shard_options or {}).get("n_particles", 16)))
-    if master.nc_other:
-        var = {kp: np.empty(S) for kp in master.nc_other}
-        for spec in shards:
-            for i, rows in zip(spec.index, spec.rows):
-                for kp in master.nc_other:
-                    var[kp][i] = np.var(features.to_z(kp, np.asarray(rows, float)[:, features.pool_y[kp]])[0]) + 1e-12
-        master.stage1_var = var
     dy = shards[0].rows[0].shape[1]
     y = np.zeros((S, C, dy))
     ll, F, c = np.zeros((S, C)), None, np.zeros((S, C))
