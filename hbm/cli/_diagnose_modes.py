@@ -16,10 +16,8 @@ from pathlib import Path
 
 from .. import plots  # hbm.plots.fit (matplotlib) loads when a figure is drawn
 from ..detective.modes import diagnose_modes
-from ..effects import resolve_effect
 from ..errors import OutputError
 from ..io.identity import changed, content_key, data_key, model_key, settings_key
-from ..model import spyrou_model
 from ..runtime.files import atomic_write_text, file_lock, prepare_output_dir
 from ..settings import DEFAULT_OUT
 from ._common import _jsonable, print_json
@@ -58,12 +56,10 @@ def _check_folder(folder: Path, parts: dict[str, str], force: bool) -> None:
                           "to replace them, or choose another --out")
 
 
-def run_modes_diagnosis(args: argparse.Namespace, data, samples: int) -> int:
-    """Diagnose the tests in their modes (:func:`hbm.detective.modes.diagnose_modes`), write the results,
-    print the report (or one JSON object)."""
-    effects = [resolve_effect(e) for e in args.model if e != "base"]
-    base = spyrou_model(form=args.form)
-    model = base.with_effects(*effects) if effects else base
+def run_modes_diagnosis(args: argparse.Namespace, data, samples: int, model) -> int:
+    """Diagnose the tests in their modes (:func:`hbm.detective.modes.diagnose_modes`) with ``model`` (the one
+    ``--model``/``--form`` built, :func:`hbm.cli.diagnose._prepare`), write the results, print the report (or one
+    JSON object)."""
     folder = Path(args.out) if args.out else Path(DEFAULT_OUT) / "diagnoses" / data.id
     settings = {"samples": samples, "seed": args.seed, "fix": dict(args.fix),
                 "max_evaluations": args.max_evaluations, "command": "diagnose"}

@@ -165,7 +165,7 @@ def _prepare(args, extra: list[str]):
     """Every check before the first fit: effects resolve (also user files), --fix names, sizes,
     the figure's folder.  ``extra``: effect specs added on top of --model (extend --add).
 
-    Returns the specimen and the keyword arguments shared by diagnose and extend.
+    Returns the specimen, the keyword arguments shared by diagnose and extend, and the model of --model.
     """
     effects = [resolve_effect(e) for e in _model_effects(args)]
     base = spyrou_model(form=args.form)
@@ -200,7 +200,7 @@ def _prepare(args, extra: list[str]):
         kw["n_samples"] = args.samples
     if args.max_evaluations is not None:
         kw["max_evaluations"] = args.max_evaluations
-    return ds, kw
+    return ds, kw, model
 
 
 def _candidates(args) -> list[str]:
@@ -227,9 +227,9 @@ def _print_input(ds) -> None:
 def run_diagnose(args) -> int:
     """Check everything, then diagnose and print (or plot) the verdict."""
     candidates = _candidates(args)
-    ds, kw = _prepare(args, [])
+    ds, kw, model = _prepare(args, [])
     if is_multimode(ds):  # tests in several loading modes: the detective across modes (hbm.detective.modes)
-        return run_modes_diagnosis(args, ds, args.samples or DEFAULT_SAMPLES)
+        return run_modes_diagnosis(args, ds, args.samples or DEFAULT_SAMPLES, model)
     if args.out is not None or args.force:
         warnings.warn(f"{ds.id}: --out/--force are for files with tests in several loading modes; an along-fibre "
                       "diagnosis writes no result file (ignored)", HbmWarning, stacklevel=1)
@@ -253,7 +253,7 @@ def run_extend(args) -> int:
     adds = list(args.add)
     if not adds and not args.auto:
         raise SettingError("extend: give --add EFFECT[,EFFECT...] or --auto")
-    ds, kw = _prepare(args, adds)
+    ds, kw, _ = _prepare(args, adds)
     ext = extend(ds, add=adds, auto=args.auto, **kw)
     if args.plot:
         ext.plot(args.plot)
