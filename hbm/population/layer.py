@@ -14,6 +14,10 @@ dask client of at least two workers and at least two shards, the shards run as a
 otherwise in this process.  Seeds (:mod:`hbm.runtime.seeds`): ``layer`` for the population, ``layer_specimen`` k for
 specimen k (k in sorted id order), so the draws are bitwise the same on any number of workers.
 
+Length: 6 chains × 3000 kept draws by default; chains short of the targets (:func:`converged`: hyper R-hat
+≤ :data:`RHAT_TARGET`, bulk ESS ≥ :data:`ESS_TARGET`, specimens' R-hat ≤ :data:`RHAT_SPECIMEN`) go on, half
+that at a time, up to ``layer_extend`` times it; the run says when it extended and still warns at the cap.
+
 Output: the chains' kept draws — hyper-parameters (chain-major, ``chains`` chains), the updated
 individuals (VOLF, P1, T1, GF, GM drawn from the box prior given their combinations), a new
 specimen's pooled columns — and a summary of the run (R-hat, ESS, acceptance, evaluations).

@@ -32,7 +32,9 @@ the amplitudes, one stream per specimen for its evaluated moves), so the draws a
 in-process and on any number of workers.
 
 Convergence: rank-normalised split R-hat and bulk ESS (:func:`.convergence.rhat_ess`) of every free
-hyper-parameter and every specimen column over the chains.
+hyper-parameter and every specimen column over the chains.  With a ``converged`` rule the chains are checked
+at the planned length and go on, half of it at a time, while the rule says no and a cap allows (the check
+reads the kept draws alone: an extended run is the run planned at that length).
 
 This module is sampler-layer code: it knows nothing about muscles.
 """
