@@ -46,13 +46,14 @@ import numpy as np
 from scipy import stats
 
 from ..data.specimen import Specimen, as_specimen
-from ..fit.modes import TIER_NOTE, ModesFit, fit_modes
+from ..fit.modes import TIER_NOTE, ModesFit, fit_modes, series_fit
 from ..likelihood.modes import ModesLikelihood, make_modes_likelihood
 from ..model import spyrou_model
 from ..model.energy3d import COLLAGEN_READINGS, DEFAULT_COLLAGEN3D
 from ..model.loadcases import DEFAULT_LOAD_CASE
 from ..model.spyrou import model_form
 from ..runtime import seeds
+from .rules import BAND
 
 __all__ = ["ModesDiagnosis", "diagnose_modes", "compare_readings", "held_out_prediction", "lateral_checks",
            "readings_differ", "READING_MIN_NATS", "READING_MIN_SE", "LATERAL_ALPHA", "BAND_ALPHA",
@@ -72,7 +73,6 @@ MAX_STEPS = 15
 #: likelihood batches (one per population) a TMCMC fit took at MAX_STEPS on the multi-mode examples (porcine
 #: ramps: 256-301 at N = 400; synthetic along + across + shear: 120-190): the estimate up front
 TMCMC_BATCHES = 300
-_LEVEL = 0.9
 #: the thesis form's own reading (no choice to compare)
 AXIAL = "axial"
 
@@ -166,16 +166,12 @@ def held_out_prediction(train: ModesFit, held: ModesLikelihood, noise_sd: Mappin
     for s, m in zip(held.series, pred):
         mean = m.mean(axis=0)
         rep = m + noise_sd[s.kind] * rng.standard_normal(m.shape)
-        lo, hi = np.quantile(rep, [(1 - _LEVEL) / 2, (1 + _LEVEL) / 2], axis=0)
-        mlo, mhi = np.quantile(m, [(1 - _LEVEL) / 2, (1 + _LEVEL) / 2], axis=0)
+        lo, hi = np.quantile(rep, [(1 - BAND) / 2, (1 + BAND) / 2], axis=0)
+        mlo, mhi = np.quantile(m, [(1 - BAND) / 2, (1 + BAND) / 2], axis=0)
         strain = held.data.strain[s.rows]
         k = int(np.argmax(np.abs(strain)))
-        rmse = float(np.sqrt(np.mean((mean - s.observed) ** 2)))
-        top = float(np.max(np.abs(s.observed))) or 1.0
         ratio = float(mean[k] / s.observed[k]) if s.observed[k] != 0 else float("nan")
-        out.append({"test": s.test.id, "label": s.test.label, "mode": s.test.load_case, "observable": s.observable,
-                    "unit": "MPa" if s.is_stress else "-", "points": int(s.rows.size), "rmse": rmse,
-                    "rmse_rel": rmse / top, "strain_at": float(strain[k]), "measured_at": float(s.observed[k]),
+        out.append({**series_fit(s, mean), "strain_at": float(strain[k]), "measured_at": float(s.observed[k]),
                     "predicted_at": float(mean[k]), "ratio": ratio, "is_stress": bool(s.is_stress),
                     "inside90": float(np.mean((s.observed >= lo) & (s.observed <= hi))),
                     "inside_model90": float(np.mean((s.observed >= mlo) & (s.observed <= mhi)))})
@@ -307,7 +303,7 @@ def _lateral_message(r: dict[str, Any], level: float) -> str:
 def _followed(points: int, inside: float) -> tuple[bool, float]:
     """(followed, binomial probability of as few points inside a 90 % band)."""
     k = int(round(inside * points))
-    p = float(stats.binom.cdf(k, points, _LEVEL))
+    p = float(stats.binom.cdf(k, points, BAND))
     return p >= BAND_ALPHA, p
 
 

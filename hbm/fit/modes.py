@@ -30,7 +30,7 @@ from ..runtime import seeds
 from ..runtime.files import retire_checkpoint
 from ..samplers.tmcmc import tmcmc
 
-__all__ = ["ModesFit", "fit_modes", "TIER_NOTE"]
+__all__ = ["ModesFit", "fit_modes", "TIER_NOTE", "series_fit"]
 
 #: why the multi-mode fit samples every parameter (stated in every report and result file)
 TIER_NOTE = ("full tier: the tests are not all along-fibre stress, and the linear-amplitude collapse is exact only "
@@ -103,12 +103,8 @@ class ModesFit:
         to the largest |value| of the series, and the share of points inside the 90 % predictive band."""
         out = []
         for s, m, r in zip(self.likelihood.series, self.predictions, self.replicates):
-            mean = m.mean(axis=0)
-            rmse = float(np.sqrt(np.mean((mean - s.observed) ** 2)))
             lo, hi = np.quantile(r, [0.05, 0.95], axis=0)
-            out.append({"test": s.test.id, "label": s.test.label, "mode": s.test.load_case,
-                        "observable": s.observable, "unit": "MPa" if s.is_stress else "-", "points": int(s.rows.size),
-                        "rmse": rmse, "rmse_rel": rmse / float(np.max(np.abs(s.observed)) or 1.0),
+            out.append({**series_fit(s, m.mean(axis=0)),
                         "coverage90": float(np.mean((s.observed >= lo) & (s.observed <= hi)))})
         return out
 
@@ -137,6 +133,17 @@ class ModesFit:
         if self.identifiability is not None:
             lines += self.identifiability.report_lines()
         return "\n".join(lines)
+
+
+def series_fit(series, mean: np.ndarray) -> dict[str, Any]:
+    """One series against a prediction ``mean`` (its points): test, label, mode, observable, unit, points,
+    RMSE in the observable's unit and relative to the series' largest |value| (the rows of
+    :meth:`ModesFit.quality` and of the held-out prediction, :func:`hbm.detective.modes.held_out_prediction`)."""
+    rmse = float(np.sqrt(np.mean((mean - series.observed) ** 2)))
+    return {"test": series.test.id, "label": series.test.label, "mode": series.test.load_case,
+            "observable": series.observable, "unit": "MPa" if series.is_stress else "-",
+            "points": int(series.rows.size), "rmse": rmse,
+            "rmse_rel": rmse / float(np.max(np.abs(series.observed)) or 1.0)}
 
 
 def fit_modes(data, *, model=None, collagen3d: str | None = None, samples: int = 2000, seed: int = 0,
