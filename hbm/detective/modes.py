@@ -77,6 +77,16 @@ TMCMC_BATCHES = 300
 AXIAL = "axial"
 
 
+def _reading_name(collagen3d: str | None) -> str:
+    """The name of a fit's collagen reading: the energy form's reading, or AXIAL for the thesis form (None)."""
+    return collagen3d or AXIAL
+
+
+def _collagen3d(reading: str) -> str | None:
+    """The ``collagen3d`` argument of a fit in the named reading (None: the thesis form's own, AXIAL)."""
+    return None if reading == AXIAL else reading
+
+
 def readings_differ(spec: Specimen) -> bool:
     """True when a test is in a mode where the collagen readings differ (any mode but ``uniaxial_f``)."""
     return any(t.load_case != DEFAULT_LOAD_CASE for t in as_specimen(spec).tests)
@@ -521,9 +531,9 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
     total = TMCMC_BATCHES * (sum(cost.values()) + max(cost.values()) * sum(share.values()))
     # prior draws cost more than posterior ones (cone, porcine ramps: 3-4x); the populations per fit vary
     # (TMCMC_BATCHES is typical, not a bound), so this is an estimate, not a limit
-    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {w or AXIAL}' for k, w in plan)}); estimate about "
+    say(f"plan: {len(plan)} TMCMC fits ({', '.join(f'{k} {_reading_name(w)}' for k, w in plan)}); estimate about "
         f"~{total / 60:.1f} min CPU (one population of {samples} evaluations at prior draws: "
-        f"{', '.join(f'{r or AXIAL} {v:.2f} s' for r, v in cost.items())}; a fit takes "
+        f"{', '.join(f'{_reading_name(r)} {v:.2f} s' for r, v in cost.items())}; a fit takes "
         f"~{TMCMC_BATCHES} populations)")
     folder = None if out is None else Path(out)
     tmcmc_options = {"max_steps": MAX_STEPS, **dict(tmcmc_options or {})}
@@ -545,12 +555,12 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
         return False
 
     for k, r in enumerate(readings):
-        name = f"joint_{r or AXIAL}"
+        name = f"joint_{_reading_name(r)}"
         if k and late(name):
             continue
         path = None if folder is None else folder / f"{name}.nc"
         say(f"fit {k + 1}/{len(plan)}: all tests, reading {r or 'axial (thesis form)'}")
-        fits[r or AXIAL] = fit_modes(spec, collagen3d=r, seed=_seed(seed, k), out=path,
+        fits[_reading_name(r)] = fit_modes(spec, collagen3d=r, seed=_seed(seed, k), out=path,
                                        config_extra={"diagnose": name}, **kw)
         if path is not None:
             paths[name] = path
@@ -571,12 +581,12 @@ def diagnose_modes(data, *, model=None, samples: int = 800, seed: int = 0, fix: 
         trained_on = [x for x in modes if x != mode]
         say(f"fit {len(readings) + j + 1}/{len(plan)}: without the {mode} tests (reading {reading})")
         path = None if folder is None else folder / f"{name}.nc"
-        f = fit_modes(parts[f"without:{mode}"], collagen3d=None if reading == AXIAL else reading,
+        f = fit_modes(parts[f"without:{mode}"], collagen3d=_collagen3d(reading),
                       seed=_seed(seed, 100 + m), out=path, config_extra={"diagnose": name}, **kw)
         if path is not None:
             paths[name] = path
         hl = make_modes_likelihood(model, parts[f"only:{mode}"], collagen3d=f.likelihood.energy.collagen3d
-                                   if reading != AXIAL else None, fix=fix)
+                                   if _collagen3d(reading) else None, fix=fix)
         rows = held_out_prediction(f, hl, sigma, _seed(seed, 200 + m))
         held[mode] = {"trained_on": trained_on, "fit": f, "series": rows,
                       "message": _held_sentence(mode, trained_on, rows)}
