@@ -81,14 +81,7 @@ def simulate_tests(data, theta: Mapping[str, float], *, model: Model, collagen3d
         effects = ModeEffects(model, spec.loading, tests, [(t, o) for t, c in tests for o in c.observable_names])
     except SettingError as exc:
         raise SettingError(f"simulate: {exc}") from None
-    model = effects.model
-    row = _theta_row(model, theta)
-    p = model._params(row)
-    preds = {}
-    for t, case in tests:
-        s2 = None if spec.strain_2 is None or "strain_2" not in case.inputs else spec.strain_2[t.rows]
-        preds[t.id] = case.solve(energy, p, spec.strain[t.rows], s2)
-    effects.apply(row[None, :], preds)
+    preds = effects.solve(energy, _theta_row(effects.model, theta)[None, :], spec.strain_2)
     out: dict[str, np.ndarray] = {}
     for t, _ in tests:
         for name, v in preds[t.id].items():

@@ -257,14 +257,7 @@ class ModesLikelihood:
 
     # -- predictions ------------------------------------------------------------------------------
     def _solve_tests(self, rows: np.ndarray) -> dict[int, dict[str, np.ndarray]]:
-        p = self.model._params(rows)
-        spec = self.data
-        out = {}
-        for t in spec.tests:
-            s2 = None if spec.strain_2 is None or "strain_2" not in self.cases[t.id].inputs else spec.strain_2[t.rows]
-            out[t.id] = self.cases[t.id].solve(self.energy, p, spec.strain[t.rows], s2)
-        self.effects.apply(rows, out)
-        return out
+        return self.effects.solve(self.energy, rows, self.data.strain_2)
 
     def predict_series(self, theta) -> list[np.ndarray]:
         """The model's value of every series (list parallel to :attr:`series`, each (n, n_values)),

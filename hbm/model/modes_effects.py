@@ -169,6 +169,19 @@ class ModeEffects:
         q.update({x.name: p[x.name + sfx] for x in effect.parameters})
         return q
 
+    def solve(self, energy, rows: np.ndarray, strain_2: np.ndarray | None = None) -> dict[int, dict[str, np.ndarray]]:
+        """Every test solved in its mode with the 3-D ``energy`` at the parameter rows (n, ``model.n_params``),
+        then the added effects (:meth:`apply`): test id -> observable -> (n, n_test_points).  ``strain_2``: the
+        specimen's second control column (biaxial tests), None without one."""
+        rows = np.asarray(rows, dtype=float)
+        p = self.model._params(rows)
+        out = {}
+        for t, case in self.tests:
+            s2 = None if strain_2 is None or "strain_2" not in case.inputs else strain_2[t.rows]
+            out[t.id] = case.solve(energy, p, self.loading.strain[t.rows], s2)
+        self.apply(rows, out)
+        return out
+
     def apply(self, rows: np.ndarray, preds: dict[int, dict[str, np.ndarray]], *, elastic_1d: bool = True) -> None:
         """Transform the elastic predictions ``preds`` (test id -> observable -> (n, n_test_points)) in place.
 
