@@ -158,3 +158,22 @@ def test_a_population_spread_at_the_hyperprior_floor_is_reported(capsys):
     assert len(msgs) == 1 and "sd_a (50 % of the draws below 1.1 x its floor 0.1)" in msgs[0]
     assert "hyperprior's lower end" in capsys.readouterr().err
     assert at_floor(hm, raw[:, [0, 1, 3, 3]]) == {}
+
+
+def test_shards_go_to_the_workers_only_with_two_of_each():
+    """The joint sampler's shards (at most SHARD_SIZE specimens each) run as actors when there are two shards and two
+    workers at least; hbm run submits the specimens' figures after the layer then (not beside it on the same cores)."""
+    from hbm.population import shards_on_workers
+    from hbm.population.layer import SHARD_SIZE
+
+    class Client:
+        def __init__(self, n):
+            self.n = n
+
+        def scheduler_info(self):
+            return {"workers": {f"w{i}": {} for i in range(self.n)}}
+
+    assert not shards_on_workers(SHARD_SIZE, Client(2))          # one shard
+    assert shards_on_workers(SHARD_SIZE + 1, Client(2))
+    assert not shards_on_workers(SHARD_SIZE + 1, Client(1))
+    assert not shards_on_workers(4 * SHARD_SIZE, None)

@@ -44,14 +44,17 @@ from .config import (
     COMBINATION_COLUMNS, DEFAULT_SD_RANGE, DEFAULT_TRANSFORMS, JOINT_SD_RANGE, POOL_COMBINATIONS, POOL_INFORMED,
     POOL_MODES, PopulationConfig)
 from .driver import run_population
+from .layer import ESS_TARGET, RHAT_SPECIMEN, RHAT_TARGET, shards_on_workers
 from .pooling import COMBINATION_NEEDS, JOINT_POOL_INFORMED
 
 __all__ = ["PopulationConfig", "run_population", "DEFAULT_TRANSFORMS", "DEFAULT_SD_RANGE", "JOINT_SD_RANGE",
            "POOL_COMBINATIONS", "POOL_INFORMED", "POOL_MODES", "COMBINATION_COLUMNS", "COMBINATION_NEEDS",
-           "JOINT_POOL_INFORMED", "layer_rules"]
+           "JOINT_POOL_INFORMED", "layer_rules", "shards_on_workers"]
 
 
 def layer_rules() -> dict:
-    """The layer's built-in rules that no setting records (the joint sampler's sd floor and pooling count):
-    part of a stored layer's reuse key, so a layer computed under other rules is computed again."""
-    return {"joint_sd_range": [float(v) for v in JOINT_SD_RANGE], "joint_pool_informed": int(JOINT_POOL_INFORMED)}
+    """The layer's built-in rules that no setting records (the joint sampler's sd floor, pooling count and the
+    convergence targets its chains run to): part of a stored layer's reuse key, so a layer computed under other
+    rules is computed again."""
+    return {"joint_sd_range": [float(v) for v in JOINT_SD_RANGE], "joint_pool_informed": int(JOINT_POOL_INFORMED),
+            "convergence": [float(RHAT_TARGET), float(ESS_TARGET), float(RHAT_SPECIMEN)]}

@@ -41,7 +41,7 @@ from .batch import SpecimenLikelihoods, amplitude_columns
 from .config import PopulationConfig
 from .fallbacks import specimen_likelihood
 
-__all__ = ["SHARD_SIZE", "LayerDraws", "sample_layer", "at_floor"]
+__all__ = ["SHARD_SIZE", "LayerDraws", "sample_layer", "at_floor", "converged", "shards_on_workers"]
 
 #: most specimens per shard (the shards, hence the draws, depend on the number of specimens only): 96
 #: specimens make four shards, two per worker of a two-worker cluster
@@ -101,6 +101,12 @@ def _workers(client) -> int:
         return len(client.scheduler_info().get("workers", {}))
     except Exception:  # a scheduler that does not answer: run in this process
         return 0
+
+
+def shards_on_workers(n_specimens: int, client) -> bool:
+    """Whether the joint sampler of ``n_specimens`` runs its shards as actors on ``client``'s workers: two
+    shards (more than :data:`SHARD_SIZE` specimens) and two workers at least; in this process otherwise."""
+    return client is not None and math.ceil(n_specimens / SHARD_SIZE) >= 2 and _workers(client) >= 2
 
 
 def _start(model: HierarchicalModel, features, rows: Sequence[np.ndarray], chains: int, rng: np.random.Generator,
@@ -198,7 +204,7 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
     n_shards = max(1, math.ceil(S / SHARD_SIZE))
     parts = np.array_split(np.arange(S), n_shards)
     # the shards go to the workers when there are two of each at least (the draws are the same either way)
-    use_dask = client is not None and n_shards >= 2 and _workers(client) >= 2
+    use_dask = shards_on_workers(S, client)
     mode = (f"amplitudes {', '.join(names_y[j] for j in amp)} moved with the population at no evaluation"
             if amp else f"every model parameter evaluated ({why})")
     _log(f"population layer: joint sampling of the population and {S} specimens, {chains} chains, "

@@ -44,7 +44,7 @@ from ..fit.specimen import fit_specimen
 from ..model import spyrou_model
 from ..model.spec import sweep_parameter
 from ..runtime.parallel import dask_client, map_specimens, spawn_specimen_seeds
-from ..population import layer_rules, run_population
+from ..population import layer_rules, run_population, shards_on_workers
 from ..settings import DEFAULT_OUT, FitRecord, FitSettings, PopulationSettings, RunSettings
 from .report import write_report
 from ..runtime.files import atomic_write_text, file_lock
@@ -234,13 +234,20 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
                           results=results, skipped=skipped, errors=errors, timings=timings)
     timings["task_times"] = task_times  # type: ignore[assignment]
 
-    # ---- per-specimen figures run on the workers while the client does the hierarchical layer
+    # ---- per-specimen figures run on the workers while the client does the hierarchical layer -- after it when
+    # the layer's shards run on those workers (they would share the cores: 96 specimens, 582 s against 415 s)
     fig_dir = out / "figures"
-    fig_futures = {}
-    if cfg.figures and results and cl is not None:
-        fig_futures = {sid: cl.submit(_figures_task, str(paths[sid]), str(fig_dir), model,
-                                      key=f"figures-{sid}", pure=False, retries=cfg.retries)
-                       for sid in sorted(results)}
+    fig_futures: dict = {}
+
+    def submit_figures() -> None:
+        if cfg.figures and results and cl is not None and not fig_futures:
+            fig_futures.update({sid: cl.submit(_figures_task, str(paths[sid]), str(fig_dir), model,
+                                               key=f"figures-{sid}", pure=False, retries=cfg.retries)
+                                for sid in sorted(results)})
+
+    layer_on_workers = cfg.hierarchical and len(results) >= 2 and shards_on_workers(len(results), cl)
+    if not layer_on_workers:
+        submit_figures()
 
     # ---- hierarchical layer
     if cfg.hierarchical and len(results) >= 2:
@@ -267,6 +274,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
                 wres.hierarchical.attrs["content_key"] = hkey
                 io.write_hierarchical(wres.hierarchical, wres.hierarchical_path)
         timings["hierarchical"] = time.perf_counter() - t
+    submit_figures()
 
     # ---- identifiability and manifolds
     t = time.perf_counter()
