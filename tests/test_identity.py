@@ -80,7 +80,7 @@ def folder(tmp_path):
 
 def _run(folder, capsys, **kw):
     cfg = dict(data=str(folder / "data"), out=str(folder / "out"), samples=60, restarts=0, sweep=None, sobol=False,
-               hier_samples=60, hier_max_steps=3, figures=False, workers=0, progress=True)
+               hier_samples=60, hier_max_steps=3, hier_extend=1.0, figures=False, workers=0, progress=True)
     cfg.update(kw)
     wres = run_workflow(RunConfig(**cfg))
     return wres, capsys.readouterr().err

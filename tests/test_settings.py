@@ -19,7 +19,7 @@ from hbm.settings import FitRecord, FitSettings, PopulationSettings, RunSettings
 #: ``run.json``'s ``config`` keys as hbm wrote them before the records (RunConfig's fields, commit 68827b1)
 RUN_JSON_KEYS = {"data", "out", "samples", "kernel", "noise", "workers", "scheduler", "seed", "sobol", "sobol_n",
                  "restarts", "sweep", "maxfevals", "fix", "bounds", "hierarchical", "hier_samples", "hier_max_steps",
-                 "hier_pooled", "hier_estimator", "hier_transforms", "hier_sd_range", "hier_exact", "figures",
+                 "hier_pooled", "hier_estimator", "hier_transforms", "hier_sd_range", "hier_exact", "hier_extend", "figures",
                  "progress", "retries", "quick", "tmcmc_options", "likelihood", "prior", "sl0", "group_by"}
 
 

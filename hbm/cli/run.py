@@ -24,7 +24,7 @@ from ._common import (
 
 #: the RunSettings that are options of ``hbm run`` with their declared flags
 RUN_OPTIONS = ("data", "out", "samples", "move", "noise", "tier", "seed", "restarts", "sweep", "maxfevals",
-               "max_evaluations", "sobol_n")
+               "max_evaluations", "sobol_n", "hier_extend")
 #: why ``hbm run`` does not offer ``--tier collapsed``
 COLLAPSED_REFUSED = ("a specimen where the amplitudes cannot be integrated would fail after the others ran; "
                      "use auto, which integrates them wherever the model and noise allow")

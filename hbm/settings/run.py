@@ -15,7 +15,7 @@ from ..errors import SettingError
 from .fields import record, setting
 from .fit import RUN_SWEEP, FitSettings
 from .population import PopulationSettings
-from .rules import POSITIVE_INT, POWER_OF_TWO, SAMPLE_SIZE, WORKERS, NON_NEGATIVE_INT, ChoiceRule
+from .rules import POSITIVE_INT, POWER_OF_TWO, SAMPLE_SIZE, WORKERS, NON_NEGATIVE_INT, ChoiceRule, RealRule
 
 __all__ = ["RunSettings", "DEFAULT_OUT", "QUICK"]
 
@@ -64,6 +64,9 @@ class RunSettings(FitSettings):
     hierarchical: bool = setting(True, help="fit the population layer")
     hier_samples: int = setting(1000, rule=SAMPLE_SIZE, help="hyper-posterior draws (at least)")
     hier_max_steps: int = setting(25, rule=POSITIVE_INT, help="MH steps per stage of the layer")
+    hier_extend: float = setting(3.0, rule=RealRule(1.0), flag="--hier-extend", metavar="X",
+                                 help="the joint sampler's chains go on until converged (R-hat <= 1.01, bulk ESS >= "
+                                      "400) up to X times their planned draws (default 3; 1: never; --quick: 1)")
     hier_pooled: Any = setting("auto", help="what gets a population distribution")
     hier_estimator: str = setting("raw", rule=ChoiceRule(lambda: ("raw", "kernel"), "importance estimator"),
                                   help="estimator of p(d_i|psi)")
@@ -125,6 +128,7 @@ class RunSettings(FitSettings):
                                   transforms=self.hier_transforms, sd_range=self.hier_sd_range,
                                   stage1_samples=self.samples, noise=self.noise, fix=self.fix, bounds=self.bounds,
                                   retries=self.retries, progress=self.progress, exact=self.hier_exact,
-                                  # a smoke run: the joint sampler's chains shorter too
-                                  **({"layer_burn": 100, "layer_keep": 50, "layer_extend": 1.0} if self.quick else {}))
+                                  # a smoke run: the joint sampler's chains shorter too, never extended
+                                  **({"layer_burn": 100, "layer_keep": 50, "layer_extend": 1.0} if self.quick
+                                     else {"layer_extend": float(self.hier_extend)}))
 
