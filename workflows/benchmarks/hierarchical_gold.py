@@ -321,6 +321,9 @@ def main(argv=None) -> int:
     ap.add_argument("--layer-keep", type=int, default=None, help="PopulationConfig.layer_keep (kept draws per chain)")
     ap.add_argument("--layer-burn", type=int, default=None, help="PopulationConfig.layer_burn (burn-in rounds)")
     ap.add_argument("--layer-thin", type=int, default=None, help="PopulationConfig.layer_thin (rounds per kept draw)")
+    ap.add_argument("--layer-extend", type=float, default=None,
+                    help="PopulationConfig.layer_extend (the chains go on until converged, up to this many times "
+                         "their planned draws; 1: never)")
     ap.add_argument("--nuts-from", default=None, metavar="VARIANT",
                     help="compare with the NUTS quantiles stored under VARIANT in hierarchical_gold.json (same "
                          "population seed) instead of running the peer (no PyMC needed)")
@@ -343,6 +346,8 @@ def main(argv=None) -> int:
     for key in ("layer_chains", "layer_keep", "layer_burn", "layer_thin"):
         if getattr(a, key) is not None:
             cfg[key] = int(getattr(a, key))
+    if a.layer_extend is not None:
+        cfg["layer_extend"] = float(a.layer_extend)
     hfs = [layer(results, datasets, model, s, **cfg)[0:3:2] for s in seeds]  # (hf, cpu seconds)
     names = list(next(iter(results.values())).names)
     if a.nuts_from:
