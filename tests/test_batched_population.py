@@ -156,7 +156,6 @@ def test_draws_do_not_depend_on_where_the_shards_run():
     assert np.array_equal(local.evaluations, remote.evaluations)
 
 
-
 def test_chains_extend_until_converged_and_stop_at_the_cap():
     """Chains not converged at the planned length go on half of it at a time: the extended run is bitwise the
     run planned at that length from the start (the same rounds), the checks are recorded, and the cap holds."""

@@ -639,7 +639,7 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
     n_rounds = int(n_burn) + n_keep * int(thin)
     kept_x = np.empty((C, n_keep, x0.shape[1]))
     kept_y = np.empty((C, n_keep, S, dy))
-    checks: list = []  # (kept draws per chain, max hyper R-hat, min hyper ESS) at every convergence check
+    checks: list = []  # (kept draws per chain, max hyper R-hat, min hyper ESS, max specimen R-hat) per check
     rhat = ess = None
     acc_shard: dict = {}
     master.set_population()
@@ -705,13 +705,16 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
             rhat, ess = _diagnostics(hyper.names, kept_x, kept_y)
             hyper_r = [v for key, v in rhat.items() if key.startswith("hyper:")]
             hyper_e = [v for key, v in ess.items() if key.startswith("hyper:")]
-            checks.append((n_keep, float(np.nanmax(hyper_r)), float(np.nanmin(hyper_e))))
+            spec_r = [v for key, v in rhat.items() if not key.startswith("hyper:")] or [np.nan]
+            with np.errstate(invalid="ignore"):
+                checks.append((n_keep, float(np.nanmax(hyper_r)), float(np.nanmin(hyper_e)),
+                               float(np.nanmax(spec_r)) if np.isfinite(spec_r).any() else float("nan")))
             if n_keep < max_keep and not converged(rhat, ess):
                 add = min(max(n_keep0 // 2, 1), max_keep - n_keep)
                 if log is not None:
-                    log(f"population sampler: not converged after {n_keep} draws per chain (max R-hat "
-                        f"{checks[-1][1]:.3f}, min bulk ESS {checks[-1][2]:.0f}, hyper-parameters): {add} more per "
-                        f"chain (at most {max_keep})")
+                    log(f"population sampler: not converged after {n_keep} draws per chain (hyper-parameters: max "
+                        f"R-hat {checks[-1][1]:.3f}, min bulk ESS {checks[-1][2]:.0f}; specimens: max R-hat "
+                        f"{checks[-1][3]:.3f}): {add} more per chain (at most {max_keep})")
                 kept_x = np.concatenate([kept_x, np.empty((C, add) + kept_x.shape[2:])], axis=1)
                 kept_y = np.concatenate([kept_y, np.empty((C, add) + kept_y.shape[2:])], axis=1)
                 n_keep += add
