@@ -177,3 +177,22 @@ def test_shards_go_to_the_workers_only_with_two_of_each():
     assert shards_on_workers(SHARD_SIZE + 1, Client(2))
     assert not shards_on_workers(SHARD_SIZE + 1, Client(1))
     assert not shards_on_workers(4 * SHARD_SIZE, None)
+
+
+def test_the_not_converged_warning_names_what_missed():
+    """The run's warning and the sampler's extension read one rule: a hyper-parameter with R-hat 1.02 or ESS 300, a
+    specimen column with R-hat 1.06, are named (with the extended length); targets met give no warning."""
+    from hbm.population import PopulationConfig
+    from hbm.population.layer import _report, converged
+
+    info = {"evaluations": 1, "wall_s": 1.0, "rhat_hyper_max": 1.02, "rhat_specimen_max": 1.06,
+            "rhat_specimen_worst": "s1:T2", "ess_hyper_min": 300.0, "chains": 6, "n_keep": 4500, "n_keep_planned": 3000,
+            "max_keep": 9000, "hyper": {"mu_a": {"rhat": 1.02, "ess": 900.0}, "sd_a": {"rhat": 1.0, "ess": 300.0},
+                                        "mu_b": {"rhat": 1.005, "ess": 900.0}}}
+    msg, = _report(info, ["a", "b"], PopulationConfig(progress=False))
+    assert "mu_a (R-hat 1.020" in msg and "sd_a (R-hat 1.000, ESS 300)" in msg and "mu_b" not in msg
+    assert "s1:T2 (R-hat 1.060)" in msg and "after extending its chains to 4500 draws each" in msg
+    ok = {**info, "rhat_specimen_max": 1.01, "hyper": {"mu_b": {"rhat": 1.005, "ess": 900.0}}}
+    assert _report(ok, ["b"], PopulationConfig(progress=False)) == []
+    assert converged({"hyper:mu_b": 1.005, "0:1": 1.01}, {"hyper:mu_b": 900.0, "0:1": 50.0})
+    assert not converged({"hyper:mu_b": 1.005, "0:1": 1.06}, {"hyper:mu_b": 900.0, "0:1": 50.0})

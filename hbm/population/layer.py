@@ -149,13 +149,16 @@ def converged(rhat: Mapping[str, float], ess: Mapping[str, float]) -> bool:
     """Whether the joint sampler's diagnostics meet the layer's targets: every hyper-parameter (``hyper:``
     keys) R-hat <= :data:`RHAT_TARGET` and bulk ESS >= :data:`ESS_TARGET`, every specimen column R-hat <=
     :data:`RHAT_SPECIMEN` (a NaN -- a constant column -- does not count against)."""
-    for key, r in rhat.items():
-        if key.startswith("hyper:"):
-            if r > RHAT_TARGET or ess[key] < ESS_TARGET:
-                return False
-        elif r > RHAT_SPECIMEN:
-            return False
-    return True
+    hyper = {k: (r, ess[k]) for k, r in rhat.items() if k.startswith("hyper:")}
+    return not any(_short(hyper, [r for k, r in rhat.items() if not k.startswith("hyper:")]))
+
+
+def _short(hyper: Mapping[str, tuple[float, float]], specimen_rhat) -> tuple[list[str], bool]:
+    """The one convergence rule (the sampler's extension and the run's warning): the hyper-parameters short of
+    R-hat <= RHAT_TARGET or bulk ESS >= ESS_TARGET (name -> (R-hat, ESS)), and whether a specimen column's R-hat
+    exceeds RHAT_SPECIMEN; NaN counts against neither."""
+    bad = [k for k, (r, e) in hyper.items() if r > RHAT_TARGET or e < ESS_TARGET]
+    return bad, any(r > RHAT_SPECIMEN for r in specimen_rhat)
 
 
 def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, model, layout, strategy,
@@ -290,10 +293,10 @@ def _report(info: dict, names_y, cfg: PopulationConfig) -> list[str]:
     if extended:
         _log(f"population layer: chains extended from {info['n_keep_planned']} to {info['n_keep']} draws per chain "
              f"to converge (at most {info['max_keep']})", cfg.progress)
-    bad = [k for k, v in info["hyper"].items() if v["rhat"] > RHAT_TARGET or v["ess"] < ESS_TARGET]
-    if bad or info["rhat_specimen_max"] > RHAT_SPECIMEN:
+    bad, spec_bad = _short({k: (v["rhat"], v["ess"]) for k, v in info["hyper"].items()}, [info["rhat_specimen_max"]])
+    if bad or spec_bad:
         what = ", ".join(f"{k} (R-hat {info['hyper'][k]['rhat']:.3f}, ESS {info['hyper'][k]['ess']:.0f})" for k in bad)
-        if info["rhat_specimen_max"] > RHAT_SPECIMEN:
+        if spec_bad:
             what += ("; " if what else "") + f"{info['rhat_specimen_worst']} (R-hat {info['rhat_specimen_max']:.3f})"
         msg = (f"population layer not converged: {what}"
                + (f" after extending its chains to {info['n_keep']} draws each" if extended else "")

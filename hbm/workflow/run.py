@@ -240,7 +240,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
     fig_futures: dict = {}
 
     def submit_figures() -> None:
-        if cfg.figures and results and cl is not None and not fig_futures:
+        if cfg.figures and results and cl is not None:
             fig_futures.update({sid: cl.submit(_figures_task, str(paths[sid]), str(fig_dir), model,
                                                key=f"figures-{sid}", pure=False, retries=cfg.retries)
                                 for sid in sorted(results)})
@@ -274,7 +274,8 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
                 wres.hierarchical.attrs["content_key"] = hkey
                 io.write_hierarchical(wres.hierarchical, wres.hierarchical_path)
         timings["hierarchical"] = time.perf_counter() - t
-    submit_figures()
+    if layer_on_workers:
+        submit_figures()
 
     # ---- identifiability and manifolds
     t = time.perf_counter()

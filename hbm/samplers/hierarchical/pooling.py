@@ -23,9 +23,9 @@ a diagonal population), and a factor is small in two situations:
 Hence :func:`auto_pool`: pool only parameters whose stage-1 posterior sd in the transformed
 space is below ``max_sd_ratio`` (2/3) of the uniform prior's sd there
 (:func:`prior_sd_transformed`) in at least half of the specimens (``max_needed`` caps that count for a
-sampler without importance weights); the others keep their stage-1 prior and cost nothing.  On the shipped specimens it selects T2 and THETA (VOLF, T1
-and GM are prior-like everywhere, EOPT, P1 and GF informed in one or two specimens) and the
-ESS 10 % quantile becomes 174–987 with a minimum of 121.
+sampler without importance weights); the others keep their stage-1 prior and cost nothing.  On the shipped
+specimens it selects T2 and THETA (VOLF, T1 and GM are prior-like everywhere, EOPT, P1 and GF informed in
+one or two specimens) and the ESS 10 % quantile becomes 174–987 with a minimum of 121.
 
 This module is sampler-layer code: it knows nothing about muscles.
 """
