@@ -48,7 +48,7 @@ from .quality import (
     EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, chain_rhat, chains_line, edges, fit_quality,
     format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
 
-__all__ = ["FitResult", "fit_specimen", "summarize", "summary_table", "pointwise_log_likelihood",
+__all__ = ["FitResult", "fit_specimen", "fit_posterior", "complete_fit", "summarize", "summary_table", "pointwise_log_likelihood",
            "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
            "format_at_bounds", "map_prediction", "quality_lines", "tier_line", "EDGE_TOL", "EDGE_MASS",
            "RIDGE_NOTE", "chain_rhat", "chains_line"]
@@ -385,6 +385,75 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
         A setting its rule refuses (:mod:`hbm.settings.rules`), before any computation.
     """
     t_start = time.perf_counter()
+    f = _prepare_fit(data, model, settings, options)
+    phase = on_phase or (lambda name: None)
+    timings: dict[str, float] = {}
+    if f.s.restarts > 0:
+        phase("cmaes")
+    optima = _optima(f, timings)
+    phase("tmcmc")
+    post = _posterior(f, checkpoint_dir, progress, timings)
+    phase("predictive")
+    res = _result(f, post, optima, config_extra, timings)
+    if f.s.sobol_n:
+        phase("sobol")
+    res.sobol = _sobol_phase(f, timings)
+    return _finish(f, res, post, out, timings, t_start)
+
+
+def fit_posterior(data, *, model=None, settings: FitSettings | None = None,
+                  checkpoint_dir: str | os.PathLike | None = None,
+                  config_extra: Mapping[str, Any] | None = None) -> SpecimenResult:
+    """The first part of :func:`fit_specimen`: the TMCMC posterior and its predictive, no optima, no Sobol.
+
+    What a population layer needs of a specimen, early: ``hbm run`` starts its layer on these while the
+    optima and Sobol indices (:func:`complete_fit`) run beside it.  Nothing is written but the TMCMC
+    checkpoint; the result is the one :func:`fit_specimen` stores with ``optima`` and ``sobol`` None.
+    Arguments as :func:`fit_specimen`'s.
+    """
+    f = _prepare_fit(data, model, settings, {})
+    timings: dict[str, float] = {}
+    post = _posterior(f, checkpoint_dir, False, timings)
+    res = _result(f, post, None, config_extra, timings)
+    res.timings = dict(timings)
+    return res
+
+
+def complete_fit(posterior: SpecimenResult, data, *, model=None, settings: FitSettings | None = None,
+                 checkpoint_dir: str | os.PathLike | None = None,
+                 out: str | os.PathLike | None = None) -> FitResult:
+    """The rest of :func:`fit_specimen` after :func:`fit_posterior`: CMA-ES optima, the sweep, Sobol; writes.
+
+    With the same data, model and settings the file is the one :func:`fit_specimen` writes (each phase
+    has its own stream of the seed table, so their order does not matter); the checkpoint is retired
+    once it is written.  ``FitResult.tmcmc`` is None (the stages are in the result).
+    """
+    t_start = time.perf_counter()
+    f = _prepare_fit(data, model, settings, {})
+    timings = {k: v for k, v in (posterior.timings or {}).items() if k in ("tmcmc", "predictive")}
+    res = dataclasses.replace(posterior, optima=_optima(f, timings))
+    res.sobol = _sobol_phase(f, timings)
+    ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / f"{f.data.id}.npz"
+    return _finish(f, res, {"ckpt": ckpt, "tr": None}, out, timings, t_start)
+
+
+@dataclass
+class _Fit:
+    """A fit's inputs once checked: settings, the prepared record, its likelihood and tier, the phase seeds."""
+
+    model: Any
+    s: FitSettings
+    data: Any
+    prior: Any
+    lik: Any
+    collapsed: Any
+    tier_note: str | None
+    phase_seeds: tuple
+    sweep: tuple | None
+
+
+def _prepare_fit(data, model, settings: FitSettings | None, options: Mapping[str, Any]) -> _Fit:
+    """Check the settings and build the likelihood (before any long computation)."""
     model = spyrou_model() if model is None else model
     s = FitSettings(**options) if settings is None else (settings.replace(**options) if options else settings)
     check_physical_bounds(s.bounds, spec_of(model).physical_range)
@@ -396,27 +465,33 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
                           prior=prior)
     check_data_size(sid, lik, s.samples, s.max_evaluations)
     collapsed, tier_note = choose_tier(lik, s.tier, move=s.move)  # before any long computation
-    s_opt, s_tm, s_pred, s_sob = seeds.child_ints(s.seed, len(seeds.PHASES))  # the phase streams of hbm.runtime.seeds
+    phase_seeds = tuple(seeds.child_ints(s.seed, len(seeds.PHASES)))  # the phase streams of hbm.runtime.seeds
     sweep_t = s.sweep_pair
     if sweep_t is not None and sweep_t[0] in lik.names and lik.forms[lik.index(sweep_t[0])] == "loguniform":
         # the sweep's windows are cut in the optimiser's (log) coordinates; a width in natural
         # units would be misread there
         raise PriorError(f"sweep: {sweep_t[0]} has a loguniform prior; sweep a uniform parameter")
-    timings: dict[str, float] = {}
-    phase = on_phase or (lambda name: None)
+    return _Fit(model=model, s=s, data=data, prior=prior, lik=lik, collapsed=collapsed, tier_note=tier_note,
+                phase_seeds=phase_seeds, sweep=sweep_t)
 
-    optima = None
-    if s.restarts > 0:
-        phase("cmaes")
-        t = time.perf_counter()
-        optima = run_optima(lik, restarts=s.restarts, seed=s_opt, sweep=sweep_t, **s.cma_options())
-        timings["cmaes"] = time.perf_counter() - t
 
-    phase("tmcmc")
+def _optima(f: _Fit, timings: dict) -> list | None:
+    """CMA-ES restarts and the bound sweep (None without restarts)."""
+    if f.s.restarts <= 0:
+        return None
+    t = time.perf_counter()
+    optima = run_optima(f.lik, restarts=f.s.restarts, seed=f.phase_seeds[0], sweep=f.sweep, **f.s.cma_options())
+    timings["cmaes"] = time.perf_counter() - t
+    return optima
+
+
+def _posterior(f: _Fit, checkpoint_dir, progress: bool, timings: dict) -> dict:
+    """The TMCMC phase: posterior rows in sampler coordinates, their log-likelihood, evidence, checkpoint."""
+    s, lik = f.s, f.lik
     t = time.perf_counter()
     ckpt = None
     if checkpoint_dir is not None:
-        ckpt = Path(checkpoint_dir) / f"{sid}.npz"
+        ckpt = Path(checkpoint_dir) / f"{f.data.id}.npz"
         ckpt.parent.mkdir(parents=True, exist_ok=True)
     opts = dict(s.tmcmc_options or {})
     if s.max_evaluations is not None:
@@ -424,8 +499,9 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
     if needs_gradient(s.move):
         opts.setdefault("gradient_fim", lik.gradient_fim)
     collapsed_info = None
-    if collapsed is not None:  # sample φ only; the amplitudes are integrated, then drawn given φ
-        cf = fit_collapsed(collapsed, int(s.samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
+    s_tm = f.phase_seeds[1]
+    if f.collapsed is not None:  # sample φ only; the amplitudes are integrated, then drawn given φ
+        cf = fit_collapsed(f.collapsed, int(s.samples), seed=s_tm, checkpoint=ckpt, progress=progress, **opts)
         y, log_lik, n_evaluations = cf.samples, cf.log_likelihood, cf.n_evaluations
         # FitResult.tmcmc: the φ run's stages and evidence, with the completed full rows as samples
         tr = dataclasses.replace(cf.tmcmc, samples=y, log_likelihood=log_lik, chains=cf.chains)
@@ -436,46 +512,60 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
         y, log_lik, n_evaluations = tr.samples, tr.log_likelihood, tr.n_evaluations
         log_z, log_z_se = tr.log_evidence, tr.log_evidence_se
     timings["tmcmc"] = time.perf_counter() - t
+    return {"tr": tr, "y": y, "log_lik": log_lik, "n_evaluations": n_evaluations, "log_z": log_z,
+            "log_z_se": log_z_se, "collapsed_info": collapsed_info, "ckpt": ckpt}
 
-    phase("predictive")
+
+def _result(f: _Fit, post: dict, optima: list | None, config_extra: Mapping[str, Any] | None,
+            timings: dict) -> SpecimenResult:
+    """The posterior predictive and the result record (Sobol filled in by its phase)."""
+    s, lik, data, tr = f.s, f.lik, f.data, post["tr"]
+    s_opt, s_tm, s_pred, s_sob = f.phase_seeds
     t = time.perf_counter()
-    y = np.asarray(y, float)  # sampler (working) coordinates
+    y = np.asarray(post["y"], float)  # sampler (working) coordinates
     theta = lik.to_natural(y)  # what the user sees: natural units
     m = lik.predict(y)
     pll = pointwise_log_likelihood(lik, y, m)
     pred_model, pred = posterior_predictive(lik, y, s_pred, m)
     timings["predictive"] = time.perf_counter() - t
-
-    sob = None
-    if s.sobol_n:
-        phase("sobol")
-        t = time.perf_counter()
-        sbounds = s.bounds
-        if prior is not None:  # the Sobol input box is the prior's natural box
-            sbounds = {n: tuple(map(float, lik.natural_bounds[j])) for j, n in enumerate(lik.model_names)}
-        sob = run_sobol(model, data, n=int(s.sobol_n), seed=s_sob, fix=s.fix, bounds=sbounds)
-        timings["sobol"] = time.perf_counter() - t
-
     seed = s.seed
     stored = FitRecord(
-        settings=s.replace(prior=prior), seeds={"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
-        n_evaluations=int(n_evaluations), n_stages=len(tr.stages),
-        tier_used="full" if collapsed is None else "collapsed", tier_note=tier_note, source_file=data.source_file,
-        input=input_summary(data), collapsed=collapsed_info,
+        settings=s.replace(prior=f.prior), seeds={"cmaes": s_opt, "tmcmc": s_tm, "predictive": s_pred, "sobol": s_sob},
+        n_evaluations=int(post["n_evaluations"]), n_stages=len(tr.stages),
+        tier_used="full" if f.collapsed is None else "collapsed", tier_note=f.tier_note, source_file=data.source_file,
+        input=input_summary(data), collapsed=post["collapsed_info"],
         seed_spawn_key=tuple(map(int, seed.spawn_key)) if isinstance(seed, np.random.SeedSequence) else None,
         extra=dict(config_extra or {}))
-    res = SpecimenResult(
-        specimen_id=sid, names=list(lik.names), samples=theta, log_likelihood=np.asarray(log_lik, float),
-        log_evidence=float(log_z), log_evidence_se=float(log_z_se),
+    return SpecimenResult(
+        specimen_id=data.id, names=list(lik.names), samples=theta, log_likelihood=np.asarray(post["log_lik"], float),
+        log_evidence=float(post["log_z"]), log_evidence_se=float(post["log_z_se"]),
         bounds=np.asarray(lik.natural_bounds, float), stages=list(tr.stages), data=data,
-        pointwise_log_likelihood=pll, predictive=pred, predictive_model=pred_model, optima=optima, sobol=sob,
-        model=model.name, effects=list(model.effect_names), config=stored.to_attrs(),
-        base_model=_base_name(model),
+        pointwise_log_likelihood=pll, predictive=pred, predictive_model=pred_model, optima=optima, sobol=None,
+        model=f.model.name, effects=list(f.model.effect_names), config=stored.to_attrs(),
+        base_model=_base_name(f.model),
         seed=int(seed.entropy) if isinstance(seed, np.random.SeedSequence) else int(seed),
         fixed=dict(lik.fixed), version=__version__,
         prior={n: lik.prior[n].to_dict() for n in lik.names},
-        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(model, "parameters", ())},
+        parameter_info={q.name: (q.unit, q.meaning) for q in getattr(f.model, "parameters", ())},
         chains=tr.chains)
+
+
+def _sobol_phase(f: _Fit, timings: dict) -> dict | None:
+    """Sobol indices over the prior box (None when ``sobol_n`` is 0)."""
+    s, lik = f.s, f.lik
+    if not s.sobol_n:
+        return None
+    t = time.perf_counter()
+    sbounds = s.bounds
+    if f.prior is not None:  # the Sobol input box is the prior's natural box
+        sbounds = {n: tuple(map(float, lik.natural_bounds[j])) for j, n in enumerate(lik.model_names)}
+    sob = run_sobol(f.model, f.data, n=int(s.sobol_n), seed=f.phase_seeds[3], fix=s.fix, bounds=sbounds)
+    timings["sobol"] = time.perf_counter() - t
+    return sob
+
+
+def _finish(f: _Fit, res: SpecimenResult, post: dict, out, timings: dict, t_start: float) -> FitResult:
+    """Edge warnings; write the file (atomically) and retire the checkpoint."""
     res.at_bounds = at_bounds(res)
     path = None
     if out is not None:
@@ -483,7 +573,7 @@ def fit_specimen(data, *, model=None, settings: FitSettings | None = None,
         res.timings = dict(timings)
         path = write_specimen_result(res, out)
         timings["write"] = time.perf_counter() - t
-        retire_checkpoint(ckpt)
+        retire_checkpoint(post["ckpt"])
     timings["total"] = time.perf_counter() - t_start
     res.timings = dict(timings)
-    return FitResult(result=res, path=path, likelihood=lik, tmcmc=tr, timings=timings)
+    return FitResult(result=res, path=path, likelihood=f.lik, tmcmc=post["tr"], timings=timings)
