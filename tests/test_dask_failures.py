@@ -75,3 +75,16 @@ def test_a_worker_killed_three_times_fails_its_specimen_within_a_minute(tmp_path
     assert io.is_complete(tmp_path / "out" / "specimens" / "s2.nc")
     assert not (tmp_path / "out" / "specimens" / "s1.nc").exists()
     assert wall < 60, wall
+
+
+def test_background_priority_lowers_a_process_to_its_niceness_once():
+    """The workers that complete the specimens beside the layer run at BACKGROUND_NICENESS: raised once,
+    never lowered (a process already nicer stays as it is)."""
+    code = ("import os\nfrom hbm.runtime.parallel import BACKGROUND_NICENESS as n, background_priority as b\n"
+            "s = os.nice(0)\nb()\nb()\nprint(s, os.nice(0), n)")
+    for start in (0, 15):
+        p = subprocess.run(["nice", "-n", str(start), sys.executable, "-c", code], capture_output=True, text=True,
+                           env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
+        assert p.returncode == 0, p.stderr
+        before, after, n = map(int, p.stdout.split())
+        assert n == 10 and after == max(before, n)

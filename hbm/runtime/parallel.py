@@ -35,7 +35,7 @@ from ..samplers.checkpoint import checkpoint_progress
 from ..settings.rules import check_workers
 
 __all__ = ["ALLOWED_FAILURES", "NO_WORKER_TIMEOUT", "NO_WORKER_TIMEOUT_EXTERNAL",
-           "BLAS_ENV", "dask_client", "map_specimens", "MapResult", "spawn_specimen_seeds",
+           "BLAS_ENV", "dask_client", "map_specimens", "submit_specimens", "beside_this_process", "background_priority", "BACKGROUND_NICENESS", "PendingMap", "MapResult", "spawn_specimen_seeds",
            "checkpoint_status"]
 
 #: worker deaths the embedded cluster's scheduler allows a task before it fails it (KilledWorker):
@@ -153,6 +153,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
                                        env=dict(BLAS_ENV), preload=["hbm.runtime.dask_worker"])
                 client = Client(cluster)
             client.hbm_no_worker_timeout = NO_WORKER_TIMEOUT  # (read by map_specimens)
+            client.hbm_embedded = True  # its workers share this machine's cores (beside_this_process)
         yield client
     except BaseException:
         failed = True
@@ -163,6 +164,32 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, *,
                 client.close()
             if cluster is not None:
                 cluster.close()
+
+
+def beside_this_process(client) -> bool:
+    """Whether ``client``'s workers share this machine's cores with this process (the embedded cluster of
+    :func:`dask_client`; an external cluster's workers run elsewhere, as far as hbm knows)."""
+    return bool(getattr(client, "hbm_embedded", False))
+
+
+#: the niceness of work that runs beside a computation of the command's own process
+BACKGROUND_NICENESS = 10
+
+
+def background_priority() -> None:
+    """Lower this (worker) process's CPU priority to :data:`BACKGROUND_NICENESS`, once.
+
+    ``hbm run`` samples its population layer in its own process while the workers complete the specimens'
+    optima and Sobol indices: on two cores two busy workers and the layer would share the cores three ways
+    and the layer -- the run's longest part -- would take half again as long (66 s instead of 46 s for the
+    shipped six).  At a lower priority the workers use what the layer leaves.  Irreversible for the
+    process (an unprivileged process cannot raise its priority again): for workers of a cluster that lives
+    for one run only.
+    """
+    with contextlib.suppress(AttributeError, OSError):  # no os.nice (Windows) or not permitted
+        current = os.nice(0)
+        if current < BACKGROUND_NICENESS:
+            os.nice(BACKGROUND_NICENESS - current)
 
 
 def checkpoint_status(path: str | os.PathLike) -> str | None:
@@ -176,10 +203,12 @@ def checkpoint_status(path: str | os.PathLike) -> str | None:
 
 @dataclass
 class MapResult:
-    """Outcome of :func:`map_specimens`: paths of finished specimens, errors of failed ones."""
+    """Outcome of :func:`map_specimens`: paths of finished specimens (``values``: what each task returned,
+    for tasks that return something else than a path), errors of failed ones."""
 
     paths: dict[str, str] = field(default_factory=dict)
     errors: dict[str, str] = field(default_factory=dict)
+    values: dict[str, Any] = field(default_factory=dict)
     wall_time: float = 0.0
     task_times: dict[str, float] = field(default_factory=dict)
 
@@ -201,62 +230,94 @@ def _n_workers(client) -> int | None:
         return None
 
 
-def _run_on_cluster(client, func, items, seeds, kwargs, prefix, retries, res, bar, checkpoints, poll,
-                    no_worker_timeout) -> None:
-    """Submit every task, collect results; bounded deaths, bounded retries, bounded waits."""
-    if no_worker_timeout is None:
-        no_worker_timeout = getattr(client, "hbm_no_worker_timeout", NO_WORKER_TIMEOUT_EXTERNAL)
-    timeout = float(no_worker_timeout)
-    attempts = {sid: 0 for sid in items}
+class PendingMap:
+    """Specimen tasks submitted to a cluster and not yet collected (:func:`submit_specimens`).
 
-    def submit(sid):
-        key = f"{prefix}-{sid}" + (f"-retry{attempts[sid]}" if attempts[sid] else "")
-        return client.submit(_timed_call, func, items[sid], seeds[sid], kwargs, key=key, pure=False)
+    :meth:`wait` collects them as :func:`map_specimens` does (bounded deaths, bounded retries, bounded
+    waits); meanwhile this process is free (``hbm run`` samples the population layer here while the
+    specimens' optima and Sobol indices run on the workers).
+    """
 
-    futures = {submit(sid): sid for sid in sorted(items)}
-    pending = set(futures)
-    empty_since, last_check = None, 0.0
-    while pending:
-        for f in [f for f in pending if f.done()]:
-            pending.discard(f)
-            sid = futures.pop(f)
-            try:
-                path, dt = f.result()
-                res.paths[sid], res.task_times[sid] = str(path), dt
-            except OutputLockedError as exc:  # another process writes this specimen's file
-                res.errors[sid] = str(exc)
-            except OutputError:  # full disk, unwritable folder: every other task would fail too
-                raise
-            except Exception as exc:  # keep going: report the failure at the end
-                killed = type(exc).__name__ == "KilledWorker"
-                if not killed and not isinstance(exc, HbmError) and attempts[sid] < retries:
-                    attempts[sid] += 1
-                    g = submit(sid)
-                    futures[g] = sid
-                    pending.add(g)
-                    continue
-                res.errors[sid] = _task_error(exc)
+    def __init__(self, client, func, items, seeds, kwargs, prefix: str, retries: int) -> None:
+        self.client, self.func, self.items, self.seeds, self.kwargs = client, func, items, seeds, kwargs
+        self.prefix, self.retries = prefix, int(retries)
+        self.attempts = {sid: 0 for sid in items}
+        self.t0 = time.perf_counter()
+        self.futures = {self._submit(sid): sid for sid in sorted(items)}
+
+    def _submit(self, sid):
+        key = f"{self.prefix}-{sid}" + (f"-retry{self.attempts[sid]}" if self.attempts[sid] else "")
+        return self.client.submit(_timed_call, self.func, self.items[sid], self.seeds[sid], self.kwargs, key=key,
+                                  pure=False)
+
+    def wait(self, *, progress: bool = True, checkpoints: Mapping[str, str | os.PathLike] | None = None,
+             poll: float = 0.5, no_worker_timeout: float | None = None) -> MapResult:
+        """Collect every task (re-submitting failed ones within ``retries``) -> :class:`MapResult`."""
+        res = MapResult()
+        pending = set(self.futures)
+        bar = progress_bar(len(pending), self.prefix, unit="specimen") if progress and pending else None
+        try:
+            self._collect(res, pending, bar, checkpoints or {}, poll, no_worker_timeout)
+        finally:
             if bar is not None:
-                bar.update(1)
-        if bar is not None and checkpoints:
-            live = [f"{futures[f]}: {st}" for f in sorted(pending, key=lambda f: futures[f])
-                    if futures[f] in checkpoints and (st := checkpoint_status(checkpoints[futures[f]]))]
-            bar.set_postfix_str("; ".join(live)[:150], refresh=True)
-        now = time.monotonic()
-        if pending and now - last_check >= 2.0:  # a scheduler round trip: not at every poll
-            last_check = now
-            if _n_workers(client) == 0:
-                empty_since = empty_since or now
-                if now - empty_since > timeout:
-                    left = sorted(futures[f] for f in pending)
-                    failed = "".join(f"; {sid} failed: {msg}" for sid, msg in sorted(res.errors.items()))
-                    raise HbmError(f"the dask cluster has had no workers for {timeout:.0f} s; "
-                                   f"{len(left)} specimen(s) unfinished ({', '.join(left)}; their checkpoints are "
-                                   f"kept: rerun to resume){failed}")
-            else:
-                empty_since = None
-        if pending:
-            time.sleep(poll)
+                bar.close()
+        res.wall_time = time.perf_counter() - self.t0
+        return res
+
+    def _collect(self, res, pending, bar, checkpoints, poll, no_worker_timeout) -> None:
+        client, futures, attempts = self.client, self.futures, self.attempts
+        if no_worker_timeout is None:
+            no_worker_timeout = getattr(client, "hbm_no_worker_timeout", NO_WORKER_TIMEOUT_EXTERNAL)
+        timeout = float(no_worker_timeout)
+        empty_since, last_check = None, 0.0
+        while pending:
+            for f in [f for f in pending if f.done()]:
+                pending.discard(f)
+                sid = futures.pop(f)
+                try:
+                    value, dt = f.result()
+                    _store(res, sid, value, dt)
+                except OutputLockedError as exc:  # another process writes this specimen's file
+                    res.errors[sid] = str(exc)
+                except OutputError:  # full disk, unwritable folder: every other task would fail too
+                    raise
+                except Exception as exc:  # keep going: report the failure at the end
+                    killed = type(exc).__name__ == "KilledWorker"
+                    if not killed and not isinstance(exc, HbmError) and attempts[sid] < self.retries:
+                        attempts[sid] += 1
+                        g = self._submit(sid)
+                        futures[g] = sid
+                        pending.add(g)
+                        continue
+                    res.errors[sid] = _task_error(exc)
+                if bar is not None:
+                    bar.update(1)
+            if bar is not None and checkpoints:
+                live = [f"{futures[f]}: {st}" for f in sorted(pending, key=lambda f: futures[f])
+                        if futures[f] in checkpoints and (st := checkpoint_status(checkpoints[futures[f]]))]
+                bar.set_postfix_str("; ".join(live)[:150], refresh=True)
+            now = time.monotonic()
+            if pending and now - last_check >= 2.0:  # a scheduler round trip: not at every poll
+                last_check = now
+                if _n_workers(client) == 0:
+                    empty_since = empty_since or now
+                    if now - empty_since > timeout:
+                        left = sorted(futures[f] for f in pending)
+                        failed = "".join(f"; {sid} failed: {msg}" for sid, msg in sorted(res.errors.items()))
+                        raise HbmError(f"the dask cluster has had no workers for {timeout:.0f} s; "
+                                       f"{len(left)} specimen(s) unfinished ({', '.join(left)}; their checkpoints are "
+                                       f"kept: rerun to resume){failed}")
+                else:
+                    empty_since = None
+            if pending:
+                time.sleep(poll)
+
+
+def _store(res: MapResult, sid: str, value, dt: float) -> None:
+    """A finished task's value (its path, when it is one) and time."""
+    res.values[sid], res.task_times[sid] = value, dt
+    if isinstance(value, (str, os.PathLike)):
+        res.paths[sid] = str(value)
 
 
 def _timed_call(func, item, seed, kwargs):
@@ -307,10 +368,10 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
         When the cluster has had no worker for ``no_worker_timeout`` seconds.
     """
     kwargs = dict(kwargs or {})
-    seeds = spawn_specimen_seeds(seed, all_ids if all_ids is not None else items)
-    missing = set(items) - set(seeds)
-    if missing:
-        raise HbmError(f"map_specimens: ids {sorted(missing)} not in all_ids")
+    seeds = _seeds_for(seed, items, all_ids)
+    if client is not None:
+        return PendingMap(client, func, items, seeds, kwargs, prefix, retries).wait(
+            progress=progress, checkpoints=checkpoints, poll=poll, no_worker_timeout=no_worker_timeout)
     order = sorted(items)
     res = MapResult()
     t0 = time.perf_counter()
@@ -318,26 +379,37 @@ def map_specimens(func: Callable[..., str], items: Mapping[str, Any], *, seed: i
     if progress and order:
         bar = progress_bar(len(order), prefix, unit="specimen")
     try:
-        if client is None:
-            for sid in order:
-                if bar is not None:
-                    bar.set_postfix_str(f"running {sid}")
-                try:
-                    path, dt = _timed_call(func, items[sid], seeds[sid], kwargs)
-                    res.paths[sid], res.task_times[sid] = str(path), dt
-                except OutputLockedError as exc:  # another process writes this specimen's file
-                    res.errors[sid] = str(exc)
-                except OutputError:  # full disk, unwritable folder: every other task would fail too
-                    raise
-                except HbmError as exc:
-                    res.errors[sid] = str(exc)
-                if bar is not None:
-                    bar.update(1)
-        else:
-            _run_on_cluster(client, func, items, seeds, kwargs, prefix, int(retries), res, bar, checkpoints or {},
-                            poll, no_worker_timeout)
+        for sid in order:
+            if bar is not None:
+                bar.set_postfix_str(f"running {sid}")
+            try:
+                _store(res, sid, *_timed_call(func, items[sid], seeds[sid], kwargs))
+            except OutputLockedError as exc:  # another process writes this specimen's file
+                res.errors[sid] = str(exc)
+            except OutputError:  # full disk, unwritable folder: every other task would fail too
+                raise
+            except HbmError as exc:
+                res.errors[sid] = str(exc)
+            if bar is not None:
+                bar.update(1)
     finally:
         if bar is not None:
             bar.close()
     res.wall_time = time.perf_counter() - t0
     return res
+
+
+def submit_specimens(func: Callable[..., Any], items: Mapping[str, Any], *, seed: int, client,
+                     kwargs: Mapping[str, Any] | None = None, prefix: str = "fit", retries: int = 1,
+                     all_ids=None) -> PendingMap:
+    """Submit :func:`map_specimens`' tasks to ``client`` and return at once; ``wait()`` collects them."""
+    seeds = _seeds_for(seed, items, all_ids)
+    return PendingMap(client, func, items, seeds, dict(kwargs or {}), prefix, retries)
+
+
+def _seeds_for(seed: int, items, all_ids) -> dict:
+    seeds = spawn_specimen_seeds(seed, all_ids if all_ids is not None else items)
+    missing = set(items) - set(seeds)
+    if missing:
+        raise HbmError(f"map_specimens: ids {sorted(missing)} not in all_ids")
+    return seeds

@@ -40,10 +40,10 @@ from .._version import __version__
 from ..data import GROUP_KEY, load_specimens, specimen_groups
 from ..data.modes import check_along_fibre
 from ..errors import DataError
-from ..fit.specimen import fit_specimen
+from ..fit.specimen import complete_fit, fit_posterior, fit_specimen
 from ..model import spyrou_model
 from ..model.spec import sweep_parameter
-from ..runtime.parallel import dask_client, map_specimens, spawn_specimen_seeds
+from ..runtime.parallel import dask_client, map_specimens, background_priority, beside_this_process, spawn_specimen_seeds, submit_specimens
 from ..population import layer_rules, run_population, shards_on_workers
 from ..settings import DEFAULT_OUT, FitRecord, FitSettings, PopulationSettings, RunSettings
 from .report import write_report
@@ -215,8 +215,27 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
     t = time.perf_counter()
     errors: dict[str, str] = {}
     task_times: dict[str, float] = {}
-    if todo:
-        keys, parts = identities
+    keys, parts = identities
+    fig_dir = out / "figures"
+    # the layer needs the specimens' posteriors only: with the layer in this process, their optima, sweep,
+    # Sobol indices and figures run on the workers beside it (the TMCMC phase first, on every worker)
+    split = (bool(todo) and cl is not None and cfg.hierarchical and len(ids) >= 2
+             and not shards_on_workers(len(ids), cl))
+    pending = None
+    posteriors: dict[str, io.SpecimenResult] = {}
+    if todo and split:
+        mres = map_specimens(_posterior_one, {sid: (todo[sid], str(ckpts[sid]), keys[sid], parts[sid],
+                                                    fit_settings[sid]) for sid in todo},
+                             seed=cfg.seed, client=cl, kwargs={"model": model}, prefix="posterior",
+                             retries=cfg.retries, progress=cfg.progress, checkpoints={sid: ckpts[sid] for sid in todo},
+                             all_ids=ids)
+        errors, task_times, posteriors = dict(mres.errors), dict(mres.task_times), dict(mres.values)
+        pending = submit_specimens(
+            _complete_one, {sid: (posteriors[sid], todo[sid], str(paths[sid]), str(ckpts[sid]), keys[sid], parts[sid],
+                                  fit_settings[sid], str(fig_dir) if cfg.figures else None) for sid in sorted(posteriors)},
+            seed=cfg.seed, client=cl, kwargs={"model": model, "background": beside_this_process(cl)}, prefix="fit",
+            retries=cfg.retries, all_ids=ids)
+    elif todo:
         mres = map_specimens(_fit_one, {sid: (todo[sid], str(paths[sid]), str(ckpts[sid]), keys[sid], parts[sid],
                                               fit_settings[sid]) for sid in todo},
                              seed=cfg.seed, client=cl, kwargs={"model": model},
@@ -228,15 +247,14 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
         _log(f"specimen {sid} FAILED: {msg}", cfg.progress)
 
     results = {sid: io.read_specimen_result(paths[sid]) for sid in ids if io.is_complete(paths[sid])}
-    for phase in ("cmaes", "tmcmc", "predictive", "sobol"):
-        timings[f"{phase}_cpu"] = float(sum(r.timings.get(phase, 0.0) for r in results.values()))
+    # what the layer pools: finished results and, in a split run, the posteriors whose files are being completed
+    pooled = {sid: results.get(sid, posteriors.get(sid)) for sid in ids if sid in results or sid in posteriors}
     wres = WorkflowResult(config=cfg, out=out, specimen_paths={s: paths[s] for s in results},
                           results=results, skipped=skipped, errors=errors, timings=timings)
-    timings["task_times"] = task_times  # type: ignore[assignment]
 
     # ---- per-specimen figures run on the workers while the client does the hierarchical layer -- after it when
-    # the layer's shards run on those workers (they would share the cores: 96 specimens, 582 s against 415 s)
-    fig_dir = out / "figures"
+    # the layer's shards run on those workers (they would share the cores: 96 specimens, 582 s against 415 s);
+    # in a split run the specimens fitted now draw theirs in their completing task
     fig_futures: dict = {}
 
     def submit_figures() -> None:
@@ -245,18 +263,19 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
                                                key=f"figures-{sid}", pure=False, retries=cfg.retries)
                                 for sid in sorted(results)})
 
-    layer_on_workers = cfg.hierarchical and len(results) >= 2 and shards_on_workers(len(results), cl)
+    layer_on_workers = cfg.hierarchical and len(pooled) >= 2 and shards_on_workers(len(pooled), cl)
     if not layer_on_workers:
         submit_figures()
 
     # ---- hierarchical layer
-    if cfg.hierarchical and len(results) >= 2:
+    if cfg.hierarchical and len(pooled) >= 2:
         t = time.perf_counter()
         hpath = out / "hierarchical.nc"
-        # keyed over the specimen results it pools and its own settings: reused when none changed
-        pop_cfg = _with_groups(cfg.population_settings(), cfg, {sid: datasets[sid] for sid in results})
+        # keyed over the specimen results it pools (their content keys: a finished file stores its own) and its
+        # own settings: reused when none changed
+        pop_cfg = _with_groups(cfg.population_settings(), cfg, {sid: datasets[sid] for sid in pooled})
         hkey = identity.content_key({
-            "specimens": identity.settings_key({sid: _stored_hash(paths[sid]) for sid in sorted(results)}),
+            "specimens": identity.settings_key({sid: keys[sid] for sid in sorted(pooled)}),
             "population": identity.settings_key(pop_cfg.record()), "rules": layer_rules(),
             "model": identity.model_key(model), "version": __version__})
         stored = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
@@ -265,8 +284,10 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
             wres.hierarchical, wres.hierarchical_path = stored, hpath
             timings["hierarchical_reused"] = True   # the report must not present 0.2 s as the layer's cost
         else:
-            _log(f"hierarchical layer over {len(results)} specimens", cfg.progress)
-            wres.hierarchical, wres.hierarchical_path = run_population(results, datasets, model, config=pop_cfg,
+            _log(f"hierarchical layer over {len(pooled)} specimens"
+                 + (f" (their optima, sweep and Sobol indices beside it on the workers)" if pending is not None
+                    else ""), cfg.progress)
+            wres.hierarchical, wres.hierarchical_path = run_population(pooled, datasets, model, config=pop_cfg,
                                                                        out=out, client=cl)
             if wres.hierarchical is not None and wres.hierarchical.evaluations is not None:
                 timings["hierarchical_evaluations"] = int(wres.hierarchical.evaluations)  # type: ignore[assignment]
@@ -276,6 +297,31 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
         timings["hierarchical"] = time.perf_counter() - t
     if layer_on_workers:
         submit_figures()
+    split_figures: list[Path] = []
+    if pending is not None:
+        t = time.perf_counter()
+        _log("specimens: optima, sweep and Sobol indices", cfg.progress)
+        done = pending.wait(progress=cfg.progress)
+        timings["specimens_extras_wait"] = time.perf_counter() - t
+        timings["specimens_extras_beside_layer"] = True  # type: ignore[assignment]
+        for sid, msg in done.errors.items():
+            _log(f"specimen {sid} FAILED: {msg}" + (" (its posterior is in the population layer)"
+                                                    if wres.hierarchical is not None else ""), cfg.progress)
+        errors.update(done.errors)
+        for sid in sorted(done.values):
+            task_times[sid] = task_times.get(sid, 0.0) + done.task_times[sid]
+            value = done.values[sid]
+            split_figures += [Path(f) for f in value["figures"]]
+            if value["figure_error"]:
+                _log(f"figures of {sid} failed: {value['figure_error']}", True)
+        results.update({sid: io.read_specimen_result(paths[sid]) for sid in sorted(done.values)
+                        if io.is_complete(paths[sid])})
+        wres.results = dict(sorted(results.items()))
+        wres.specimen_paths = {s: paths[s] for s in wres.results}
+        results = wres.results
+    for phase in ("cmaes", "tmcmc", "predictive", "sobol"):
+        timings[f"{phase}_cpu"] = float(sum(r.timings.get(phase, 0.0) for r in results.values()))
+    timings["task_times"] = task_times  # type: ignore[assignment]
 
     # ---- identifiability and manifolds
     t = time.perf_counter()
@@ -293,7 +339,8 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
     if cfg.figures and results:
         t = time.perf_counter()
         _log("figures", cfg.progress)
-        if fig_futures:
+        wres.figures += split_figures
+        if fig_futures or pending is not None:
             for sid in sorted(fig_futures):
                 try:
                     wres.figures += [Path(p) for p in fig_futures[sid].result()]
@@ -334,3 +381,35 @@ def _fit_one(item, *, seed, model) -> str:
     data, out_path, ckpt, key, parts, settings = item
     return fit_task(data, out_path=out_path, checkpoint=ckpt, settings_hash=key, settings=settings, model=model,
                     identity_parts=parts)
+
+
+def _posterior_one(item, *, seed, model) -> io.SpecimenResult:
+    """map_specimens adapter of a split run's first task: item = (specimen, checkpoint, content key, its parts,
+    its settings) -> the posterior (:func:`hbm.fit.specimen.fit_posterior`; nothing written but the checkpoint)."""
+    single_thread_env()
+    data, ckpt, key, parts, settings = item
+    return fit_posterior(data, model=model, settings=settings, checkpoint_dir=Path(ckpt).parent,
+                         config_extra={"settings_hash": key, "identity": dict(parts or {})})
+
+
+def _complete_one(item, *, seed, model, background: bool = False) -> dict:
+    """map_specimens adapter of a split run's second task: the posterior's optima, sweep and Sobol indices,
+    written as the one result file (:func:`hbm.fit.specimen.complete_fit`), then its figures.  Returns
+    ``{"path", "figures", "figure_error"}`` (a figure must not sink the specimen).  ``background``: the
+    worker shares the machine with the layer, which gets the priority
+    (:func:`hbm.runtime.parallel.background_priority`)."""
+    single_thread_env()
+    if background:
+        background_priority()
+    posterior, data, out_path, ckpt, key, parts, settings, fig_dir = item
+    if not (io.is_complete(out_path) and _stored_hash(out_path) == key):
+        with file_lock(out_path, "specimen result"):  # the one writer rule (as fit_task)
+            complete_fit(posterior, data, model=model, settings=settings, checkpoint_dir=Path(ckpt).parent,
+                         out=out_path)
+    figures, error = [], None
+    if fig_dir is not None:
+        try:
+            figures = _figures_task(out_path, fig_dir, model)
+        except Exception as exc:  # noqa: BLE001 -- reported by the run, the result stands
+            error = f"{type(exc).__name__}: {exc}"
+    return {"path": out_path, "figures": figures, "figure_error": error}
