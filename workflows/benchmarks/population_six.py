@@ -128,8 +128,9 @@ def run(a) -> int:
                 rec = {"label": label, "repeat": rep, "wall_s": wall, "process_cpu_s": _child_cpu() - c0,
                        "load": os.getloadavg(), **{k: v for k, v in timings.items() if k != "task_times"},
                        **_diag(str(Path(tmp) / "hierarchical.nc"))}
-                if a.keep:  # the stage-1 results, for the ``layer`` subcommand
+                if a.keep:  # the stage-1 results, for the ``layer`` subcommand, and the layer's file
                     shutil.copytree(Path(tmp) / "specimens", Path(a.keep) / f"{label}{rep}", dirs_exist_ok=True)
+                    shutil.copy2(Path(tmp) / "hierarchical.nc", Path(a.keep) / f"{label}{rep}.hierarchical.nc")
             rows.append(rec)
             print(json.dumps(rec), flush=True)
     _save(a.record or "run", rows)
@@ -154,7 +155,8 @@ def main(argv=None) -> int:
         p.add_argument("--record", default=None, help="key of the record in population_six.json (default the "
                        "subcommand's name: it replaces that record)")
         p.add_argument("--geometry", default=None, help="e.g. data/geometry/fusiform.toml (run)")
-        p.add_argument("--keep", default=None, help="copy each run's specimens/ to KEEP/<label><repeat> (run)")
+        p.add_argument("--keep", default=None, help="copy each run's specimens/ to KEEP/<label><repeat> and its "
+                       "hierarchical.nc to KEEP/<label><repeat>.hierarchical.nc (run)")
     a = ap.parse_args(argv)
     return {"layer": layer, "run": run}[a.cmd](a)
 
