@@ -49,7 +49,7 @@ import numpy as np
 
 from ...errors import HbmError
 from ..linalg import safe_cholesky
-from .amplitudes import amplitudes_valid, conditional_draw, log_mean_exp, particles, pick, quadratic_loglik
+from .amplitudes import amplitudes_valid, conditional_draw, quadratic_loglik
 from ..convergence import rhat_ess
 from .model import HierarchicalModel
 from .shards import TARGET_ACCEPT, RoundInput, ShardState, partial_map, partial_weights
@@ -252,8 +252,8 @@ class _Master:
         # the amplitudes' features are updated in place when their columns are identity-transformed
         self.fast = features.diagonal and all(self.m.kinds[kp] == "identity" for kp in self.amp_pool if kp >= 0)
         ss = seed
-        self.rng_psi, self.rng_amp, self.rng_nc, self.rng_cm = (np.random.default_rng(
-            np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (j,))) for j in (1, 2, 3, 4))
+        self.rng_psi, self.rng_amp, self.rng_nc = (np.random.default_rng(
+            np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (j,))) for j in (1, 2, 3))
         self.psi_steps, self.pop_rounds = int(psi_steps), int(pop_rounds)
         # ψ's random walk starts from the chains' starting spread (adapted in burn-in)
         self.psi_L = np.diag(np.maximum(np.std(self.x, axis=0), 1e-3 * np.ptp(hyper.box, axis=1)))
@@ -267,12 +267,6 @@ class _Master:
         self.nc_other = [kp for kp in range(self.m.d) if kp not in list(self.amp_pool)
                          and len(hyper.nc_coords(kp)) == 2] if features.diagonal else []
         self.nc_scale = None
-        # one population, diagonal: each pooled amplitude column's (mu, sd) also moves with the specimens' amplitudes
-        # integrated out by their importance particles (:meth:`marginal_column`)
-        self.marginal_cols = self.nc_cols if self.n_groups_of(hyper) == 1 and features.diagonal else []
-        self.cm_step = 0.0
-        self._cm_turn = 0
-        self.window["cm"] = np.zeros(2)
         # one population without full covariance or fixed hyper-parameters and a log-uniform sd prior: its
         # columns move one by one (:meth:`psi_column_moves`)
         d = self.m.d
@@ -421,13 +415,13 @@ class _Master:
         self.x = raw[:, m.free].copy()
         self.set_population()
 
-    def _column_proposal(self, kp: int, step: float, rng=None):
+    def _column_proposal(self, kp: int, step: float):
         """A random walk of the x coordinates of pooled column kp's population (frozen scale × e^step):
         (x', inside the box, coef', cc', natural', prior correction'); outside the box x' = x."""
         C = self.x.shape[0]
         cols = self.h.nc_coords(kp)
         xp = self.x.copy()
-        xp[:, cols] += np.exp(step) * self.nc_scale[kp] * (rng or self.rng_nc).standard_normal((C, len(cols)))
+        xp[:, cols] += np.exp(step) * self.nc_scale[kp] * self.rng_nc.standard_normal((C, len(cols)))
         box = self.h.box
         inside = np.all((xp >= box[:, 0]) & (xp <= box[:, 1]), axis=1)
         xp = np.where(inside[:, None], xp, self.x)
@@ -470,46 +464,6 @@ class _Master:
         self._tally("non_centred", acc)
         if burning:
             self.window["nc"] += (acc.sum(), acc.size)
-
-    def marginal_column(self, j: int, kp: int, burning: bool) -> None:
-        """(mu, sd) of pooled amplitude column kp moved on the specimens' marginal likelihood: every specimen's
-        amplitudes integrated out by M importance particles at the proposed population and M − 1 beside its
-        current u at the current one; accepted with the ratio of their mean weights (times the columns'
-        normalisers, which the particles' weights leave out), the new u drawn ∝ weight.  The extended target
-        of the shards' evaluated moves (:mod:`.amplitudes`), so exact; as M grows it is a move of (mu, sd) on
-        their marginal posterior, which the funnel between the spread and the amplitudes does not slow."""
-        S, C = self.y.shape[:2]
-        n, k, M = S * C, self.k, self.n_particles
-        xp, inside, coef, cc, nat, corr = self._column_proposal(kp, self.cm_step, self.rng_cm)
-        mu, sd = self.amp_population(self.nat)
-        mup, sdp = self.amp_population(nat)
-        ll0, G, b = (q.reshape((n,) + q.shape[2:]) for q in self.quad)
-        u = self.y[..., self.amp].reshape(n, k)
-        U = self.rng_cm.random((n, 2 * M))
-        Z = self.rng_cm.standard_normal((n, 2 * M - 1, k + 4))
-        pooled = self.amp_pool >= 0
-        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-            parts, lw_new = particles(G, b, ll0, mup.reshape(n, k), sdp.reshape(n, k), pooled, self.lo, self.hi,
-                                      self.constraints, U[:, :M], Z[:, :M])
-            _, lw_cur = particles(G, b, ll0, mu.reshape(n, k), sd.reshape(n, k), pooled, self.lo, self.hi,
-                                  self.constraints, U[:, M - 1:2 * M - 1], Z[:, M - 1:], current=u)
-            norm = self.m.column_log_norm(self.m.expand(xp))[:, kp] - self.m.column_log_norm(self.m.expand(self.x))[:, kp]
-            logr = (np.sum((log_mean_exp(lw_new) - log_mean_exp(lw_cur)).reshape(S, C), axis=0) + S * norm
-                    + corr - self.corr)
-            acc = inside & np.isfinite(logr) & (np.log(self.rng_cm.random(C)) < logr)
-        pick_new = pick(lw_new, U[:, -1]).reshape(S, C)
-        unew = parts.reshape(S, C, M, k)[np.arange(S)[:, None], np.arange(C)[None, :], pick_new]
-        self.x[acc], self.corr[acc] = xp[acc], corr[acc]
-        self.coef[:, acc], self.cc[:, acc], self.nat[:, acc] = coef[:, acc], cc[:, acc], nat[:, acc]
-        yk = self.y[..., self.amp]
-        yk[:, acc] = unew[:, acc]
-        self.y[..., self.amp] = yk
-        self.ll = quadratic_loglik(self.y[..., self.amp], *self.quad)
-        self.F, self.c = self._set_amplitudes(self.y)
-        self.sums()
-        self._tally("marginal_column", acc)
-        if burning:
-            self.window["cm"] += (acc.sum(), acc.size)
 
     def propose_other(self, r: int) -> dict | None:
         """A non-centred proposal of the next nonlinear pooled column (cycling), for the shards to evaluate:
@@ -560,9 +514,6 @@ class _Master:
             if self.nc_cols:  # one pooled amplitude column per pop round, in turn
                 self.noncentred(*self.nc_cols[self._nc_turn % len(self.nc_cols)], burning)
                 self._nc_turn += 1
-            if self.marginal_cols and self.nc_scale is not None:
-                self.marginal_column(*self.marginal_cols[self._cm_turn % len(self.marginal_cols)], burning)
-                self._cm_turn += 1
         if burning:
             self.history.append(self.x.copy())
 
@@ -574,8 +525,6 @@ class _Master:
             self.nc_step += float(np.clip(w["nc"][0] / w["nc"][1] - TARGET_ACCEPT, -0.2, 0.2)) * 2.0
         if w["nco"][1]:
             self.nco_step += float(np.clip(w["nco"][0] / w["nco"][1] - TARGET_ACCEPT, -0.2, 0.2)) * 2.0
-        if w["cm"][1]:
-            self.cm_step += float(np.clip(w["cm"][0] / w["cm"][1] - TARGET_ACCEPT, -0.2, 0.2)) * 2.0
         hist = np.concatenate(self.history[-50:])
         nx = hist.shape[1]
         if hist.shape[0] > 4 * nx:
@@ -589,7 +538,7 @@ class _Master:
             self.col_step += np.clip(rate - TARGET_ACCEPT, -0.2, 0.2) * 2.0
             self.col_window[:] = 0
         self.scales()
-        for key in ("psi", "nc", "nco", "cm"):
+        for key in ("psi", "nc", "nco"):
             w[key][:] = 0
 
     def inputs(self, shards: Sequence[ShardSpec], burning: bool, r: int, refit: bool = False,

@@ -448,17 +448,6 @@ class HierarchicalModel:
         const -= 0.5 * d * _LOG2PI
         return np.concatenate([mu * prec, -0.5 * prec], axis=1), const
 
-    def column_log_norm(self, raw: np.ndarray) -> np.ndarray:
-        """log of the normalising factor of each independent column's population density, (n_ψ, d), in the
-        standardised transformed units of :meth:`features`: −log sd − log(its mass inside the box) − ½ log 2π
-        (the part of :meth:`column_terms`' constant that does not come from expanding the square)."""
-        raw = np.atleast_2d(raw)
-        d = self.d
-        mu = (raw[:, :d] - self.c) / self.s
-        sd = raw[:, d : 2 * d]
-        sdt = (np.exp(sd) if self.sd_prior == "loguniform" else sd) / self.s
-        return -np.log(sdt) - self._log_truncation(mu, sdt) - 0.5 * _LOG2PI
-
     def column_terms(self, raw: np.ndarray, SF: np.ndarray, n: int) -> np.ndarray:
         """Σ over ``n`` samples of log r split by pooled column, (n_ψ, d), for a population without full
         covariance: column k's coefficients times its two summed features ``SF`` (n_ψ, n_f) plus n times
