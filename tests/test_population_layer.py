@@ -132,7 +132,13 @@ def test_a_layer_short_of_the_targets_keeps_its_warning(capsys):
     for rhat, ess in ((1.02, 900.0), (1.005, 58.0)):
         msgs = _report(info(rhat, ess), ["x"], cfg)
         assert len(msgs) == 1 and "not converged: mu_x" in msgs[0] and "--hier-samples 1200" in msgs[0]
+        assert "--hier-extend 3" in msgs[0]  # chains that could not go on: how to let them
     assert "WARNING: population layer not converged" in capsys.readouterr().err
+    # chains that went on to their cap (300 of 100 planned): the planned draws doubled raise it, no --hier-extend
+    capped = {**info(1.02, 900.0), "n_keep": 300, "n_keep_planned": 100, "max_keep": 300}
+    msg = _report(capped, ["x"], cfg)[0]
+    assert "after extending its chains to 300 draws each" in msg and "--hier-samples 1200 doubles the planned" in msg
+    assert "--hier-extend" not in msg
 
 
 def test_a_population_spread_at_the_hyperprior_floor_is_reported(capsys):

@@ -298,9 +298,14 @@ def _report(info: dict, names_y, cfg: PopulationConfig) -> list[str]:
         what = ", ".join(f"{k} (R-hat {info['hyper'][k]['rhat']:.3f}, ESS {info['hyper'][k]['ess']:.0f})" for k in bad)
         if spec_bad:
             what += ("; " if what else "") + f"{info['rhat_specimen_worst']} (R-hat {info['rhat_specimen_max']:.3f})"
+        planned = info.get("n_keep_planned", info["n_keep"])
+        doubled = f"--hier-samples {2 * info['chains'] * planned} doubles the planned draws"
+        # chains that could not go on are told how to let them; chains that went on to the cap, how to raise it
+        advice = (f"{doubled} and with them the cap" if info.get("max_keep", planned) > planned else
+                  f"--hier-extend 3 lets them go on until converged (up to 3 x), or {doubled}")
         msg = (f"population layer not converged: {what}"
                + (f" after extending its chains to {info['n_keep']} draws each" if extended else "")
-               + f"; longer chains help (--hier-samples {2 * info['chains'] * info['n_keep']} doubles the kept draws)")
+               + f"; longer chains help: {advice}")
         _log(f"WARNING: {msg}", True)
         out = [msg]
     else:
