@@ -46,7 +46,6 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from scipy.special import gammaln
 
 from ...errors import HbmError
 from ..linalg import safe_cholesky
@@ -395,25 +394,18 @@ class _Master:
         box = self.h.box
         raw = m.expand(self.x)
         old = m.column_terms(raw, self.SF[0], S)
-        import os
-        mode = os.environ.get("HBM_PSI", "")
-        steps = self.psi_steps if not mode else int(mode.split(":")[1])
-        for step_i in range(steps):
-            if mode.startswith("conj") and step_i == 0:
-                rawp, lq_new, lq_old = self._conjugate_proposal(raw, S)
-            else:
-                lq_new = lq_old = 0.0
-                z = self.rng_psi.standard_normal((C, d, 2))
-                step = np.exp(self.col_step)[None, :, None] * np.einsum("kij,ckj->cki", self.col_L, z)
-                rawp = raw.copy()
-                rawp[:, :d] += step[..., 0]
-                rawp[:, d:2 * d] += step[..., 1]
+        for _ in range(self.psi_steps):
+            z = self.rng_psi.standard_normal((C, d, 2))
+            step = np.exp(self.col_step)[None, :, None] * np.einsum("kij,ckj->cki", self.col_L, z)
+            rawp = raw.copy()
+            rawp[:, :d] += step[..., 0]
+            rawp[:, d:2 * d] += step[..., 1]
             xp = rawp[:, m.free]
             inside = (xp >= box[:, 0]) & (xp <= box[:, 1])
             inside = inside[:, :d] & inside[:, d:2 * d]
             new = m.column_terms(rawp, self.SF[0], S)
             with np.errstate(invalid="ignore"):
-                acc = inside & np.isfinite(new) & (np.log(self.rng_psi.random((C, d))) < new - old - lq_new + lq_old)
+                acc = inside & np.isfinite(new) & (np.log(self.rng_psi.random((C, d))) < new - old)
             raw[:, :d] = np.where(acc, rawp[:, :d], raw[:, :d])
             raw[:, d:2 * d] = np.where(acc, rawp[:, d:2 * d], raw[:, d:2 * d])
             old = np.where(acc, new, old)
@@ -422,32 +414,6 @@ class _Master:
                 self.col_window += np.column_stack([acc.sum(axis=0), np.full(d, C)])
         self.x = raw[:, m.free].copy()
         self.set_population()
-
-    def _conjugate_proposal(self, raw: np.ndarray, S: int):
-        """Every column's (mu, log sd) drawn from its posterior given the specimens without the box's truncation
-        (mu flat, log sd flat: sd² scaled-inverse-χ² with S − 1 degrees of freedom, mu | sd normal), and the
-        log densities of that proposal at the proposed and the current point (an independence proposal: the
-        acceptance ratio leaves only the truncation and the box)."""
-        m, d = self.m, self.m.d
-        C = raw.shape[0]
-        SF = self.SF[0]
-        zbar = SF[:, :d] / S
-        ss = np.maximum(SF[:, d:2 * d] - S * zbar * zbar, 1e-300)
-        nu = S - 1
-        v = ss / self.rng_psi.chisquare(nu, (C, d))
-        mu_t = zbar + np.sqrt(v / S) * self.rng_psi.standard_normal((C, d))
-        rawp = raw.copy()
-        rawp[:, :d] = mu_t * m.s + m.c
-        rawp[:, d:2 * d] = 0.5 * np.log(v) + np.log(m.s)
-
-        def lq(r):  # in (mu_t, log sd_t); the sampler's coordinates differ by a constant shift and scale
-            mt = (r[:, :d] - m.c) / m.s
-            vv = np.exp(2.0 * (r[:, d:2 * d] - np.log(m.s)))
-            return (0.5 * nu * np.log(0.5 * ss) - gammaln(0.5 * nu) - 0.5 * nu * np.log(vv) - 0.5 * ss / vv + np.log(2.0)
-                    - 0.5 * np.log(2.0 * np.pi * vv / S) - 0.5 * S * (mt - zbar) ** 2 / vv)
-
-        with np.errstate(all="ignore"):
-            return rawp, lq(rawp), lq(raw)
 
     def _column_proposal(self, kp: int, step: float):
         """A random walk of the x coordinates of pooled column kp's population (frozen scale × e^step):
@@ -661,7 +627,7 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
     S = int(sum(len(s.index) for s in shards))
     ex = _Shards(shards, features, amp_pool, client, **dict(shard_options or {}))
     master = _Master(hyper, x0, features, valid, constraints, amp_cols, amp_pool, np.asarray(box, float), seed,
-                     psi_steps, int(__import__("os").environ.get("HBM_POPR", pop_rounds)), n_particles=int(dict(shard_options or {}).get("n_particles", 16)))
+                     psi_steps, pop_rounds, n_particles=int(dict(shard_options or {}).get("n_particles", 16)))
     dy = shards[0].rows[0].shape[1]
     y = np.zeros((S, C, dy))
     ll, F, c = np.zeros((S, C)), None, np.zeros((S, C))
