@@ -88,3 +88,46 @@ def test_background_priority_lowers_a_process_to_its_niceness_once():
         assert p.returncode == 0, p.stderr
         before, after, n = map(int, p.stdout.split())
         assert n == 10 and after == max(before, n)
+
+
+class _Done:
+    def __init__(self, value=None, exc=None):
+        self.value, self.exc = value, exc
+
+    def done(self):
+        return True
+
+    def result(self):
+        if self.exc is not None:
+            raise self.exc
+        return self.value
+
+
+class _ScriptedCluster:
+    """Tasks finish at once: each submission of a key takes the next scripted outcome of its specimen."""
+
+    def __init__(self, script):
+        self.script, self.keys = {k: list(v) for k, v in script.items()}, []
+
+    def submit(self, fn, func, item, seed, kwargs, key, pure):
+        self.keys.append(key)
+        outcome = self.script[item].pop(0)
+        return _Done(exc=outcome) if isinstance(outcome, BaseException) else _Done(value=(outcome, 0.5))
+
+    def scheduler_info(self):
+        return {"workers": {"w": {}}}
+
+
+def test_submitted_tasks_are_collected_with_their_values_retries_and_errors():
+    """submit_specimens returns at once; wait() keeps each task's value (a path goes to ``paths`` too), re-submits
+    a task that raised an ordinary error (within ``retries``) under a new key, and does not retry an HbmError."""
+    from hbm.runtime.parallel import submit_specimens
+
+    cluster = _ScriptedCluster({"a": [{"x": 1}], "b": [RuntimeError("flaky"), "b.nc"],
+                                "c": [HbmError("bad input")]})
+    pending = submit_specimens(_never, {"a": "a", "b": "b", "c": "c"}, seed=0, client=cluster, retries=1)
+    assert sorted(cluster.keys) == ["fit-a", "fit-b", "fit-c"]
+    res = pending.wait(progress=False, poll=0.0)
+    assert res.values == {"a": {"x": 1}, "b": "b.nc"} and res.paths == {"b": "b.nc"}
+    assert "fit-b-retry1" in cluster.keys and res.errors == {"c": "HbmError: bad input"}
+    assert res.task_times == {"a": 0.5, "b": 0.5}

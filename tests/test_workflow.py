@@ -236,3 +236,28 @@ def test_cli_run(data_dir, tmp_path, run_cli):
     assert "2 specimens fitted" in text and (out / "report.md").exists()
     assert "power of 2" in cli_error(run_cli, ["run", "--data", data_dir, "--sobol-n", "100"])
     assert "not a directory" in cli_error(run_cli, ["run", "--data", tmp_path / "nope", "--out", out])
+
+
+def test_a_specimen_completed_beside_the_layer_keeps_its_result_when_its_figures_fail(data_dir, tmp_path):
+    """The second task of a split fit writes the result (the one-task fit's file) and retires the checkpoint;
+    a figure that cannot be drawn is reported, not raised."""
+    from hbm.data import load_specimens
+    from hbm.fit.specimen import fit_posterior, fit_specimen
+    from hbm.settings import FitSettings
+    from hbm.workflow.run import _complete_one
+
+    spec = load_specimens(str(data_dir))["ratA"]
+    settings = FitSettings(samples=150, restarts=1, maxfevals=200, sweep=None, sobol_n=16,
+                           tmcmc_options={"max_steps": 6}, seed=3)
+    ckpt = tmp_path / "ck" / "ratA.npz"
+    post = fit_posterior(spec, settings=settings, checkpoint_dir=ckpt.parent)
+    assert post.optima is None and post.sobol is None and ckpt.exists()
+    blocked = tmp_path / "not_a_folder"
+    blocked.write_text("a file where the figures' folder should be")
+    out = tmp_path / "ratA.nc"
+    got = _complete_one((post, spec, str(out), str(ckpt), "key", {}, settings, str(blocked / "figures")),
+                        seed=None, model=None)
+    assert got["path"] == str(out) and got["figures"] == [] and got["figure_error"]
+    assert io.is_complete(out) and not ckpt.exists()
+    one = fit_specimen(spec, settings=settings, out=tmp_path / "one.nc", progress=False)
+    assert _fields_equal(io.read_specimen_result(out), io.read_specimen_result(one.path)) == []
