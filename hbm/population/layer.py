@@ -222,8 +222,7 @@ def sample_layer(cfg: PopulationConfig, results: Mapping, datasets: Mapping, mod
                         constraints=shards[0].batch.amplitude_constraints, amp_cols=amp, amp_pool=amp_pool,
                         box=coords.box, seed=root, n_burn=burn, n_keep=keep, thin=thin, client=client if use_dask else None,
                         log=(lambda m: _log(m, cfg.progress)), converged=converged,
-                        max_keep=int(math.floor(keep * float(cfg.layer_extend))),
-                        shard_options={"n_particles": int(__import__("os").environ.get("HBM_NP", 16))})
+                        max_keep=int(math.floor(keep * float(cfg.layer_extend))))
     cpu = time.process_time() - c0 + float(res.timings.get("shard_cpu", 0.0))  # + the workers' CPU
     x = res.x.reshape(-1, res.x.shape[-1])
     raw = hm.expand(x)
