@@ -261,3 +261,30 @@ def test_a_specimen_completed_beside_the_layer_keeps_its_result_when_its_figures
     assert io.is_complete(out) and not ckpt.exists()
     one = fit_specimen(spec, settings=settings, out=tmp_path / "one.nc", progress=False)
     assert _fields_equal(io.read_specimen_result(out), io.read_specimen_result(one.path)) == []
+
+
+def test_a_split_run_pools_the_new_posteriors_not_the_files_they_replace(first_run, data_dir, client, tmp_path,
+                                                                          monkeypatch):
+    """Changed settings refit every specimen; while the old files are still on disk the layer gets the new
+    posteriors (and is keyed by them): the samples it pooled are those of the files the run then writes."""
+    import shutil
+
+    import hbm.workflow.run as run_mod
+    from hbm.workflow import run_workflow
+
+    out = tmp_path / "changed_split"
+    shutil.copytree(first_run.out / "specimens", out / "specimens")
+    seen = {}
+    real = run_mod.run_population
+
+    def spy(results, *a, **k):
+        seen.update({sid: np.array(r.samples) for sid, r in results.items()})
+        return real(results, *a, **k)
+
+    monkeypatch.setattr(run_mod, "run_population", spy)
+    res = run_workflow(data=str(data_dir), out=str(out), client=client, figures=False, **{**TINY, "seed": 1})
+    assert res.timings.get("specimens_extras_beside_layer") is True and res.skipped == []
+    assert sorted(seen) == ["ratA", "ratB"]
+    for sid in TRUTHS:
+        np.testing.assert_array_equal(seen[sid], _samples(out, sid))
+        assert not np.array_equal(seen[sid], _samples(first_run.out, sid))

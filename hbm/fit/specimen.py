@@ -48,10 +48,11 @@ from .quality import (
     EDGE_MASS, EDGE_TOL, RIDGE_NOTE, _prior_line, at_bounds, chain_rhat, chains_line, edges, fit_quality,
     format_at_bounds, map_estimate, map_prediction, quality_lines, summarize, summary_table, tier_line)
 
-__all__ = ["FitResult", "fit_specimen", "fit_posterior", "complete_fit", "summarize", "summary_table", "pointwise_log_likelihood",
-           "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds", "map_estimate", "fit_quality",
-           "format_at_bounds", "map_prediction", "quality_lines", "tier_line", "EDGE_TOL", "EDGE_MASS",
-           "RIDGE_NOTE", "chain_rhat", "chains_line"]
+__all__ = ["FitResult", "fit_specimen", "fit_posterior", "complete_fit", "summarize", "summary_table",
+           "pointwise_log_likelihood", "posterior_predictive", "parse_sweep", "edges", "COMBINATIONS", "at_bounds",
+           "map_estimate", "fit_quality", "format_at_bounds", "map_prediction", "quality_lines", "tier_line",
+           "EDGE_TOL", "EDGE_MASS", "RIDGE_NOTE", "chain_rhat", "chains_line"]
+
 
 def parse_sweep(sweep: str | tuple | None) -> tuple[str, float] | None:
     """A sweep ``"NAME:WIDTH"`` or (name, width) as (name, width); None/"" for no sweep (the rule

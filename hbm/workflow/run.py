@@ -43,7 +43,8 @@ from ..errors import DataError
 from ..fit.specimen import complete_fit, fit_posterior, fit_specimen
 from ..model import spyrou_model
 from ..model.spec import sweep_parameter
-from ..runtime.parallel import dask_client, map_specimens, background_priority, beside_this_process, spawn_specimen_seeds, submit_specimens
+from ..runtime.parallel import (background_priority, beside_this_process, dask_client, map_specimens,
+                                spawn_specimen_seeds, submit_specimens)
 from ..population import layer_rules, run_population, shards_on_workers
 from ..settings import DEFAULT_OUT, FitRecord, FitSettings, PopulationSettings, RunSettings
 from .report import write_report
@@ -246,9 +247,12 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
     for sid, msg in errors.items():  # (hbm run ends with one 'hbm: error:' line naming them)
         _log(f"specimen {sid} FAILED: {msg}", cfg.progress)
 
-    results = {sid: io.read_specimen_result(paths[sid]) for sid in ids if io.is_complete(paths[sid])}
-    # what the layer pools: finished results and, in a split run, the posteriors whose files are being completed
-    pooled = {sid: results.get(sid, posteriors.get(sid)) for sid in ids if sid in results or sid in posteriors}
+    # in a split run a specimen being fitted has no result yet (an older file of it is being replaced)
+    results = {sid: io.read_specimen_result(paths[sid]) for sid in ids
+               if io.is_complete(paths[sid]) and not (pending is not None and sid in todo)}
+    # what the layer pools: the finished results and, in a split run, the new posteriors
+    pooled = {sid: posteriors[sid] if sid in posteriors else results[sid] for sid in ids
+              if sid in posteriors or sid in results}
     wres = WorkflowResult(config=cfg, out=out, specimen_paths={s: paths[s] for s in results},
                           results=results, skipped=skipped, errors=errors, timings=timings)
 
@@ -271,11 +275,11 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
     if cfg.hierarchical and len(pooled) >= 2:
         t = time.perf_counter()
         hpath = out / "hierarchical.nc"
-        # keyed over the specimen results it pools (their content keys: a finished file stores its own) and its
-        # own settings: reused when none changed
+        # keyed over the specimen results it pools (the content key each carries) and its own settings: reused
+        # when none changed
         pop_cfg = _with_groups(cfg.population_settings(), cfg, {sid: datasets[sid] for sid in pooled})
         hkey = identity.content_key({
-            "specimens": identity.settings_key({sid: keys[sid] for sid in sorted(pooled)}),
+            "specimens": identity.settings_key({sid: _fit_key(pooled[sid]) for sid in sorted(pooled)}),
             "population": identity.settings_key(pop_cfg.record()), "rules": layer_rules(),
             "model": identity.model_key(model), "version": __version__})
         stored = io.read_hierarchical(hpath) if io.is_complete(hpath) else None
@@ -285,7 +289,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
             timings["hierarchical_reused"] = True   # the report must not present 0.2 s as the layer's cost
         else:
             _log(f"hierarchical layer over {len(pooled)} specimens"
-                 + (f" (their optima, sweep and Sobol indices beside it on the workers)" if pending is not None
+                 + (" (their optima, sweep and Sobol indices beside it on the workers)" if pending is not None
                     else ""), cfg.progress)
             wres.hierarchical, wres.hierarchical_path = run_population(pooled, datasets, model, config=pop_cfg,
                                                                        out=out, client=cl)
@@ -300,25 +304,12 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
     split_figures: list[Path] = []
     if pending is not None:
         t = time.perf_counter()
-        _log("specimens: optima, sweep and Sobol indices", cfg.progress)
-        done = pending.wait(progress=cfg.progress)
+        split_figures = _complete_beside_layer(pending, cfg, errors, task_times, pooled_layer=wres.hierarchical)
         timings["specimens_extras_wait"] = time.perf_counter() - t
         timings["specimens_extras_beside_layer"] = True  # type: ignore[assignment]
-        for sid, msg in done.errors.items():
-            _log(f"specimen {sid} FAILED: {msg}" + (" (its posterior is in the population layer)"
-                                                    if wres.hierarchical is not None else ""), cfg.progress)
-        errors.update(done.errors)
-        for sid in sorted(done.values):
-            task_times[sid] = task_times.get(sid, 0.0) + done.task_times[sid]
-            value = done.values[sid]
-            split_figures += [Path(f) for f in value["figures"]]
-            if value["figure_error"]:
-                _log(f"figures of {sid} failed: {value['figure_error']}", True)
-        results.update({sid: io.read_specimen_result(paths[sid]) for sid in sorted(done.values)
-                        if io.is_complete(paths[sid])})
-        wres.results = dict(sorted(results.items()))
-        wres.specimen_paths = {s: paths[s] for s in wres.results}
-        results = wres.results
+        # the run's results as an unsplit run defines them: every complete file
+        results = {sid: io.read_specimen_result(paths[sid]) for sid in ids if io.is_complete(paths[sid])}
+        wres.results, wres.specimen_paths = results, {s: paths[s] for s in results}
     for phase in ("cmaes", "tmcmc", "predictive", "sobol"):
         timings[f"{phase}_cpu"] = float(sum(r.timings.get(phase, 0.0) for r in results.values()))
     timings["task_times"] = task_times  # type: ignore[assignment]
@@ -381,6 +372,28 @@ def _fit_one(item, *, seed, model) -> str:
     data, out_path, ckpt, key, parts, settings = item
     return fit_task(data, out_path=out_path, checkpoint=ckpt, settings_hash=key, settings=settings, model=model,
                     identity_parts=parts)
+
+
+def _complete_beside_layer(pending, cfg, errors: dict, task_times: dict, pooled_layer) -> list[Path]:
+    """Wait for a split run's completing tasks: their errors and times join the run's; returns their figures."""
+    _log("specimens: optima, sweep and Sobol indices", cfg.progress)
+    done = pending.wait(progress=cfg.progress)
+    for sid, msg in done.errors.items():
+        _log(f"specimen {sid} FAILED: {msg}" + (" (its posterior is in the population layer)"
+                                                if pooled_layer is not None else ""), cfg.progress)
+    errors.update(done.errors)
+    figures: list[Path] = []
+    for sid in sorted(done.values):
+        task_times[sid] = task_times.get(sid, 0.0) + done.task_times[sid]
+        figures += [Path(f) for f in done.values[sid]["figures"]]
+        if done.values[sid]["figure_error"]:
+            _log(f"figures of {sid} failed: {done.values[sid]['figure_error']}", True)
+    return figures
+
+
+def _fit_key(result: io.SpecimenResult) -> str | None:
+    """The content key a specimen result was computed under (stored with it; None for older files)."""
+    return FitRecord.from_attrs(result.config).settings_hash
 
 
 def _posterior_one(item, *, seed, model) -> io.SpecimenResult:
