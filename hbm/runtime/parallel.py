@@ -35,7 +35,8 @@ from ..samplers.checkpoint import checkpoint_progress
 from ..settings.rules import check_workers
 
 __all__ = ["ALLOWED_FAILURES", "NO_WORKER_TIMEOUT", "NO_WORKER_TIMEOUT_EXTERNAL",
-           "BLAS_ENV", "dask_client", "map_specimens", "submit_specimens", "beside_this_process", "background_priority", "BACKGROUND_NICENESS", "PendingMap", "MapResult", "spawn_specimen_seeds",
+           "BLAS_ENV", "dask_client", "map_specimens", "submit_specimens", "PendingMap", "MapResult",
+           "beside_this_process", "background_priority", "BACKGROUND_NICENESS", "spawn_specimen_seeds",
            "checkpoint_status"]
 
 #: worker deaths the embedded cluster's scheduler allows a task before it fails it (KilledWorker):
@@ -177,14 +178,15 @@ BACKGROUND_NICENESS = 10
 
 
 def background_priority() -> None:
-    """Lower this (worker) process's CPU priority to :data:`BACKGROUND_NICENESS`, once.
+    """Lower the CPU priority of the calling worker thread (Linux; the process elsewhere) to
+    :data:`BACKGROUND_NICENESS`, once.
 
     ``hbm run`` samples its population layer in its own process while the workers complete the specimens'
     optima and Sobol indices: on two cores two busy workers and the layer would share the cores three ways
     and the layer -- the run's longest part -- would take half again as long (66 s instead of 46 s for the
-    shipped six).  At a lower priority the workers use what the layer leaves.  Irreversible for the
-    process (an unprivileged process cannot raise its priority again): for workers of a cluster that lives
-    for one run only.
+    shipped six).  At a lower priority the workers use what the layer leaves.  Irreversible (an unprivileged
+    process cannot raise a priority again), so for the task thread of a worker of a cluster that lives for one
+    run only; the worker's communication stays at its priority.
     """
     with contextlib.suppress(AttributeError, OSError):  # no os.nice (Windows) or not permitted
         current = os.nice(0)

@@ -5,7 +5,11 @@ Phases
 1. **Specimens** (parallel, one dask task each, :func:`hbm.fit.fit_specimen`): CMA-ES optima with
    a VOLF bound sweep (the manifold), TMCMC posterior with evidence, posterior predictive, Sobol.
    Results go to ``<out>/specimens/<id>.nc``; a re-run skips complete files made with the same
-   settings and resumes interrupted ones from ``<out>/checkpoints/``.
+   settings and resumes interrupted ones from ``<out>/checkpoints/``.  When the population layer runs in
+   this process (it needs the posteriors only), each fit is two tasks: the TMCMC posterior first
+   (:func:`hbm.fit.specimen.fit_posterior`), then, beside the layer and at a lower priority on the embedded
+   cluster, the optima, sweep, Sobol indices, file and figures (:func:`hbm.fit.specimen.complete_fit`; the
+   same file).
 2. **Population layer** (:func:`hbm.population.run_population`, the hierarchical model over the
    fitted specimens, reusing the stage-1 samples) -> ``<out>/hierarchical.nc``.  ``hier_pooled``:
    "combinations" (the default for the base model: a population over what a uniaxial curve
