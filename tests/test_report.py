@@ -115,6 +115,13 @@ def test_timings_rows(wres, tmp_path):
     assert "| TMCMC (sum over specimens, in tasks, as stored) | 3.21 |" in lines
     assert "| hierarchical layer | 31.7 |" in lines
     assert "| figures | – |" in lines  # not timed
+    assert not any("beside the layer" in line for line in lines)
+    # a split run: the parallel phase is the posteriors; the completing tasks' tail after the layer has its row
+    wres.timings.update({"specimens_extras_beside_layer": True, "specimens_extras_wait": 7.25})
+    lines = report._timings(wres, tmp_path).splitlines()
+    assert ("| specimen posteriors (parallel phase, wall; optima, sweep and Sobol beside the layer); 1 of 2 reused "
+            "from an earlier run | 12.3 |") in lines
+    assert "| specimens' optima, sweep and Sobol: waited for after the layer (wall) | 7.25 |" in lines
 
 
 def test_specimen_section_numbers(wres, tmp_path):

@@ -194,8 +194,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(res.results)} specimens fitted ({len(res.skipped)} reused), "
           f"{len(res.errors)} failed; report: {res.report_path}")
     t = res.timings
-    print("time: " + ", ".join(f"{k} {t[k]:.1f} s" for k in ("specimens_wall", "hierarchical", "figures", "organ",
-                                                              "total") if k in t))
+    # a split run's specimens_wall is its posteriors; the rest of the fits ran beside the layer, then their tail
+    print("time: " + ", ".join(f"{k} {t[k]:.1f} s" for k in ("specimens_wall", "hierarchical", "specimens_extras_wait",
+                                                              "figures", "organ", "total") if k in t)
+          + ("; the fits' optima, sweep and Sobol ran beside the layer" if t.get("specimens_extras_beside_layer")
+             else ""))
     for hook in hooks:
         pred = getattr(hook, "prediction", None)
         if pred is None:

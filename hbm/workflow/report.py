@@ -82,7 +82,10 @@ def _timings(wres, base: Path) -> str:
     """## Timings: wall time of each phase, CPU sums over the specimen tasks."""
     t = wres.timings
     reused = list(getattr(wres, "skipped", []) or [])
-    fit_label = "specimen fits (parallel phase, wall)"
+    split = bool(t.get("specimens_extras_beside_layer"))
+    # a split run's parallel phase is the posteriors only: the optima, sweep and Sobol ran beside the layer
+    fit_label = ("specimen posteriors (parallel phase, wall; optima, sweep and Sobol beside the layer)" if split
+                 else "specimen fits (parallel phase, wall)")
     if reused:  # a resumed/re-run workflow: the fits' own times come from their stored results
         fit_label += f"; {len(reused)} of {len(wres.results)} reused from an earlier run"
     trow = [(fit_label, t.get("specimens_wall"))]
@@ -92,6 +95,9 @@ def _timings(wres, base: Path) -> str:
     hier_label = "hierarchical layer" + ("; reused from an earlier run (unchanged specimens and settings)"
                                          if t.get("hierarchical_reused") else "")
     trow += [(hier_label, t.get("hierarchical"))]
+    if split:
+        trow.append(("specimens' optima, sweep and Sobol: waited for after the layer (wall)",
+                     t.get("specimens_extras_wait")))
     if t.get("hierarchical_evaluations") is not None:
         trow.append(("hierarchical layer: model evaluations (count, not seconds)", t["hierarchical_evaluations"]))
     trow += [("identifiability + manifolds", t.get("identify")),
