@@ -122,6 +122,9 @@ def test_timings_rows(wres, tmp_path):
     assert ("| specimen posteriors (parallel phase, wall; optima, sweep and Sobol beside the layer); 1 of 2 reused "
             "from an earlier run | 12.3 |") in lines
     assert "| specimens' optima, sweep and Sobol: waited for after the layer (wall) | 7.25 |" in lines
+    assert "| TMCMC (sum over specimens, in tasks, as stored) | 3.21 |" in lines
+    assert any(line.startswith("| CMA-ES (sum over specimens, in tasks, as stored; beside the layer, stretched by it)")
+               for line in lines)
 
 
 def test_specimen_section_numbers(wres, tmp_path):

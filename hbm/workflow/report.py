@@ -91,7 +91,10 @@ def _timings(wres, base: Path) -> str:
     trow = [(fit_label, t.get("specimens_wall"))]
     for ph, lab in (("cmaes", "CMA-ES"), ("tmcmc", "TMCMC"), ("predictive", "posterior predictive"),
                     ("sobol", "Sobol")):
-        trow.append((f"{lab} (sum over specimens, in tasks{', as stored' if reused else ''})", t.get(f"{ph}_cpu")))
+        # beside the layer at a lower priority these tasks' times are stretched by the layer's use of the cores
+        beside = "; beside the layer, stretched by it" if split and ph in ("cmaes", "sobol") else ""
+        trow.append((f"{lab} (sum over specimens, in tasks{', as stored' if reused else ''}{beside})",
+                     t.get(f"{ph}_cpu")))
     hier_label = "hierarchical layer" + ("; reused from an earlier run (unchanged specimens and settings)"
                                          if t.get("hierarchical_reused") else "")
     trow += [(hier_label, t.get("hierarchical"))]
