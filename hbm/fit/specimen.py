@@ -409,7 +409,8 @@ def fit_posterior(data, *, model=None, settings: FitSettings | None = None,
 
     What a population layer needs of a specimen, early: ``hbm run`` starts its layer on these while the
     optima and Sobol indices (:func:`complete_fit`) run beside it.  Nothing is written but the TMCMC
-    checkpoint; the result is the one :func:`fit_specimen` stores with ``optima`` and ``sobol`` None.
+    checkpoint; the result is the one :func:`fit_specimen` stores with ``optima`` and ``sobol`` None and no
+    edge warnings yet (``at_bounds``: they read the optima).
     Arguments as :func:`fit_specimen`'s.
     """
     f = _prepare_fit(data, model, settings, {})

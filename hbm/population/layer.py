@@ -149,8 +149,9 @@ def converged(rhat: Mapping[str, float], ess: Mapping[str, float]) -> bool:
     """Whether the joint sampler's diagnostics meet the layer's targets: every hyper-parameter (``hyper:``
     keys) R-hat <= :data:`RHAT_TARGET` and bulk ESS >= :data:`ESS_TARGET`, every specimen column R-hat <=
     :data:`RHAT_SPECIMEN` (a NaN -- a constant column -- does not count against)."""
-    hyper = {k: (r, ess[k]) for k, r in rhat.items() if k.startswith("hyper:")}
-    return not any(_short(hyper, [r for k, r in rhat.items() if not k.startswith("hyper:")]))
+    bad, specimen_bad = _short({k: (r, ess[k]) for k, r in rhat.items() if k.startswith("hyper:")},
+                               [r for k, r in rhat.items() if not k.startswith("hyper:")])
+    return not bad and not specimen_bad
 
 
 def _short(hyper: Mapping[str, tuple[float, float]], specimen_rhat) -> tuple[list[str], bool]:

@@ -72,15 +72,21 @@ def fit_task(data, *, out_path: str, checkpoint: str, settings_hash: str, settin
     that is already complete with the same key is returned untouched (idempotent).
     """
     single_thread_env()
-    if io.is_complete(out_path) and _stored_hash(out_path) == settings_hash:
-        return out_path
-    ck = Path(checkpoint)
-    # the one writer rule: a concurrent 'hbm fit --out' of this file makes this specimen fail, not both
-    with file_lock(out_path, "specimen result"):
-        # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
-        fit_specimen(data, model=model, settings=settings, out=out_path, checkpoint_dir=ck.parent, progress=False,
-                     config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})})
+    # the checkpoint folder carries the settings hash; fit_specimen names the file <dir>/<id>.npz
+    _write_once(out_path, settings_hash, lambda: fit_specimen(
+        data, model=model, settings=settings, out=out_path, checkpoint_dir=Path(checkpoint).parent, progress=False,
+        config_extra={"settings_hash": settings_hash, "identity": dict(identity_parts or {})}))
     return out_path
+
+
+def _write_once(out_path: str, key: str, write: Callable[[], Any]) -> None:
+    """Run ``write`` (which writes ``out_path``) unless the file is complete with content key ``key`` (a task
+    is idempotent), under the one writer rule: a concurrent 'hbm fit --out' of this file makes this specimen
+    fail, not both."""
+    if io.is_complete(out_path) and _stored_hash(out_path) == key:
+        return
+    with file_lock(out_path, "specimen result"):
+        write()
 
 
 def _drop_checkpoint(ckpt: Path) -> None:
@@ -335,7 +341,7 @@ def _phases(cfg, cl, datasets, ids, todo, skipped, paths, ckpts, identities, fit
         t = time.perf_counter()
         _log("figures", cfg.progress)
         wres.figures += split_figures
-        if fig_futures or pending is not None:
+        if cl is not None:  # drawn by tasks: submit_figures' and, in a split run, the completing ones
             for sid in sorted(fig_futures):
                 try:
                     wres.figures += [Path(p) for p in fig_futures[sid].result()]
@@ -419,10 +425,8 @@ def _complete_one(item, *, seed, model, background: bool = False) -> dict:
     if background:
         background_priority()
     posterior, data, out_path, ckpt, key, parts, settings, fig_dir = item
-    if not (io.is_complete(out_path) and _stored_hash(out_path) == key):
-        with file_lock(out_path, "specimen result"):  # the one writer rule (as fit_task)
-            complete_fit(posterior, data, model=model, settings=settings, checkpoint_dir=Path(ckpt).parent,
-                         out=out_path)
+    _write_once(out_path, key, lambda: complete_fit(posterior, data, model=model, settings=settings,
+                                                    checkpoint_dir=Path(ckpt).parent, out=out_path))
     figures, error = [], None
     if fig_dir is not None:
         try:

@@ -705,10 +705,9 @@ def batched_gibbs(hyper: HyperLevel, shards: Sequence[ShardSpec], x0: np.ndarray
             rhat, ess = _diagnostics(hyper.names, kept_x, kept_y)
             hyper_r = [v for key, v in rhat.items() if key.startswith("hyper:")]
             hyper_e = [v for key, v in ess.items() if key.startswith("hyper:")]
-            spec_r = [v for key, v in rhat.items() if not key.startswith("hyper:")] or [np.nan]
-            with np.errstate(invalid="ignore"):
-                checks.append((n_keep, float(np.nanmax(hyper_r)), float(np.nanmin(hyper_e)),
-                               float(np.nanmax(spec_r)) if np.isfinite(spec_r).any() else float("nan")))
+            spec_r = [v for key, v in rhat.items() if not key.startswith("hyper:") and np.isfinite(v)]
+            checks.append((n_keep, float(np.nanmax(hyper_r)), float(np.nanmin(hyper_e)),
+                           max(spec_r, default=float("nan"))))
             if n_keep < max_keep and not converged(rhat, ess):
                 add = min(max(n_keep0 // 2, 1), max_keep - n_keep)
                 if log is not None:
